@@ -1,0 +1,34 @@
+# Two commands set everything up on a fresh machine: `make demo` and `make test`.
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+# The CPU build of torch; override (e.g. TORCH_SPEC=torch) on a CUDA machine.
+TORCH_SPEC ?= torch==2.13.0
+STAMP  := $(VENV)/.installed
+
+.PHONY: setup test test-all demo bench clean
+
+$(STAMP): pyproject.toml Makefile tools/ensure_llvm.sh
+	@tools/ensure_llvm.sh >/dev/null
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q "$(TORCH_SPEC)"
+	$(PY) -m pip install -q -e ".[test,bench]"
+	@touch $(STAMP)
+
+setup: $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -m "not slow" -q
+
+test-all: $(STAMP)
+	$(PY) -m pytest -q
+
+demo: $(STAMP)
+	$(PY) -m gdpt.cli demo --out out/demo
+
+bench: $(STAMP)
+	$(PY) benchmarks/poisson.py
+
+clean:
+	rm -rf $(VENV) out .pytest_cache

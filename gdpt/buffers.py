@@ -1,0 +1,143 @@
+"""The one buffer format every part of gdpt shares.
+
+A :class:`GradientBuffers` holds what a gradient-domain render produces: the primal image, its
+forward-difference gradients and the feature buffers the neural reconstruction reads. All images
+are ``torch.float32`` tensors in HWC layout on one device (the CPU for ``llvm_*`` variants, the
+CUDA device for ``cuda_*`` variants).
+
+Gradient convention (shared with the integrators and the Poisson solvers)::
+
+    dx[y, x] = I[y, x + 1] - I[y, x]      (last column unused, stored as 0)
+    dy[y, x] = I[y + 1, x] - I[y, x]      (last row unused, stored as 0; y grows downward)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+#: Buffer name -> number of channels. Order is the on-disk and network-input order.
+CHANNELS: dict[str, int] = {
+    "primal": 3,
+    "dx": 3,
+    "dy": 3,
+    "albedo": 3,
+    "normal": 3,
+    "depth": 1,
+    "var_primal": 1,
+    "var_dx": 1,
+    "var_dy": 1,
+}
+
+#: Buffers every GradientBuffers has; the rest are optional.
+REQUIRED = ("primal",)
+
+
+@dataclass
+class GradientBuffers:
+    """Primal, gradients, features and metadata of one render.
+
+    Attributes:
+        primal: ``(H, W, 3)`` float32 radiance estimate (base-path MIS estimate).
+        dx: ``(H, W, 3)`` float32 horizontal forward-difference estimate, or ``None``
+            (plain path tracing).
+        dy: ``(H, W, 3)`` float32 vertical forward-difference estimate, or ``None``.
+        albedo: ``(H, W, 3)`` float32 albedo at the first rough vertex, or ``None``.
+        normal: ``(H, W, 3)`` float32 camera-space shading normal facing the camera, or ``None``.
+        depth: ``(H, W, 1)`` float32 distance along the camera path to the first rough vertex,
+            or ``None``.
+        var_primal, var_dx, var_dy: ``(H, W, 1)`` float32 variance of the per-pixel mean
+            (luminance-averaged over channels), or ``None``.
+        spp: samples per pixel behind the estimate.
+        metadata: free-form JSON-serialisable render information (integrator, seed, timings...).
+    """
+
+    primal: torch.Tensor
+    dx: torch.Tensor | None = None
+    dy: torch.Tensor | None = None
+    albedo: torch.Tensor | None = None
+    normal: torch.Tensor | None = None
+    depth: torch.Tensor | None = None
+    var_primal: torch.Tensor | None = None
+    var_dx: torch.Tensor | None = None
+    var_dy: torch.Tensor | None = None
+    spp: int = 0
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def height(self) -> int:
+        return int(self.primal.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.primal.shape[1])
+
+    @property
+    def device(self) -> torch.device:
+        return self.primal.device
+
+    @property
+    def has_gradients(self) -> bool:
+        return self.dx is not None and self.dy is not None
+
+    def present(self) -> list[str]:
+        """Names of the buffers that are set, in :data:`CHANNELS` order."""
+        return [name for name in CHANNELS if getattr(self, name) is not None]
+
+    def items(self) -> list[tuple[str, torch.Tensor]]:
+        """``(name, tensor)`` pairs of the buffers that are set, in :data:`CHANNELS` order."""
+        return [(name, getattr(self, name)) for name in self.present()]
+
+    def nonfinite_counts(self) -> dict[str, int]:
+        """Number of NaN/Inf values per present buffer."""
+        return {n: int((~torch.isfinite(t)).sum()) for n, t in self.items()}
+
+    # ------------------------------------------------------------------ conversions
+    def to(self, device: torch.device | str) -> GradientBuffers:
+        """A copy with every buffer on ``device``."""
+        moved = {n: t.to(device) for n, t in self.items()}
+        return dataclasses.replace(self, **moved)
+
+    def replace(self, **changes: Any) -> GradientBuffers:
+        """A copy with some fields replaced (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    # ------------------------------------------------------------------ validation
+    def validate(self) -> None:
+        """Check shapes, dtypes and devices.
+
+        Raises:
+            TypeError: a buffer is not a float32 torch tensor.
+            ValueError: a buffer has the wrong rank, channel count, size or device.
+        """
+        h = w = None
+        device = None
+        for name, t in self.items():
+            if not isinstance(t, torch.Tensor):
+                raise TypeError(f"buffer '{name}' must be a torch.Tensor, got {type(t).__name__}")
+            if t.dtype != torch.float32:
+                raise TypeError(f"buffer '{name}' must be float32, got {t.dtype}")
+            c = CHANNELS[name]
+            if t.dim() != 3 or t.shape[2] != c:
+                raise ValueError(
+                    f"buffer '{name}' must have shape (H, W, {c}), got {tuple(t.shape)}"
+                )
+            if h is None:
+                h, w, device = t.shape[0], t.shape[1], t.device
+            elif (t.shape[0], t.shape[1]) != (h, w):
+                raise ValueError(
+                    f"buffer '{name}' is {t.shape[0]}x{t.shape[1]} (HxW) but 'primal' is {h}x{w}"
+                )
+            elif t.device != device:
+                raise ValueError(f"buffer '{name}' is on {t.device} but 'primal' is on {device}")
+        if h == 0 or w == 0:
+            raise ValueError(f"empty image: {h}x{w} (HxW)")
+        if (self.dx is None) != (self.dy is None):
+            raise ValueError("'dx' and 'dy' must be given together")

@@ -1,0 +1,352 @@
+"""Shared machinery of the gradient-domain integrators: properties, passes, splatting, features.
+
+Both ``gdpt`` (hybrid shift) and ``gdpt_rr`` (random replay) trace, for every sample, one base
+path in pixel ``p`` and four offset paths in the neighbours ``p + (1,0), (0,1), (-1,0), (0,-1)``
+(RIGHT, DOWN, LEFT, UP; image y grows downward). A subclass implements :meth:`sample_paths`,
+which returns per-sample estimates; this module turns them into per-pixel buffers:
+
+* ``primal``: mean of the base-path estimate.
+* ``g[k]``: mean of the MIS-weighted half-gradient estimate ``I(p + shift_k) - I(p)`` of the
+  base paths of pixel ``p``. The two halves of every pixel pair are summed::
+
+      dx[y, x] = g_RIGHT[y, x] - g_LEFT[y, x + 1]      (x < W - 1, else 0)
+      dy[y, x] = g_DOWN[y, x]  - g_UP[y + 1, x]        (y < H - 1, else 0)
+
+Reducing every sample at its own pixel (``dr.block_sum`` over the contiguous samples of a pixel)
+and shifting afterwards needs no atomics and is deterministic.
+
+``render()`` returns a ``TensorXf`` of shape ``(H, W, C)``; :meth:`GradientIntegratorBase.channels`
+names the channel ranges (``primal``, ``dx``, ``dy``, ``albedo``, ``normal``, ``depth``,
+``var_primal``, ``var_dx``, ``var_dy``), computing only the buffers that were asked for.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+#: Pixel shifts of the four offset paths, in film pixels (x right, y down).
+SHIFTS = ((1, 0), (0, 1), (-1, 0), (0, -1))
+RIGHT, DOWN, LEFT, UP = range(4)
+
+#: Default number of path samples traced per kernel launch (bounds memory and kernel size).
+DEFAULT_SAMPLES_PER_PASS = 1 << 20
+
+
+@dataclass
+class PathSamples:
+    """Per-sample outputs of :meth:`GradientIntegratorBase.sample_paths` (all length N)."""
+
+    primal: mi.Spectrum
+    gradients: list  # four mi.Spectrum half-gradients (RIGHT, DOWN, LEFT, UP), or []
+    albedo: mi.Spectrum | None = None
+    normal: mi.Vector3f | None = None
+    depth: mi.Float | None = None
+
+
+@dataclass
+class FeatureState:
+    """Loop state of the feature buffers (first vertex with a non-delta BSDF)."""
+
+    albedo: mi.Spectrum
+    normal: mi.Vector3f
+    depth: mi.Float
+    open: mi.Bool  # still following a chain of delta vertices
+
+    @staticmethod
+    def zeros(n: int) -> FeatureState:
+        return FeatureState(
+            albedo=dr.zeros(mi.Spectrum, n),
+            normal=dr.zeros(mi.Vector3f, n),
+            depth=dr.zeros(mi.Float, n),
+            open=dr.full(mi.Bool, True, n),
+        )
+
+
+def update_features(
+    feat: FeatureState,
+    si: mi.SurfaceInteraction3f,
+    bsdf: mi.BSDFPtr,
+    ray_d: mi.Vector3f,
+    to_camera,
+    active: mi.Bool,
+) -> None:
+    """Record albedo, camera-space normal and path length at the first rough vertex.
+
+    Follows the path through delta-only BSDFs (mirrors, glass), stops at the first vertex whose
+    BSDF has a smooth component. A path that escapes records albedo 0, normal ``-ray.d`` and
+    depth 0. The normal is the shading normal flipped to face the arriving ray, in the sensor's
+    camera's view frame: +x image right, +y image up, +z towards the viewer (so normals facing
+    the camera have z > 0).
+    """
+    hit = active & feat.open & si.is_valid()
+    miss = active & feat.open & ~si.is_valid()
+    rough = hit & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+    feat.depth = dr.select(hit, feat.depth + si.t, feat.depth)
+
+    n = si.sh_frame.n
+    n = dr.select(dr.dot(n, ray_d) > 0, -n, n)
+    albedo = bsdf.eval_diffuse_reflectance(si, rough)
+    feat.albedo = dr.select(rough, albedo, feat.albedo)
+    feat.normal = dr.select(rough, _to_view(to_camera, n), feat.normal)
+
+    feat.normal = dr.select(miss, _to_view(to_camera, -ray_d), feat.normal)
+    feat.albedo = dr.select(miss, 0.0, feat.albedo)
+    feat.depth = dr.select(miss, 0.0, feat.depth)
+    feat.open &= ~(rough | miss) & active
+
+
+def _to_view(to_camera, v: mi.Vector3f) -> mi.Vector3f:
+    """World vector -> view frame (Mitsuba's sensor frame is +x left, +y up, +z forward)."""
+    c = to_camera @ v
+    return mi.Vector3f(-c.x, c.y, -c.z)
+
+
+def safe_div(a, b):
+    """``a / b`` where ``b != 0`` and the quotient is finite, else 0 (float32-safe division)."""
+    q = a / dr.select(b != 0, b, 1)
+    return dr.select((b != 0) & dr.isfinite(q), q, 0)
+
+
+def finite(x):
+    """Replace non-finite entries by 0 (last line of defence before splatting)."""
+    return dr.select(dr.isfinite(x), x, 0)
+
+
+class GradientIntegratorBase(mi.SamplingIntegrator):
+    """Common properties and ``render()`` of the gradient-domain integrators.
+
+    Properties: ``max_depth`` (int, 6; -1 = unbounded), ``rr_depth`` (int, 5),
+    ``gradients`` (bool, true: trace offset paths; false = plain path tracing with features),
+    ``features`` (bool, true), ``variance`` (bool, false),
+    ``samples_per_pass`` (int, 2^20: samples traced per kernel launch).
+    """
+
+    def __init__(self, props: mi.Properties):
+        super().__init__(props)
+        max_depth = props.get("max_depth", 6)
+        if max_depth < 0 and max_depth != -1:
+            raise ValueError(f"{self.plugin_name}: 'max_depth' must be -1 or >= 0, got {max_depth}")
+        self.max_depth = 0xFFFFFFFF if max_depth == -1 else int(max_depth)
+        self.rr_depth = int(props.get("rr_depth", 5))
+        if self.rr_depth <= 0:
+            raise ValueError(f"{self.plugin_name}: 'rr_depth' must be > 0, got {self.rr_depth}")
+        self.gradients = bool(props.get("gradients", True))
+        self.features = bool(props.get("features", True))
+        self.variance = bool(props.get("variance", False))
+        self.samples_per_pass = int(props.get("samples_per_pass", DEFAULT_SAMPLES_PER_PASS))
+        if self.samples_per_pass < 1:
+            raise ValueError(f"{self.plugin_name}: 'samples_per_pass' must be >= 1")
+        if props.get("hide_emitters", False):
+            raise ValueError(f"{self.plugin_name}: 'hide_emitters' is not supported")
+        #: Optional ``callable(spp_done, spp_total)`` called after every pass (progress bars).
+        self.pass_callback = None
+
+    plugin_name = "gradient integrator"
+
+    # ------------------------------------------------------------------ interface
+    def sample_paths(self, scene, sensor, sampler, rays, weights, active) -> PathSamples:
+        """Trace the base path (``rays[0]``) and, if enabled, the four offsets (``rays[1:]``)."""
+        raise NotImplementedError
+
+    def channels(self) -> list[tuple[str, int]]:
+        """``(buffer name, channel count)`` in the order ``render()`` stores them."""
+        out = [("primal", 3)]
+        if self.gradients:
+            out += [("dx", 3), ("dy", 3)]
+        if self.features:
+            out += [("albedo", 3), ("normal", 3), ("depth", 1)]
+        if self.variance:
+            out += [("var_primal", 1)]
+            if self.gradients:
+                out += [("var_dx", 1), ("var_dy", 1)]
+        return out
+
+    def aov_names(self) -> list[str]:
+        suffix = {3: "RGB", 1: "Y"}
+        names = []
+        for name, c in self.channels():
+            letters = "XYZ" if name == "normal" else suffix[c]
+            names += [f"{name}.{ch}" for ch in letters]
+        return names
+
+    # ------------------------------------------------------------------ rendering
+    def render(
+        self,
+        scene: mi.Scene,
+        sensor: int | mi.Sensor = 0,
+        seed: int = 0,
+        spp: int = 0,
+        develop: bool = True,
+        evaluate: bool = True,
+    ) -> mi.TensorXf:
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        film = sensor.film()
+        if not film.rfilter().is_box_filter():
+            raise ValueError(
+                f"{self.plugin_name}: gradient-domain rendering needs a box pixel filter, the film "
+                f"uses '{film.rfilter().class_name()}'; add <rfilter type=\"box\"/> to the film"
+            )
+        if not develop:
+            raise ValueError(f"{self.plugin_name}: develop=False is not supported")
+        spp = int(spp) if spp else int(sensor.sampler().sample_count())
+        width, height = (int(v) for v in film.crop_size())
+        n_pix = width * height
+        passes = plan_passes(n_pix, spp, self.samples_per_pass)
+
+        acc = _Accumulator(n_pix, self.gradients, self.features, self.variance)
+        done = 0
+        for index, spp_pass in enumerate(passes):
+            sampler = sensor.sampler().clone()
+            sampler.set_sample_count(spp_pass)
+            sampler.set_samples_per_wavefront(spp_pass)
+            pass_seed = (int(seed) * 0x9E3779B1 + index) & 0xFFFFFFFF
+            sampler.seed(dr.opaque(mi.UInt32, pass_seed), n_pix * spp_pass)
+            rays, weights, active = self._primary_rays(sensor, sampler, spp_pass)
+            samples = self.sample_paths(scene, sensor, sampler, rays, weights, active)
+            acc.add(samples, spp_pass)
+            del samples, rays, weights
+            done += spp_pass
+            if self.pass_callback is not None:
+                self.pass_callback(done, spp)
+        return acc.finish(width, height, self.channels())
+
+    def _primary_rays(self, sensor: mi.Sensor, sampler: mi.Sampler, spp: int):
+        """Base ray and the four offset rays (same sub-pixel, aperture and time samples)."""
+        film = sensor.film()
+        size = film.crop_size()
+        idx = dr.arange(mi.UInt32, dr.prod(size) * spp)
+        idx //= dr.opaque(mi.UInt32, spp)
+        pos = mi.Vector2u(idx % size[0], idx // size[0]) + film.crop_offset()
+        pos_f = mi.Vector2f(pos) + sampler.next_2d()
+        scale = dr.rcp(mi.ScalarVector2f(size))
+        offset = -mi.ScalarVector2f(film.crop_offset()) * scale
+        aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+        time = mi.Float(sensor.shutter_open())
+        if sensor.shutter_open_time() > 0:
+            time += sampler.next_1d() * sensor.shutter_open_time()
+        wavelength = sampler.next_1d() if mi.is_spectral else mi.Float(0.5)
+        shifts = [(0, 0)] + (list(SHIFTS) if self.gradients else [])
+        rays, weights = [], []
+        for sx, sy in shifts:
+            p = dr.fma(pos_f + mi.Vector2f(sx, sy), scale, offset)
+            ray, weight = sensor.sample_ray(time, wavelength, p, aperture)
+            rays.append(ray)
+            weights.append(weight)
+        return rays, weights, mi.Bool(True)
+
+
+def plan_passes(n_pixels: int, spp: int, samples_per_pass: int) -> list[int]:
+    """Split ``spp`` into passes of at most ``samples_per_pass`` samples (at least 1 spp each)."""
+    if spp < 1:
+        raise ValueError(f"spp must be >= 1, got {spp}")
+    per_pass = max(1, min(spp, samples_per_pass // max(n_pixels, 1)))
+    if n_pixels * per_pass > 2**32:
+        raise ValueError(f"image of {n_pixels} pixels is too large for one pass")
+    full, rest = divmod(spp, per_pass)
+    return [per_pass] * full + ([rest] if rest else [])
+
+
+class _Accumulator:
+    """Per-pixel sums across passes (float64 so that large spp keep their precision)."""
+
+    def __init__(self, n_pix: int, gradients: bool, features: bool, variance: bool):
+        z = lambda c: [dr.zeros(mi.Float64, n_pix) for _ in range(c)]  # noqa: E731
+        self.n = 0
+        self.sums = {"primal": z(3)}
+        if gradients:
+            self.sums.update({f"g{k}": z(3) for k in range(4)})
+        if features:
+            self.sums.update(albedo=z(3), normal=z(3), depth=z(1))
+        self.variance = variance
+        if variance:
+            self.sums["sq_primal"] = z(1)
+            if gradients:
+                self.sums.update({f"sq_g{k}": z(1) for k in range(4)})
+
+    def add(self, s: PathSamples, spp: int) -> None:
+        values = {"primal": s.primal}
+        for k, g in enumerate(s.gradients):
+            values[f"g{k}"] = g
+        if s.albedo is not None:
+            values.update(albedo=s.albedo, normal=s.normal, depth=[s.depth])
+        if self.variance:
+            values["sq_primal"] = [dr.square(dr.mean(s.primal))]
+            for k, g in enumerate(s.gradients):
+                values[f"sq_g{k}"] = [dr.square(dr.mean(g))]
+        for name, sums in self.sums.items():
+            if name.startswith("sq_"):
+                comps = values[name]
+            else:
+                v = values[name]
+                comps = v if isinstance(v, list) else [v[i] for i in range(len(sums))]
+            for i, c in enumerate(comps):
+                sums[i] += mi.Float64(dr.block_sum(finite(c), spp))
+        dr.eval(self.sums)
+        self.n += spp
+
+    def finish(self, width: int, height: int, channels) -> mi.TensorXf:
+        n = self.n
+        mean = {k: [mi.Float(c / n) for c in v] for k, v in self.sums.items()}
+        idx = dr.arange(mi.UInt32, width * height)
+        x = idx % width
+        y = idx // width
+        right_ok = x + 1 < width
+        down_ok = y + 1 < height
+
+        def shifted(arr, step, ok):
+            return dr.gather(mi.Float, arr, idx + step, ok)
+
+        def var_of_mean(sq_name, lum_mean):
+            # Unbiased sample variance of the luminance, divided by n: variance of the mean.
+            var = (self.sums[sq_name][0] / n - mi.Float64(dr.square(lum_mean))) * (n / max(n - 1, 1))
+            return mi.Float(dr.maximum(var, 0) / n)
+
+        out = {"primal": mean["primal"]}
+        if "g0" in mean:
+            out["dx"] = [
+                dr.select(right_ok, mean["g0"][c] - shifted(mean["g2"][c], 1, right_ok), 0)
+                for c in range(3)
+            ]
+            out["dy"] = [
+                dr.select(down_ok, mean["g1"][c] - shifted(mean["g3"][c], width, down_ok), 0)
+                for c in range(3)
+            ]
+        for name in ("albedo", "normal", "depth"):
+            if name in mean:
+                out[name] = mean[name]
+        if self.variance:
+            lum = lambda k: sum(mean[k]) / 3  # noqa: E731
+            out["var_primal"] = [var_of_mean("sq_primal", lum("primal"))]
+            if "g0" in mean:
+                v = [var_of_mean(f"sq_g{k}", lum(f"g{k}")) for k in range(4)]
+                out["var_dx"] = [dr.select(right_ok, v[0] + shifted(v[2], 1, right_ok), 0)]
+                out["var_dy"] = [dr.select(down_ok, v[1] + shifted(v[3], width, down_ok), 0)]
+
+        comps = [c for name, _ in channels for c in out[name]]
+        n_ch = len(comps)
+        data = dr.zeros(mi.Float, width * height * n_ch)
+        for i, c in enumerate(comps):
+            dr.scatter(data, c, idx * n_ch + i)
+        return mi.TensorXf(data, shape=(height, width, n_ch))
+
+
+def camera_transform(sensor: mi.Sensor):
+    """World -> sensor-local transform (for camera-space normals)."""
+    return sensor.world_transform().inverse()
+
+
+__all__ = [
+    "SHIFTS",
+    "GradientIntegratorBase",
+    "PathSamples",
+    "FeatureState",
+    "update_features",
+    "safe_div",
+    "finite",
+    "plan_passes",
+    "camera_transform",
+]

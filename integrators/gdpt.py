@@ -1,0 +1,389 @@
+"""``gdpt``: gradient-domain path tracing with the hybrid shift (Kettunen et al. 2015)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from .common import (
+    FeatureState,
+    GradientIntegratorBase,
+    PathSamples,
+    camera_transform,
+    finite,
+    safe_div,
+    update_features,
+)
+
+NOT_CONNECTED, RECENTLY_CONNECTED, CONNECTED = 0, 1, 2
+
+
+@dataclass
+class BaseState:
+    """Loop state of the base path."""
+
+    ray_d: mi.Vector3f  # direction of the segment that arrived at `si`
+    si: mi.SurfaceInteraction3f  # current vertex x_i
+    prev: mi.SurfaceInteraction3f  # previous vertex x_{i-1}
+    beta: mi.Spectrum  # β = f / p of the prefix
+    eta: mi.Float  # relative IOR product (Russian roulette)
+    pb_prev: mi.Float  # MIS pdf of the segment x_{i-1} -> x_i (1 for camera / delta)
+    delta_prev: mi.Bool  # that segment could not have been light-sampled
+    depth: mi.UInt32
+    active: mi.Bool
+    L: mi.Spectrum  # primal radiance
+
+
+@dataclass
+class OffsetState:
+    """Loop state of one offset path y (shifted by one pixel).
+
+    ``q = f(ȳ) J / p(x̄)`` and ``r = J p̃(ȳ) / p̃(x̄)`` are kept as ratios to the base path so
+    that no long pdf products appear in float32 (p̃: MIS pdf, 1 at delta vertices).
+    """
+
+    si: mi.SurfaceInteraction3f  # own vertex y_i (while NOT_CONNECTED)
+    prev: mi.SurfaceInteraction3f  # own previous vertex y_{i-1}
+    status: mi.UInt32  # NOT_CONNECTED / RECENTLY_CONNECTED / CONNECTED
+    alive: mi.Bool  # False once the shift failed: the base then takes full MIS weight
+    escaped: mi.Bool  # left the scene while the base continues (dies after its emission)
+    q: mi.Spectrum
+    r: mi.Float
+    pb_prev: mi.Float  # MIS pdf of the segment y_{i-1} -> y_i
+    G: mi.Spectrum  # half-gradient accumulator
+
+
+class GDPTIntegrator(GradientIntegratorBase):
+    r"""
+    .. _integrator-gdpt:
+
+    Gradient-domain path tracer (:monosp:`gdpt`)
+    --------------------------------------------
+
+    .. pluginparameters::
+
+     * - max_depth
+       - |int|
+       - Longest path depth (-1: unbounded). (Default: 6)
+     * - rr_depth
+       - |int|
+       - Depth at which Russian roulette starts. (Default: 5)
+     * - gradients
+       - |bool|
+       - Trace offset paths and output ``dx``/``dy``; false gives plain path tracing with the
+         same features (equal-time baselines). (Default: true)
+     * - features
+       - |bool|
+       - Output albedo, view-space normal and depth. (Default: true)
+     * - variance
+       - |bool|
+       - Output the variance of the per-pixel means. (Default: false)
+     * - samples_per_pass
+       - |int|
+       - Samples traced per kernel launch. (Default: 2^20)
+
+    Traces a base path and four offset paths (pixel shifts right, down, left, up) in lockstep.
+    Offsets follow the base through delta vertices by sampling the same lobe (reflection or
+    transmission), replay the base's random numbers through smooth vertices whose successor is
+    a delta vertex, and reconnect to the base at the first pair of consecutive non-delta
+    vertices (the reconnection Jacobian is the ratio of solid-angle-to-area factors). Next-event
+    estimation on an offset reconnects to the base's light point (so sphere and point lights
+    are exact). The two shift directions of every pixel pair are combined with the balance
+    heuristic over base/offset BSDF and light sampling, computed in a ratio form. Failed shifts
+    give the base full weight. A vertex is "rough" when its BSDF has no delta lobe.
+
+    The output ``dx``/``dy`` are the sums of the two MIS halves, i.e. unbiased estimates of
+    ``I(x+1) - I(x)``; the primal is the standard base-path estimate. Needs a box pixel filter.
+    The short twin :ref:`gdpt_rr <integrator-gdpt_rr>` (random replay) serves as an oracle.
+
+    .. tabs::
+        .. code-tab:: python
+
+            'type': 'gdpt', 'max_depth': 8
+    """
+
+    plugin_name = "gdpt"
+
+    def sample_paths(self, scene, sensor, sampler, rays, weights, active) -> PathSamples:
+        n = dr.width(rays[0].d)
+        ctx = mi.BSDFContext()
+        ctx_refl = mi.BSDFContext()
+        ctx_refl.type_mask = int(mi.BSDFFlags.DeltaReflection)
+        ctx_trans = mi.BSDFContext()
+        ctx_trans.type_mask = int(mi.BSDFFlags.DeltaTransmission)
+        to_camera = camera_transform(sensor)
+        n_off = len(rays) - 1
+
+        base = BaseState(
+            ray_d=mi.Vector3f(rays[0].d),
+            si=scene.ray_intersect(rays[0], active),
+            prev=dr.zeros(mi.SurfaceInteraction3f, n),
+            beta=mi.Spectrum(weights[0]),
+            eta=mi.Float(1.0),
+            pb_prev=mi.Float(1.0),
+            delta_prev=mi.Bool(True),
+            depth=mi.UInt32(0),
+            active=mi.Bool(active),
+            L=dr.zeros(mi.Spectrum, n),
+        )
+        base_hit = base.si.is_valid()
+        offsets = []
+        for k in range(1, n_off + 1):
+            si_k = scene.ray_intersect(rays[k], active)
+            offsets.append(OffsetState(
+                si=si_k,
+                prev=dr.zeros(mi.SurfaceInteraction3f, n),
+                status=mi.UInt32(NOT_CONNECTED),
+                alive=mi.Bool(active),
+                escaped=base_hit & ~si_k.is_valid(),
+                q=mi.Spectrum(weights[k]),
+                r=mi.Float(1.0),
+                pb_prev=mi.Float(1.0),
+                G=dr.zeros(mi.Spectrum, n),
+            ))
+        feat = FeatureState.zeros(n) if self.features else None
+
+        def cond(base, offsets, feat):
+            return base.active
+
+        def body(base, offsets, feat):
+            si, active = base.si, base.active
+            bsdf = si.bsdf()
+            if feat is not None:
+                update_features(feat, si, bsdf, base.ray_d, to_camera, active)
+
+            # ----------------------- Emission at x_i ------------------------
+            ds = mi.DirectionSample3f(scene, si, base.prev)
+            pn_x = scene.pdf_emitter_direction(base.prev, ds, active & ~base.delta_prev)
+            Le_x = ds.emitter.eval(si, active)
+            ratio_x = safe_div(pn_x, base.pb_prev)  # p_light / p_bsdf of the last segment
+            base.L += base.beta * Le_x / (1 + ratio_x)
+            c_main_num = base.beta * Le_x
+
+            for o in offsets:
+                own = o.status == NOT_CONNECTED
+                recent = o.status == RECENTLY_CONNECTED
+                # Own vertex y_i, reached from y_{i-1}
+                ds_own = mi.DirectionSample3f(scene, o.si, o.prev)
+                pn_own = scene.pdf_emitter_direction(
+                    o.prev, ds_own, active & own & o.alive & ~base.delta_prev
+                )
+                Le_own = ds_own.emitter.eval(o.si, active & own & o.alive)
+                # Base vertex x_i, reached from y_{i-1} (reconnected last step)
+                ds_rec = mi.DirectionSample3f(scene, si, o.prev)
+                pn_rec = scene.pdf_emitter_direction(
+                    o.prev, ds_rec, active & recent & o.alive & ~base.delta_prev
+                )
+                wi_saved = si.wi
+                turn = recent & si.is_valid()
+                si.wi = dr.select(turn, si.to_local(dr.normalize(o.prev.p - si.p)), si.wi)
+                Le_rec = ds.emitter.eval(si, active & recent & o.alive)
+                si.wi = wi_saved
+
+                Le_y = dr.select(own, Le_own, dr.select(recent, Le_rec, Le_x))
+                pn_y = dr.select(own, pn_own, dr.select(recent, pn_rec, pn_x))
+                ratio_y = safe_div(pn_y, o.pb_prev)
+                den = 1 + ratio_x + dr.select(o.alive, o.r * (1 + ratio_y), 0)
+                c_shift = dr.select(o.alive, o.q * Le_y, 0)
+                o.G += dr.select(active, finite((c_shift - c_main_num) / den), 0)
+                o.alive &= ~o.escaped
+
+            # --------------------- Next-event estimation --------------------
+            active_next = active & (base.depth + 1 < self.max_depth) & si.is_valid()
+            active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
+            active_em &= ds.pdf != 0
+            wo_em = si.to_local(ds.d)
+            f_x, pb_x = bsdf.eval_pdf(ctx, si, wo_em, active_em)
+            pb_x = dr.select(ds.delta, 0, pb_x)
+            pn_x = ds.pdf
+            em_val = em_weight * pn_x  # radiance (intensity / d^2 for point lights) at x_i
+            base.L += dr.select(active_em, base.beta * f_x * em_weight * safe_div(pn_x, pn_x + pb_x), 0)
+            nee_main = base.beta * f_x * em_val
+            is_infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
+            fixed_point = is_infinite | ds.delta  # light "vertex" shared exactly: J = 1
+
+            for o in offsets:
+                own = o.status == NOT_CONNECTED
+                recent = o.status == RECENTLY_CONNECTED
+                act = active_em & o.alive
+                # Own vertex: reconnect y_i to the base's light point
+                y = o.si
+                bsdf_y = y.bsdf()
+                to_light = ds.p - y.p
+                dist_y = dr.norm(to_light)
+                dir_y = dr.select(is_infinite, ds.d, to_light / dist_y)
+                dist_y = dr.select(is_infinite, ds.dist, dist_y)
+                ds_y = mi.DirectionSample3f(
+                    ds.p, ds.n, ds.uv, ds.time, ds.pdf, ds.delta, dir_y, dist_y, ds.emitter
+                )
+                act_own = act & own & mi.has_flag(bsdf_y.flags(), mi.BSDFFlags.Smooth)
+                ray_y = dr.select(is_infinite, y.spawn_ray(dir_y), y.spawn_ray_to(ds.p))
+                visible = ~scene.ray_test(ray_y, act_own)
+                em_own = dr.select(visible, scene.eval_emitter_direction(y, ds_y, act_own), 0)
+                facing = is_infinite | ds.delta | (dr.dot(ds.n, dir_y) < 0)
+                pn_own = dr.select(
+                    ds.delta, ds.pdf, scene.pdf_emitter_direction(y, ds_y, act_own & facing)
+                )
+                cos_x = dr.abs(dr.dot(ds.n, ds.d))
+                cos_y = dr.abs(dr.dot(ds.n, dir_y))
+                J_own = dr.select(
+                    fixed_point, 1.0, safe_div(cos_y * dr.square(ds.dist), cos_x * dr.square(dist_y))
+                )
+                f_own, pb_own = bsdf_y.eval_pdf(ctx, y, y.to_local(dir_y), act_own)
+                pb_own = dr.select(ds.delta, 0, pb_own)
+                # Recently connected: same light point seen from x_i, but arriving from y_{i-1}
+                wi_saved = si.wi
+                si.wi = dr.select(recent, si.to_local(dr.normalize(o.prev.p - si.p)), si.wi)
+                f_rec, pb_rec = bsdf.eval_pdf(ctx, si, wo_em, act & recent)
+                si.wi = wi_saved
+                pb_rec = dr.select(ds.delta, 0, pb_rec)
+
+                f_y = dr.select(own, f_own, dr.select(recent, f_rec, f_x))
+                pb_y = dr.select(own, pb_own, dr.select(recent, pb_rec, pb_x))
+                pn_y = dr.select(own, dr.select(act_own, pn_own, 0), pn_x)
+                e_y = dr.select(own, em_own, em_val)
+                J = dr.select(own, J_own, 1.0)
+                den = pn_x + pb_x + dr.select(o.alive, o.r * J * (pn_y + pb_y), 0)
+                c_shift = dr.select(o.alive, o.q * f_y * e_y * J, 0)
+                o.G += dr.select(active_em, finite((c_shift - nee_main) / den), 0)
+
+            # ------------------------ BSDF sampling -------------------------
+            u1, u2 = sampler.next_1d(), sampler.next_2d()
+            bs, bsdf_weight = bsdf.sample(ctx, si, u1, u2, active_next)
+            delta_x = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            ray_next = si.spawn_ray(si.to_world(bs.wo))
+            si_next = scene.ray_intersect(ray_next, active_next)
+            hit_next = si_next.is_valid()
+            rough_next = ~hit_next | ~mi.has_flag(si_next.bsdf().flags(), mi.BSDFFlags.Delta)
+            reflect = mi.has_flag(bs.sampled_type, mi.BSDFFlags.DeltaReflection)
+
+            for o in offsets:
+                act = active_next & o.alive
+                own = o.status == NOT_CONNECTED
+                recent = o.status == RECENTLY_CONNECTED
+                y = o.si
+                bsdf_y = y.bsdf()
+                y_smooth = mi.has_flag(bsdf_y.flags(), mi.BSDFFlags.Smooth)
+                reconnect = own & ~delta_x & rough_next & y_smooth
+
+                # Recently connected: x_i seen from y_{i-1}
+                wi_saved = si.wi
+                si.wi = dr.select(recent, si.to_local(dr.normalize(o.prev.p - si.p)), si.wi)
+                f_rec, p_rec = bsdf.eval_pdf(ctx, si, bs.wo, act & recent)
+                si.wi = wi_saved
+
+                # Reconnection y_i -> x_{i+1} (or environment shift: copy the direction)
+                act_rc = act & reconnect
+                to_next = si_next.p - y.p
+                d_y2 = dr.squared_norm(to_next)
+                dir_rc = dr.select(hit_next, to_next * dr.rsqrt(d_y2), ray_next.d)
+                ray_rc = dr.select(hit_next, y.spawn_ray_to(si_next.p), y.spawn_ray(dir_rc))
+                visible = ~scene.ray_test(ray_rc, act_rc)
+                cos_x = dr.abs(dr.dot(si_next.n, ray_next.d))
+                cos_y = dr.abs(dr.dot(si_next.n, dir_rc))
+                J_rc = dr.select(
+                    hit_next, safe_div(cos_y * dr.square(si_next.t), cos_x * d_y2), 1.0
+                )
+                f_rc, p_rc = bsdf_y.eval_pdf(ctx, y, y.to_local(dir_rc), act_rc)
+
+                # Delta lobe: sample the offset's lobe of the same kind
+                act_d = act & own & delta_x
+                bs_r, w_r = bsdf_y.sample(ctx_refl, y, u1, u2, act_d & reflect)
+                bs_t, w_t = bsdf_y.sample(ctx_trans, y, u1, u2, act_d & ~reflect)
+                bs_d = dr.select(reflect, bs_r, bs_t)
+                w_d = dr.select(reflect, w_r, w_t)
+                ok_d = (bs_d.pdf > 0) & (dr.max(w_d) > 0)
+                ok_d &= mi.has_flag(bs_d.sampled_type, mi.BSDFFlags.Delta)
+
+                # Smooth lobe before a delta vertex: replay the base's random numbers
+                act_s = act & own & ~delta_x & ~reconnect
+                bs_s, w_s = bsdf_y.sample(ctx, y, u1, u2, act_s)
+                ok_s = y_smooth & (bs_s.pdf > 0)
+                ok_s &= ~mi.has_flag(bs_s.sampled_type, mi.BSDFFlags.Delta)
+
+                wo_y = dr.select(delta_x, bs_d.wo, bs_s.wo)
+                ray_y = y.spawn_ray(y.to_world(wo_y))
+                trace = act & own & ~reconnect
+                si_y = scene.ray_intersect(ray_y, trace)
+                hit_y = si_y.is_valid()
+                rough_y = ~hit_y | ~mi.has_flag(si_y.bsdf().flags(), mi.BSDFFlags.Delta)
+                # Non-invertible: the reverse shift from y would reconnect at this vertex
+                ok_s &= ~rough_y
+
+                inv_p = safe_div(1.0, bs.pdf)
+                q_new = dr.select(
+                    own,
+                    dr.select(
+                        reconnect,
+                        o.q * f_rc * (J_rc * inv_p),
+                        dr.select(delta_x, o.q * w_d * (bs_d.pdf * inv_p), o.q * w_s),
+                    ),
+                    dr.select(recent, o.q * f_rec * inv_p, o.q * bsdf_weight),
+                )
+                r_new = dr.select(
+                    own & reconnect,
+                    o.r * p_rc * J_rc * inv_p,
+                    dr.select(recent, o.r * p_rec * inv_p, o.r),
+                )
+                ok = dr.select(
+                    own,
+                    dr.select(reconnect, visible & (p_rc > 0), dr.select(delta_x, ok_d, ok_s)),
+                    ~recent | (p_rec > 0),
+                )
+                pb_new = dr.select(
+                    own,
+                    dr.select(reconnect, p_rc, dr.select(delta_x, 1.0, bs_s.pdf)),
+                    dr.select(recent, p_rec, dr.select(delta_x, 1.0, bs.pdf)),
+                )
+                o.q = finite(q_new)
+                o.r = dr.minimum(finite(r_new), 1e30)
+                o.pb_prev = pb_new
+                o.alive = act & ok
+                o.escaped = trace & ~hit_y & hit_next
+                o.prev = dr.select(own, y, si)
+                o.si = dr.select(trace, si_y, si_next)
+                o.status = dr.select(
+                    own,
+                    dr.select(reconnect, mi.UInt32(RECENTLY_CONNECTED), NOT_CONNECTED),
+                    mi.UInt32(CONNECTED),
+                )
+
+            # ----------------------- Russian roulette -----------------------
+            base.beta *= bsdf_weight
+            base.eta *= bs.eta
+            beta_max = dr.max(base.beta)
+            rr_active = base.depth >= self.rr_depth
+            rr_prob = dr.minimum(beta_max * dr.square(base.eta), 0.95)
+            rr_scale = dr.select(rr_active, safe_div(1.0, rr_prob), 1.0)
+            base.beta *= rr_scale
+            for o in offsets:
+                o.q *= rr_scale
+            survive = sampler.next_1d() < rr_prob
+
+            # ----------------------- Advance the base -----------------------
+            base.prev = si
+            base.si = si_next
+            base.ray_d = ray_next.d
+            base.pb_prev = dr.select(delta_x, 1.0, bs.pdf)
+            base.delta_prev = delta_x
+            base.depth += 1
+            base.active = active_next & (beta_max != 0) & (~rr_active | survive)
+            return base, offsets, feat
+
+        base, offsets, feat = dr.while_loop(
+            (base, offsets, feat), cond, body, labels=("base", "offsets", "features"),
+            label="gdpt",
+        )
+        return PathSamples(
+            primal=finite(base.L),
+            gradients=[finite(o.G) for o in offsets],
+            albedo=feat.albedo if feat is not None else None,
+            normal=feat.normal if feat is not None else None,
+            depth=feat.depth if feat is not None else None,
+        )
+
+
+mi.register_integrator("gdpt", lambda props: GDPTIntegrator(props))
