@@ -145,10 +145,10 @@ class GDPTIntegrator(GradientIntegratorBase):
             ))
         feat = FeatureState.zeros(n) if self.features else None
 
-        def cond(base, offsets, feat):
+        def cond(sampler, base, offsets, feat):
             return base.active
 
-        def body(base, offsets, feat):
+        def body(sampler, base, offsets, feat):
             si, active = base.si, base.active
             bsdf = si.bsdf()
             if feat is not None:
@@ -176,7 +176,7 @@ class GDPTIntegrator(GradientIntegratorBase):
                 pn_rec = scene.pdf_emitter_direction(
                     o.prev, ds_rec, active & recent & o.alive & ~base.delta_prev
                 )
-                wi_saved = si.wi
+                wi_saved = mi.Vector3f(si.wi)  # copy: field access returns a view
                 turn = recent & si.is_valid()
                 si.wi = dr.select(turn, si.to_local(dr.normalize(o.prev.p - si.p)), si.wi)
                 Le_rec = ds.emitter.eval(si, active & recent & o.alive)
@@ -235,7 +235,7 @@ class GDPTIntegrator(GradientIntegratorBase):
                 f_own, pb_own = bsdf_y.eval_pdf(ctx, y, y.to_local(dir_y), act_own)
                 pb_own = dr.select(ds.delta, 0, pb_own)
                 # Recently connected: same light point seen from x_i, but arriving from y_{i-1}
-                wi_saved = si.wi
+                wi_saved = mi.Vector3f(si.wi)  # copy: field access returns a view
                 si.wi = dr.select(recent, si.to_local(dr.normalize(o.prev.p - si.p)), si.wi)
                 f_rec, pb_rec = bsdf.eval_pdf(ctx, si, wo_em, act & recent)
                 si.wi = wi_saved
@@ -270,7 +270,7 @@ class GDPTIntegrator(GradientIntegratorBase):
                 reconnect = own & ~delta_x & rough_next & y_smooth
 
                 # Recently connected: x_i seen from y_{i-1}
-                wi_saved = si.wi
+                wi_saved = mi.Vector3f(si.wi)  # copy: field access returns a view
                 si.wi = dr.select(recent, si.to_local(dr.normalize(o.prev.p - si.p)), si.wi)
                 f_rec, p_rec = bsdf.eval_pdf(ctx, si, bs.wo, act & recent)
                 si.wi = wi_saved
@@ -371,11 +371,12 @@ class GDPTIntegrator(GradientIntegratorBase):
             base.delta_prev = delta_x
             base.depth += 1
             base.active = active_next & (beta_max != 0) & (~rr_active | survive)
-            return base, offsets, feat
+            return sampler, base, offsets, feat
 
-        base, offsets, feat = dr.while_loop(
-            (base, offsets, feat), cond, body, labels=("base", "offsets", "features"),
-            label="gdpt",
+        # The sampler is loop state: its RNG must advance from one iteration to the next.
+        sampler, base, offsets, feat = dr.while_loop(
+            (sampler, base, offsets, feat), cond, body,
+            labels=("sampler", "base", "offsets", "features"), label="gdpt",
         )
         return PathSamples(
             primal=finite(base.L),

@@ -73,10 +73,10 @@ class GDPTReplayIntegrator(GradientIntegratorBase):
         feat = FeatureState.zeros(n) if self.features else None
         depth = mi.UInt32(0)
 
-        def cond(paths, feat, depth):
+        def cond(sampler, paths, feat, depth):
             return _any_active(paths)
 
-        def body(paths, feat, depth):
+        def body(sampler, paths, feat, depth):
             # One set of random numbers per depth, shared by all five paths.
             u_em, u1, u2, u_rr = sampler.next_2d(), sampler.next_1d(), sampler.next_2d(), \
                 sampler.next_1d()
@@ -109,11 +109,11 @@ class GDPTReplayIntegrator(GradientIntegratorBase):
                 p.pb_prev = dr.select(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta), 1.0, bs.pdf)
                 p.delta_prev = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
                 p.active = active_next & (beta_max != 0) & (~rr_active | (u_rr < rr_prob))
-            return paths, feat, depth + 1
+            return sampler, paths, feat, depth + 1
 
-        paths, feat, depth = dr.while_loop(
-            (paths, feat, depth), cond, body, labels=("paths", "features", "depth"),
-            label="gdpt_rr",
+        sampler, paths, feat, depth = dr.while_loop(
+            (sampler, paths, feat, depth), cond, body,
+            labels=("sampler", "paths", "features", "depth"), label="gdpt_rr",
         )
         L0 = finite(paths[0].L)
         return PathSamples(

@@ -1,0 +1,298 @@
+"""OpenEXR storage of :class:`~gdpt.buffers.GradientBuffers` and of plain RGB images.
+
+A render is stored as ONE single-part, multi-layer OpenEXR file. Each buffer is a layer whose
+channels follow the usual ``layer.channel`` naming, so any EXR viewer can browse them::
+
+    primal.R primal.G primal.B   dx.R dx.G dx.B   dy.R dy.G dy.B   albedo.R albedo.G albedo.B
+    normal.X normal.Y normal.Z   depth.Y   var_primal.Y   var_dx.Y   var_dy.Y
+
+Absent (``None``) buffers have no channels. The header carries ``gdpt.spp`` (int),
+``gdpt.metadata`` (the metadata dict as a JSON string), ``gdpt.version`` (the gdpt version that
+wrote the file) and ``gdpt.formatVersion`` (:data:`FORMAT_VERSION`). Pixels are stored as 32-bit
+float (lossless round trip) or 16-bit half, both ZIP-compressed.
+
+Writes are atomic: the file is written to a temporary name in the target directory and moved
+into place with :func:`os.replace`, so a failed write leaves neither a partial file nor a
+temporary one behind. Existing files are only overwritten with ``force=True``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import OpenEXR
+import torch
+
+from gdpt.version import __version__
+from gdpt.buffers import CHANNELS, REQUIRED, GradientBuffers
+
+#: Version of the on-disk layout described in this module; bumped on incompatible changes.
+FORMAT_VERSION = 1
+
+_RGB = ("R", "G", "B")
+_SUFFIXES: dict[str, tuple[str, ...]] = {
+    name: ("X", "Y", "Z") if name == "normal" else _RGB if c == 3 else ("Y",)
+    for name, c in CHANNELS.items()
+}
+_KEY_SPP = "gdpt.spp"
+_KEY_METADATA = "gdpt.metadata"
+_KEY_VERSION = "gdpt.version"
+_KEY_FORMAT = "gdpt.formatVersion"
+
+PathLike = str | os.PathLike[str]
+ImageLike = torch.Tensor | np.ndarray
+
+
+def channel_names(buffer: str) -> tuple[str, ...]:
+    """EXR channel names of a buffer, e.g. ``('normal.X', 'normal.Y', 'normal.Z')``.
+
+    Raises:
+        ValueError: ``buffer`` is not a key of :data:`gdpt.buffers.CHANNELS`.
+    """
+    if buffer not in _SUFFIXES:
+        raise ValueError(f"unknown buffer {buffer!r}; valid buffers: {', '.join(CHANNELS)}")
+    return tuple(f"{buffer}.{s}" for s in _SUFFIXES[buffer])
+
+
+# ---------------------------------------------------------------------------------------- write
+def save_buffers(
+    path: PathLike, buffers: GradientBuffers, *, half: bool = False, force: bool = False
+) -> Path:
+    """Write all present buffers and the metadata to one multi-layer EXR file.
+
+    Args:
+        path (str | os.PathLike): destination file; its directory must exist.
+        buffers (GradientBuffers): the render; tensors may live on any device.
+        half (bool): store 16-bit half floats instead of 32-bit floats. Values beyond the half
+            range (|x| > 65504) become +-inf.
+        force (bool): overwrite an existing file.
+
+    Returns:
+        The destination path.
+
+    Raises:
+        FileExistsError: ``path`` exists and ``force`` is false.
+        TypeError: ``buffers.metadata`` is not JSON-serialisable.
+    """
+    header = _gdpt_header(buffers.metadata)
+    header[_KEY_SPP] = int(buffers.spp)
+    channels: dict[str, np.ndarray] = {}
+    for name, tensor in buffers.items():
+        channels.update(_split_channels(channel_names(name), tensor, half))
+    return _atomic_write(Path(path), header, channels, force)
+
+
+def save_image(
+    path: PathLike,
+    image: ImageLike,
+    *,
+    metadata: dict[str, Any] | None = None,
+    force: bool = False,
+) -> Path:
+    """Write a plain RGB EXR (channels ``R``, ``G``, ``B``, 32-bit float).
+
+    Args:
+        path (str | os.PathLike): destination file; its directory must exist.
+        image (torch.Tensor | np.ndarray): ``(H, W, 3)`` real-valued image on any device.
+        metadata (dict | None): JSON-serialisable information stored as ``gdpt.metadata``.
+        force (bool): overwrite an existing file.
+
+    Returns:
+        The destination path.
+
+    Raises:
+        ValueError: ``image`` is not ``(H, W, 3)``.
+        FileExistsError: ``path`` exists and ``force`` is false.
+        TypeError: ``metadata`` is not JSON-serialisable.
+    """
+    array = _to_numpy(image)
+    if array.ndim != 3 or array.shape[2] != 3 or 0 in array.shape:
+        raise ValueError(f"image must have shape (H, W, 3), got {tuple(array.shape)}")
+    header = _gdpt_header(metadata or {})
+    channels = _split_channels(_RGB, torch.from_numpy(array), half=False)
+    return _atomic_write(Path(path), header, channels, force)
+
+
+def _gdpt_header(metadata: dict[str, Any]) -> dict[str, Any]:
+    """Header attributes common to every file gdpt writes."""
+    try:
+        encoded = json.dumps(metadata, sort_keys=True)
+    except (TypeError, ValueError) as error:
+        raise TypeError(f"metadata is not JSON-serialisable: {error}") from error
+    return {
+        "compression": OpenEXR.ZIP_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+        _KEY_METADATA: encoded,
+        _KEY_VERSION: __version__,
+        _KEY_FORMAT: FORMAT_VERSION,
+    }
+
+
+def _to_numpy(image: ImageLike) -> np.ndarray:
+    """A float32 CPU numpy copy/view of a tensor or array."""
+    if isinstance(image, torch.Tensor):
+        image = image.detach().to("cpu", torch.float32).numpy()
+    return np.asarray(image, dtype=np.float32)
+
+
+def _split_channels(
+    names: tuple[str, ...], tensor: torch.Tensor, half: bool
+) -> dict[str, np.ndarray]:
+    """``(H, W, C)`` tensor -> ``{name: contiguous (H, W) array}`` in float32 or float16."""
+    array = tensor.detach().to("cpu").numpy()
+    dtype = np.float16 if half else np.float32
+    with np.errstate(over="ignore"):  # out-of-range values become +-inf in half, as documented
+        return {n: np.ascontiguousarray(array[:, :, i], dtype=dtype) for i, n in enumerate(names)}
+
+
+def _atomic_write(
+    path: Path, header: dict[str, Any], channels: dict[str, np.ndarray], force: bool
+) -> Path:
+    """Write an EXR to a temporary file next to ``path`` and move it into place."""
+    check_writable(path, force=force)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        OpenEXR.File(header, channels).write(tmp_name)
+        check_writable(path, force=force)  # another process may have created it meanwhile
+        os.replace(tmp_name, path)
+    except BaseException:
+        Path(tmp_name).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def check_writable(path: PathLike, *, force: bool) -> None:
+    """Check that ``path`` may be written, before doing expensive work that would produce it.
+
+    Raises:
+        IsADirectoryError: ``path`` is a directory.
+        FileExistsError: ``path`` exists and ``force`` is false.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path}: is a directory")
+    if path.exists() and not force:
+        raise FileExistsError(f"{path}: file exists (pass force=True / --force to overwrite)")
+
+
+# ----------------------------------------------------------------------------------------- read
+def load_buffers(path: PathLike) -> GradientBuffers:
+    """Read a file written by :func:`save_buffers`.
+
+    Args:
+        path (str | os.PathLike): an EXR file with at least the ``primal.R/G/B`` channels.
+
+    Returns:
+        The buffers as ``float32`` CPU tensors (half-stored files are widened), with ``spp``
+        and ``metadata`` from the header (``0`` and ``{}`` if absent).
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: not an OpenEXR file, truncated or corrupt, a required channel or part of a
+            layer is missing, a channel has the wrong size or type, or the buffers are
+            inconsistent. The message names the file (and the channel).
+    """
+    path = Path(path)
+    header, channels = _read_exr(path)
+    tensors: dict[str, torch.Tensor] = {}
+    for name in CHANNELS:
+        names = channel_names(name)
+        found = [n for n in names if n in channels]
+        if not found and name not in REQUIRED:
+            continue
+        missing = [n for n in names if n not in channels]
+        if missing:
+            what = "required channel" if not found else f"channel of layer '{name}':"
+            raise ValueError(
+                f"{path}: missing {what} '{missing[0]}' "
+                f"(channels present: {', '.join(sorted(channels)) or 'none'})"
+            )
+        tensors[name] = _stack(path, names, channels)
+    try:
+        spp = int(header.get(_KEY_SPP, 0))
+        metadata = json.loads(header.get(_KEY_METADATA, "{}"))
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{path}: invalid gdpt header attribute: {error}") from error
+    if not isinstance(metadata, dict):
+        raise ValueError(f"{path}: header attribute '{_KEY_METADATA}' is not a JSON object")
+    try:
+        return GradientBuffers(**tensors, spp=spp, metadata=metadata)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{path}: {error}") from error
+
+
+def load_image(path: PathLike, layer: str | None = None) -> torch.Tensor:
+    """Read an RGB image, or one layer of a multi-layer file.
+
+    Args:
+        path (str | os.PathLike): an EXR file.
+        layer (str | None): ``None`` reads channels ``R, G, B``; a buffer name from
+            :data:`gdpt.buffers.CHANNELS` reads that layer (e.g. ``'dx'`` or ``'depth'``); any
+            other name reads ``<layer>.R/G/B``.
+
+    Returns:
+        ``(H, W, C)`` float32 CPU tensor, ``C`` = 3 (or 1 for single-channel layers).
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: not a readable OpenEXR file, or a channel is missing (the message names the
+            channel and the file).
+    """
+    path = Path(path)
+    if layer is None:
+        names = _RGB
+    elif layer in CHANNELS:
+        names = channel_names(layer)
+    else:
+        names = tuple(f"{layer}.{s}" for s in _RGB)
+    _, channels = _read_exr(path)
+    for name in names:
+        if name not in channels:
+            raise ValueError(
+                f"{path}: missing channel '{name}' "
+                f"(channels present: {', '.join(sorted(channels)) or 'none'})"
+            )
+    return _stack(path, names, channels)
+
+
+def _read_exr(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Header and ``{channel name: (H, W) array}`` of the first part of an EXR file."""
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file")
+    if path.is_dir():
+        raise IsADirectoryError(f"{path}: is a directory")
+    if not OpenEXR.isOpenExrFile(str(path)):
+        raise ValueError(f"{path}: not an OpenEXR file")
+    try:
+        exr = OpenEXR.File(str(path), separate_channels=True)
+        if not exr.parts:  # the bindings warn and return an empty File on bad pixel data
+            raise RuntimeError("no readable part")
+        header = exr.header()
+        channels = {name: ch.pixels for name, ch in exr.channels().items()}
+    except (RuntimeError, ValueError, IndexError) as error:
+        raise ValueError(
+            f"{path}: unreadable OpenEXR file (truncated or corrupt): {error}"
+        ) from None
+    return header, channels
+
+
+def _stack(path: Path, names: tuple[str, ...], channels: dict[str, np.ndarray]) -> torch.Tensor:
+    """Stack named ``(H, W)`` channels into an ``(H, W, C)`` float32 tensor, checking them."""
+    shape = channels[names[0]].shape
+    for name in names:
+        pixels = channels[name]
+        if pixels.dtype not in (np.float16, np.float32):
+            raise ValueError(f"{path}: channel '{name}' has type {pixels.dtype}, not half/float")
+        if pixels.shape != shape:
+            raise ValueError(
+                f"{path}: channel '{name}' is {pixels.shape} but '{names[0]}' is {shape} "
+                "(subsampled channels are not supported)"
+            )
+    return torch.from_numpy(np.stack([channels[n] for n in names], axis=-1).astype(np.float32))
+

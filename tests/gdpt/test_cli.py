@@ -1,0 +1,149 @@
+"""gdpt.cli: help, ``info``, ``reconstruct`` and one-line user errors with exit status 2."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import OpenEXR
+import pytest
+import torch
+
+from gdpt import reconstruction
+from gdpt.buffers import CHANNELS, GradientBuffers
+from gdpt.cli import COMMANDS, main
+from gdpt.exr import load_image, save_buffers
+
+
+def make_buffers(h: int = 12, w: int = 10, *, gradients: bool = True) -> GradientBuffers:
+    g = torch.Generator().manual_seed(0)
+    names = CHANNELS if gradients else ("primal", "albedo")
+    tensors = {n: torch.rand(h, w, CHANNELS[n], generator=g) for n in names}
+    return GradientBuffers(**tensors, spp=16, metadata={"scene": "cbox", "seed": 7})
+
+
+@pytest.fixture
+def render(tmp_path):
+    buffers = make_buffers()
+    buffers.dx[0, 0, 0] = float("nan")
+    buffers.dy[1, 1, :] = float("inf")
+    return save_buffers(tmp_path / "render.exr", buffers)
+
+
+@pytest.fixture
+def fake_l2(monkeypatch):
+    """Make ``--method l2`` a cheap stand-in (primal * 2) so CLI plumbing is tested alone."""
+    monkeypatch.setitem(
+        reconstruction.METHODS, "l2", lambda buffers, *, alpha, **_: buffers.primal * 2
+    )
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "gdpt", *args], capture_output=True, text=True, timeout=120
+    )
+
+
+def one_line_error(err: str) -> str:
+    lines = [line for line in err.splitlines() if line.startswith("gdpt ")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def test01_help_lists_commands():
+    result = run_cli("--help")
+    assert result.returncode == 0
+    for command in COMMANDS:
+        assert command.name in result.stdout
+    with pytest.raises(SystemExit) as exit_info:
+        main(["reconstruct", "--help"])
+    assert exit_info.value.code == 0
+
+
+def test02_no_command_is_a_usage_error():
+    with pytest.raises(SystemExit) as exit_info:
+        main([])
+    assert exit_info.value.code == 2
+
+
+def test03_info(render, capsys):
+    assert main(["info", str(render)]) == 0
+    out = capsys.readouterr().out
+    assert "10 x 12 (W x H)" in out
+    assert "spp:      16" in out
+    assert "gradient-domain" in out
+    assert "normal.X,normal.Y,normal.Z" in out
+    rows = {line.split()[0]: line.split()[-2:] for line in out.splitlines() if line[:2] == "  "}
+    assert rows["dx"] == ["1", "0"] and rows["dy"] == ["0", "3"] and rows["primal"] == ["0", "0"]
+    assert '"scene": "cbox"' in out
+
+
+def test04_reconstruct_writes_exr_and_png(render, tmp_path, fake_l2, capsys):
+    out = tmp_path / "sub" / "l2.exr"
+    assert main(["reconstruct", str(render), "--method", "l2", "-o", str(out), "--png"]) == 0
+    assert out.exists() and out.with_suffix(".png").exists()
+    image = load_image(out)
+    torch.testing.assert_close(image, make_buffers().primal * 2)
+    assert "wrote" in capsys.readouterr().out
+
+
+def test05_reconstruct_refuses_to_overwrite(render, tmp_path, fake_l2, capsys):
+    out = tmp_path / "l2.exr"
+    args = ["reconstruct", str(render), "--method", "l2", "-o", str(out), "--png"]
+    out.with_suffix(".png").write_bytes(b"old preview")
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "l2.png" in one_line_error(err) and "--force" in err
+    assert not out.exists()  # checked before any work
+    assert main([*args, "--force"]) == 0
+    assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test06_primal_only_render_is_a_clear_error(tmp_path, capsys):
+    path = save_buffers(tmp_path / "pt.exr", make_buffers(gradients=False))
+    assert main(["reconstruct", str(path), "-o", str(tmp_path / "o.exr")]) == 2
+    line = one_line_error(capsys.readouterr().err)
+    assert "needs dx and dy" in line and "primal-only" in line
+
+
+@pytest.mark.parametrize(
+    ("command", "match"),
+    [
+        (["info", "{missing}"], "missing.exr: no such file"),
+        (["info", "{text}"], "notes.exr: not an OpenEXR file"),
+        (["reconstruct", "{missing}", "-o", "{out}"], "missing.exr: no such file"),
+        (["reconstruct", "{text}", "-o", "{out}"], "notes.exr: not an OpenEXR file"),
+        (["reconstruct", "{render}", "-o", "{tmp}/o.png"], "must be an .exr"),
+        (["reconstruct", "{render}", "--alpha", "-1", "-o", "{out}"], "--alpha must be"),
+    ],
+)
+def test07_bad_input_exits_2_with_one_line(tmp_path, render, command, match, capsys):
+    text = tmp_path / "notes.exr"
+    text.write_text("not an image")
+    names = {"missing": tmp_path / "missing.exr", "text": text, "render": render}
+    names.update(out=tmp_path / "o.exr", tmp=tmp_path)
+    assert main([arg.format(**names) for arg in command]) == 2
+    captured = capsys.readouterr()
+    assert match in one_line_error(captured.err)
+    assert captured.out == ""
+
+
+def test08_entry_point_error_has_no_traceback(tmp_path):
+    result = run_cli("info", str(tmp_path / "missing.exr"))
+    assert result.returncode == 2
+    expected = f"gdpt info: error: {tmp_path / 'missing.exr'}: no such file"
+    assert one_line_error(result.stderr) == expected
+
+
+def test09_reconstruct_end_to_end(render, tmp_path):
+    poisson = pytest.importorskip("gdpt.reconstruct.poisson")
+    if not hasattr(poisson, "reconstruct"):
+        pytest.skip("gdpt.reconstruct.poisson.reconstruct is not written yet")
+    out = tmp_path / "l1.exr"
+    result = run_cli("reconstruct", str(render), "--method", "l1", "-o", str(out), "--png")
+    assert result.returncode == 0, result.stderr
+    image = load_image(out)
+    assert image.shape == (12, 10, 3) and torch.isfinite(image).all()
+    meta = json.loads(OpenEXR.File(str(out)).header()["gdpt.metadata"])
+    assert meta["method"] == "l1" and meta["alpha"] == 0.2 and meta["render"]["seed"] == 7

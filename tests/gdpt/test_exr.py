@@ -1,0 +1,239 @@
+"""gdpt.exr: multi-layer EXR round trips, error messages, atomic and non-clobbering writes."""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gdpt import exr
+from gdpt.buffers import CHANNELS, GradientBuffers
+from gdpt.exr import channel_names, load_buffers, load_image, save_buffers, save_image
+
+OPTIONAL = [n for n in CHANNELS if n not in ("primal", "dx", "dy")]
+
+
+def make_buffers(h: int = 7, w: int = 5, *, names=tuple(CHANNELS), seed: int = 0, **kw):
+    g = torch.Generator().manual_seed(seed)
+    tensors = {n: torch.randn(h, w, CHANNELS[n], generator=g) * 10 for n in names}
+    return GradientBuffers(**tensors, **kw)
+
+
+def assert_same(a: GradientBuffers, b: GradientBuffers) -> None:
+    assert a.present() == b.present()
+    for name, t in a.items():
+        torch.testing.assert_close(getattr(b, name), t, rtol=0, atol=0, equal_nan=True)
+    assert (a.spp, a.metadata) == (b.spp, b.metadata)
+
+
+def write_raw(path: Path, channels: dict[str, np.ndarray]) -> Path:
+    """Write an EXR that gdpt did not produce (to test the reader's checks)."""
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION}, channels).write(str(path))
+    return path
+
+
+def test01_float_round_trip_is_bit_exact(tmp_path):
+    meta = {"integrator": "gdpt", "seed": 3, "timings": {"render": 1.5}, "tags": ["a", "b"]}
+    buffers = make_buffers(spp=64, metadata=meta)
+    buffers.primal[0, 0, 0] = float("nan")
+    buffers.dx[1, 2, 1] = float("inf")
+    buffers.dy[2, 1, 2] = -float("inf")
+    buffers.depth[0, 1, 0] = 1e-42  # subnormal
+    path = save_buffers(tmp_path / "r.exr", buffers)
+    assert_same(buffers, load_buffers(path))
+
+
+def test02_conventional_channel_names_and_header(tmp_path):
+    save_buffers(tmp_path / "r.exr", make_buffers(spp=4, metadata={"k": 1}))
+    f = OpenEXR.File(str(tmp_path / "r.exr"), separate_channels=True)
+    assert len(f.parts) == 1
+    expected = {
+        *(f"{n}.{c}" for n in ("primal", "dx", "dy", "albedo") for c in "RGB"),
+        "normal.X", "normal.Y", "normal.Z", "depth.Y", "var_primal.Y", "var_dx.Y", "var_dy.Y",
+    }  # fmt: skip
+    assert set(f.channels()) == expected
+    header = f.header()
+    assert header["gdpt.spp"] == 4
+    assert json.loads(header["gdpt.metadata"]) == {"k": 1}
+    assert header["gdpt.formatVersion"] == exr.FORMAT_VERSION
+    assert isinstance(header["gdpt.version"], str)
+    assert all(c.pixels.dtype == np.float32 for c in f.channels().values())
+
+
+def test03_half_round_trip_within_half_precision(tmp_path):
+    buffers = make_buffers()
+    path = save_buffers(tmp_path / "h.exr", buffers, half=True)
+    f = OpenEXR.File(str(path), separate_channels=True)
+    assert all(c.pixels.dtype == np.float16 for c in f.channels().values())
+    loaded = load_buffers(path)
+    for name, t in buffers.items():
+        got = getattr(loaded, name)
+        assert got.dtype == torch.float32
+        torch.testing.assert_close(got, t.half().float(), rtol=0, atol=0)
+        torch.testing.assert_close(got, t, rtol=2**-11, atol=6e-8)
+    assert path.stat().st_size < save_buffers(tmp_path / "f.exr", buffers).stat().st_size
+
+
+def test04_primal_only_and_subsets(tmp_path):
+    buffers = make_buffers(names=("primal", "depth"))
+    loaded = load_buffers(save_buffers(tmp_path / "p.exr", buffers))
+    assert loaded.present() == ["primal", "depth"] and not loaded.has_gradients
+    assert (loaded.spp, loaded.metadata) == (0, {})
+
+
+def test05_missing_primal_names_channel_and_file(tmp_path):
+    rgb = {c: np.zeros((4, 3), np.float32) for c in "RGB"}
+    path = write_raw(tmp_path / "plain.exr", rgb)
+    with pytest.raises(ValueError, match=r"plain\.exr.*'primal\.R'"):
+        load_buffers(path)
+
+
+def test06_partial_layer_names_channel_and_file(tmp_path):
+    channels = {f"primal.{c}": np.zeros((4, 3), np.float32) for c in "RGB"}
+    channels.update({"dx.R": np.zeros((4, 3), np.float32), "dx.B": np.zeros((4, 3), np.float32)})
+    path = write_raw(tmp_path / "partial.exr", channels)
+    with pytest.raises(ValueError, match=r"partial\.exr.*layer 'dx'.*'dx\.G'"):
+        load_buffers(path)
+
+
+def test07_inconsistent_buffers_name_file(tmp_path):
+    channels = {f"{n}.{c}": np.zeros((4, 3), np.float32) for n in ("primal", "dx") for c in "RGB"}
+    path = write_raw(tmp_path / "nody.exr", channels)
+    with pytest.raises(ValueError, match=r"nody\.exr.*'dx' and 'dy'"):
+        load_buffers(path)
+
+
+def test08_uint_channel_is_rejected(tmp_path):
+    channels = {f"primal.{c}": np.zeros((4, 3), np.uint32) for c in "RGB"}
+    with pytest.raises(ValueError, match=r"u\.exr.*'primal\.R'.*uint32"):
+        load_buffers(write_raw(tmp_path / "u.exr", channels))
+
+
+def test09_not_an_exr(tmp_path):
+    path = tmp_path / "notes.exr"
+    path.write_text("hello, not an image\n")
+    with pytest.raises(ValueError, match=r"notes\.exr: not an OpenEXR file"):
+        load_buffers(path)
+    with pytest.raises(ValueError, match=r"notes\.exr: not an OpenEXR file"):
+        load_image(path)
+
+
+@pytest.mark.parametrize("fraction", [0.05, 0.5, 0.95])
+def test10_truncated_file(tmp_path, fraction):
+    path = save_buffers(tmp_path / "full.exr", make_buffers(40, 30))
+    data = path.read_bytes()
+    cut = tmp_path / "cut.exr"
+    cut.write_bytes(data[: int(len(data) * fraction)])
+    with pytest.raises(ValueError, match=r"cut\.exr"):
+        load_buffers(cut)
+
+
+def test11_missing_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"nothing\.exr"):
+        load_buffers(tmp_path / "nothing.exr")
+
+
+def test12_no_overwrite_without_force(tmp_path):
+    path = save_buffers(tmp_path / "r.exr", make_buffers(seed=1))
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match=r"r\.exr"):
+        save_buffers(path, make_buffers(seed=2))
+    with pytest.raises(FileExistsError, match=r"r\.exr"):
+        save_image(path, torch.zeros(2, 2, 3))
+    assert path.read_bytes() == before
+    save_buffers(path, make_buffers(seed=2), force=True)
+    assert_same(make_buffers(seed=2), load_buffers(path))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.exr"]
+
+
+def test13_failed_write_leaves_no_file(tmp_path, monkeypatch):
+    class BrokenFile:
+        def __init__(self, header, channels):
+            pass
+
+        def write(self, filename):
+            Path(filename).write_bytes(b"v/1\x01partial")
+            raise OSError("disk full")
+
+    monkeypatch.setattr(exr.OpenEXR, "File", BrokenFile)
+    with pytest.raises(OSError, match="disk full"):
+        save_buffers(tmp_path / "r.exr", make_buffers())
+    assert list(tmp_path.iterdir()) == []
+
+
+def test14_unserialisable_metadata_writes_nothing(tmp_path):
+    with pytest.raises(TypeError, match="JSON"):
+        save_buffers(tmp_path / "r.exr", make_buffers(metadata={"x": object()}))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test15_save_and_load_image(tmp_path):
+    image = torch.rand(6, 9, 3, dtype=torch.float64)
+    path = save_image(tmp_path / "img.exr", image, metadata={"method": "l1"})
+    f = OpenEXR.File(str(path), separate_channels=True)
+    assert set(f.channels()) == {"R", "G", "B"}
+    assert json.loads(f.header()["gdpt.metadata"]) == {"method": "l1"}
+    loaded = load_image(path)
+    assert loaded.dtype == torch.float32 and loaded.shape == (6, 9, 3)
+    assert torch.equal(loaded, image.float())
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        save_image(tmp_path / "bad.exr", np.zeros((4, 4)))
+
+
+def test16_load_image_layers(tmp_path):
+    buffers = make_buffers()
+    path = save_buffers(tmp_path / "r.exr", buffers)
+    assert torch.equal(load_image(path, "dx"), buffers.dx)
+    assert torch.equal(load_image(path, "normal"), buffers.normal)
+    assert torch.equal(load_image(path, "depth"), buffers.depth)
+    with pytest.raises(ValueError, match=r"r\.exr.*missing channel 'R'"):
+        load_image(path)
+    with pytest.raises(ValueError, match=r"'beauty\.R'"):
+        load_image(path, "beauty")
+
+
+def test17_channel_names():
+    assert channel_names("normal") == ("normal.X", "normal.Y", "normal.Z")
+    assert channel_names("var_dx") == ("var_dx.Y",)
+    with pytest.raises(ValueError, match="valid buffers"):
+        channel_names("colour")
+
+
+@st.composite
+def random_buffers(draw):
+    h, w = draw(st.integers(1, 9)), draw(st.integers(1, 9))
+    names = ["primal"]
+    if draw(st.booleans()):
+        names += ["dx", "dy"]
+    names += [n for n in OPTIONAL if draw(st.booleans())]
+    floats = st.floats(width=32, allow_nan=False)
+    tensors = {}
+    for name in names:
+        n = h * w * CHANNELS[name]
+        values = draw(st.lists(floats, min_size=n, max_size=n))
+        tensors[name] = torch.tensor(values, dtype=torch.float32).reshape(h, w, CHANNELS[name])
+    spp = draw(st.integers(0, 2**31 - 1))
+    metadata = draw(st.dictionaries(st.text(max_size=5), st.integers() | st.text(), max_size=3))
+    return GradientBuffers(**tensors, spp=spp, metadata=metadata)
+
+
+@settings(max_examples=30, deadline=None)
+@given(buffers=random_buffers(), half=st.booleans())
+def test18_property_round_trip(buffers, half):
+    with tempfile.TemporaryDirectory() as tmp:
+        loaded = load_buffers(save_buffers(Path(tmp) / "r.exr", buffers, half=half))
+    if not half:
+        assert_same(buffers, loaded)
+        return
+    assert loaded.present() == buffers.present()
+    for name, t in buffers.items():
+        with np.errstate(over="ignore"):
+            expected = t.numpy().astype(np.float16).astype(np.float32)
+        np.testing.assert_array_equal(getattr(loaded, name).numpy(), expected)
