@@ -52,6 +52,8 @@ class OffsetState:
     q: mi.Spectrum
     r: mi.Float
     pb_prev: mi.Float  # MIS pdf of the segment y_{i-1} -> y_i
+    s: mi.Float  # after a reconnection y_{i-1} -> x_i: r_{i-1} / p̃(x_{i-1} -> x_i)
+    sJ: mi.Float  # ... and the same times the reconnection Jacobian
     G: mi.Spectrum  # half-gradient accumulator
 
 
@@ -141,6 +143,8 @@ class GDPTIntegrator(GradientIntegratorBase):
                 q=mi.Spectrum(weights[k]),
                 r=mi.Float(1.0),
                 pb_prev=mi.Float(1.0),
+                s=mi.Float(0.0),
+                sJ=mi.Float(0.0),
                 G=dr.zeros(mi.Spectrum, n),
             ))
         feat = FeatureState.zeros(n) if self.features else None
@@ -158,7 +162,8 @@ class GDPTIntegrator(GradientIntegratorBase):
             ds = mi.DirectionSample3f(scene, si, base.prev)
             pn_x = scene.pdf_emitter_direction(base.prev, ds, active & ~base.delta_prev)
             Le_x = ds.emitter.eval(si, active)
-            ratio_x = safe_div(pn_x, base.pb_prev)  # p_light / p_bsdf of the last segment
+            cone = _is_cone_sampled(ds.emitter)
+            ratio_x = pn_x / dr.select(base.pb_prev > 0, base.pb_prev, 1)  # p_light / p_bsdf
             base.L += base.beta * Le_x / (1 + ratio_x)
             c_main_num = base.beta * Le_x
 
@@ -183,9 +188,15 @@ class GDPTIntegrator(GradientIntegratorBase):
                 si.wi = wi_saved
 
                 Le_y = dr.select(own, Le_own, dr.select(recent, Le_rec, Le_x))
-                pn_y = dr.select(own, pn_own, dr.select(recent, pn_rec, pn_x))
-                ratio_y = safe_div(pn_y, o.pb_prev)
-                den = 1 + ratio_x + dr.select(o.alive, o.r * (1 + ratio_y), 0)
+                # r' (1 + p_light(y) / p_bsdf(y)) without 0 * inf at grazing y: after a
+                # reconnection J p_light(y) = p_light(x) for area-sampled emitters (see NEE).
+                Jpn_rec = dr.select(cone, o.sJ * pn_rec, o.s * pn_x)
+                extra = dr.select(
+                    own,
+                    o.r * (1 + pn_own / dr.select(o.pb_prev > 0, o.pb_prev, 1)),
+                    dr.select(recent, o.r + Jpn_rec, o.r * (1 + ratio_x)),
+                )
+                den = 1 + ratio_x + dr.select(o.alive, extra, 0)
                 c_shift = dr.select(o.alive, o.q * Le_y, 0)
                 o.G += dr.select(active, finite((c_shift - c_main_num) / den), 0)
                 o.alive &= ~o.escaped
@@ -193,8 +204,11 @@ class GDPTIntegrator(GradientIntegratorBase):
             # --------------------- Next-event estimation --------------------
             active_next = active & (base.depth + 1 < self.max_depth) & si.is_valid()
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
+            # Visibility is tested separately: an occluded base light sample still has offsets.
+            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False, active_em)
             active_em &= ds.pdf != 0
+            visible_x = ~scene.ray_test(si.spawn_ray_to(ds.p), active_em)
+            em_weight = dr.select(visible_x, em_weight, 0)
             wo_em = si.to_local(ds.d)
             f_x, pb_x = bsdf.eval_pdf(ctx, si, wo_em, active_em)
             pb_x = dr.select(ds.delta, 0, pb_x)
@@ -203,6 +217,7 @@ class GDPTIntegrator(GradientIntegratorBase):
             base.L += dr.select(active_em, base.beta * f_x * em_weight * safe_div(pn_x, pn_x + pb_x), 0)
             nee_main = base.beta * f_x * em_val
             is_infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
+            cone = _is_cone_sampled(ds.emitter)
             fixed_point = is_infinite | ds.delta  # light "vertex" shared exactly: J = 1
 
             for o in offsets:
@@ -223,15 +238,18 @@ class GDPTIntegrator(GradientIntegratorBase):
                 ray_y = dr.select(is_infinite, y.spawn_ray(dir_y), y.spawn_ray_to(ds.p))
                 visible = ~scene.ray_test(ray_y, act_own)
                 em_own = dr.select(visible, scene.eval_emitter_direction(y, ds_y, act_own), 0)
-                facing = is_infinite | ds.delta | (dr.dot(ds.n, dir_y) < 0)
-                pn_own = dr.select(
-                    ds.delta, ds.pdf, scene.pdf_emitter_direction(y, ds_y, act_own & facing)
-                )
                 cos_x = dr.abs(dr.dot(ds.n, ds.d))
                 cos_y = dr.abs(dr.dot(ds.n, dir_y))
                 J_own = dr.select(
                     fixed_point, 1.0, safe_div(cos_y * dr.square(ds.dist), cos_x * dr.square(dist_y))
                 )
+                # J p_light(y). Area-sampled emitters and fixed points: exactly p_light(x), also
+                # when the light turns its back to y (Mitsuba samples such points with nonzero
+                # pdf, although pdf_emitter_direction() reports 0), and free of 0 * inf at
+                # grazing y. Spheres are sampled by cone, which never picks their far side.
+                front = dr.dot(ds.n, dir_y) < 0
+                pn_cone = scene.pdf_emitter_direction(y, ds_y, act_own & cone & front)
+                Jpn_own = dr.select(cone, J_own * pn_cone, pn_x)
                 f_own, pb_own = bsdf_y.eval_pdf(ctx, y, y.to_local(dir_y), act_own)
                 pb_own = dr.select(ds.delta, 0, pb_own)
                 # Recently connected: same light point seen from x_i, but arriving from y_{i-1}
@@ -243,10 +261,10 @@ class GDPTIntegrator(GradientIntegratorBase):
 
                 f_y = dr.select(own, f_own, dr.select(recent, f_rec, f_x))
                 pb_y = dr.select(own, pb_own, dr.select(recent, pb_rec, pb_x))
-                pn_y = dr.select(own, dr.select(act_own, pn_own, 0), pn_x)
                 e_y = dr.select(own, em_own, em_val)
                 J = dr.select(own, J_own, 1.0)
-                den = pn_x + pb_x + dr.select(o.alive, o.r * J * (pn_y + pb_y), 0)
+                Jp_y = dr.select(own, dr.select(act_own, Jpn_own, 0) + J_own * pb_own, pn_x + pb_y)
+                den = pn_x + pb_x + dr.select(o.alive, o.r * Jp_y, 0)
                 c_shift = dr.select(o.alive, o.q * f_y * e_y * J, 0)
                 o.G += dr.select(active_em, finite((c_shift - nee_main) / den), 0)
 
@@ -338,6 +356,8 @@ class GDPTIntegrator(GradientIntegratorBase):
                     dr.select(reconnect, p_rc, dr.select(delta_x, 1.0, bs_s.pdf)),
                     dr.select(recent, p_rec, dr.select(delta_x, 1.0, bs.pdf)),
                 )
+                o.s = dr.select(own & reconnect, o.r * inv_p, 0)
+                o.sJ = dr.select(own & reconnect, o.r * J_rc * inv_p, 0)
                 o.q = finite(q_new)
                 o.r = dr.minimum(finite(r_new), 1e30)
                 o.pb_prev = pb_new
@@ -385,6 +405,11 @@ class GDPTIntegrator(GradientIntegratorBase):
             normal=feat.normal if feat is not None else None,
             depth=feat.depth if feat is not None else None,
         )
+
+
+def _is_cone_sampled(emitter: mi.EmitterPtr) -> mi.Bool:
+    """Emitters on spheres: Mitsuba samples them by solid angle (cone), not by area."""
+    return emitter.get_shape().shape_type() == int(mi.ShapeType.Sphere)
 
 
 mi.register_integrator("gdpt", lambda props: GDPTIntegrator(props))
