@@ -1,0 +1,123 @@
+"""Tests of NGPT inference: tiling, padding of tiny images, checkpoints and input errors."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from gdpt.reconstruct import ngpt
+from gdpt.reconstruct.dense_unet import DenseUNet, ModelConfig, build_model
+from gdpt.reconstruct.ngpt import CheckpointMismatchError, NGPTReconstructor
+
+#: A small dense config (radius 28 px) so that tiles are cut well inside the test images.
+TINY = ModelConfig(growth_rates=(8, 12, 12), unit_counts=(2, 1, 1),
+                   decoder_unit_counts=(2, 1, 1), pool_features=(16, 16),
+                   unpool_features=(8, 16))
+
+
+def _model(config: ModelConfig | str, seed: int = 0) -> DenseUNet:
+    torch.manual_seed(seed)
+    model = build_model(config) if isinstance(config, str) else DenseUNet(config)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            if not name.endswith("weight"):
+                p.add_(0.1 * torch.randn_like(p))
+    return model
+
+
+def _buffers(h: int, w: int, seed: int = 0) -> dict[str, torch.Tensor]:
+    gen = torch.Generator().manual_seed(seed)
+    image = torch.rand(h, w, 3, generator=gen) * 3
+    dx, dy = torch.zeros_like(image), torch.zeros_like(image)
+    dx[:, :-1] = image[:, 1:] - image[:, :-1]
+    dy[:-1] = image[1:] - image[:-1]
+    return {
+        "primal": image + 0.3 * torch.randn(h, w, 3, generator=gen),
+        "dx": dx, "dy": dy,
+        "albedo": torch.rand(h, w, 3, generator=gen),
+        "normal": torch.rand(h, w, 3, generator=gen) * 2 - 1,
+        "depth": torch.rand(h, w, 1, generator=gen) * 10,
+    }
+
+
+@pytest.mark.parametrize(("config", "size", "tile"),
+                         [(TINY, (97, 121), 24), ("fast_xs", (100, 90), 56)])
+def test01_tiled_equals_untiled(config, size, tile):
+    model = _model(config)
+    bufs = _buffers(*size)
+    untiled = NGPTReconstructor(model, tile_size=None)(bufs)
+    tiled_rec = NGPTReconstructor(model, tile_size=tile)
+    tiled = tiled_rec(bufs)
+    assert len(tiled_rec.tiles(size[0] + 24, size[1] + 24)) > 4
+    assert tiled.shape == (*size, 3) and tiled.dtype == torch.float32
+    assert tiled_rec.overlap >= model.receptive_radius
+    torch.testing.assert_close(tiled, untiled, rtol=1e-4, atol=1e-4)
+
+
+def test02_tiny_images_batches_and_nonfinite_inputs():
+    rec = NGPTReconstructor(_model("fast_xs"))
+    bufs = _buffers(3, 5)
+    bufs["primal"][1, 1] = float("nan")
+    bufs["dx"][0, 0] = float("inf")
+    out = rec(bufs)
+    assert out.shape == (3, 5, 3) and torch.isfinite(out).all()
+    batch = {k: torch.stack([v, v]) for k, v in _buffers(9, 13).items()}
+    out = rec(batch)
+    assert out.shape == (2, 9, 13, 3)
+    torch.testing.assert_close(out[0], out[1])
+    # objects with buffer attributes (gdpt.buffers.GradientBuffers) are accepted too
+    single = _buffers(9, 13)
+    torch.testing.assert_close(rec(SimpleNamespace(**single, var_primal=None)), rec(single))
+
+
+def test03_missing_and_malformed_buffers():
+    rec = NGPTReconstructor(_model(TINY))
+    bufs = _buffers(16, 16)
+    del bufs["dy"], bufs["albedo"]
+    with pytest.raises(KeyError, match=r"missing feature buffers \['dy', 'albedo'\]"):
+        rec(bufs)
+    bad = {**_buffers(16, 16), "normal": torch.zeros(16, 16, 2)}
+    with pytest.raises(ValueError, match="'normal' must have shape"):
+        rec(bad)
+
+
+def test04_checkpoint_round_trip(tmp_path):
+    model = _model("nograd")
+    card = {"training": {"scenes": ["cbox"], "spp": [2, 1024]}, "steps": 12,
+            "validation": {"relmse": 0.125}}
+    weights, card_path = ngpt.save_checkpoint(model, tmp_path / "ckpt" / "model.pt", card)
+    assert weights.suffix == ".safetensors" and card_path.suffix == ".json"
+    stored = json.loads(card_path.read_text())
+    assert stored["config_name"] == "nograd" and stored["steps"] == 12
+    assert stored["features"] == ["primal", "albedo", "normal", "depth"]
+    rec = NGPTReconstructor.from_checkpoint(card_path)
+    assert rec.features == ("primal", "albedo", "normal", "depth")
+    assert rec.card["validation"] == {"relmse": 0.125}
+    bufs = _buffers(24, 24)
+    del bufs["dx"], bufs["dy"]
+    torch.testing.assert_close(rec(bufs), NGPTReconstructor(model)(bufs))
+    with pytest.raises(ValueError, match="reserved"):
+        ngpt.save_checkpoint(model, tmp_path / "x", {"config": 1})
+
+
+def test05_checkpoint_mismatch_errors(tmp_path):
+    model = _model(TINY)
+    model.name = "fast"  # pretend a registered name with a different config
+    _, card_path = ngpt.save_checkpoint(model, tmp_path / "m")
+    with pytest.raises(CheckpointMismatchError, match="differs from the code's 'fast'.*growth"):
+        ngpt.load_checkpoint(card_path)
+    card = json.loads(card_path.read_text())
+    card["config_name"] = None
+    card["config"]["growth_rates"] = [8, 12, 16]
+    card_path.write_text(json.dumps(card))
+    with pytest.raises(CheckpointMismatchError, match="does not match the config.*stored"):
+        ngpt.load_checkpoint(card_path)
+    card["config"]["colour"] = 1
+    card_path.write_text(json.dumps(card))
+    with pytest.raises(CheckpointMismatchError, match="unknown ModelConfig fields"):
+        ngpt.load_checkpoint(card_path)
+    with pytest.raises(FileNotFoundError, match="need .safetensors"):
+        ngpt.load_checkpoint(tmp_path / "absent.safetensors")
