@@ -171,16 +171,17 @@ def main(argv: list[str] | None = None) -> int:
         f"{load_before} / {load_after})\n"
     )
     print(
-        "| solver | median time [s] | IQR [s] | CG iterations | final L1 energy "
+        "| solver | median time [s] | IQR [s] | min [s] | CG iterations | final L1 energy "
         "| L1 energy / `l1` | RMSE vs. clean image |"
     )
-    print("|---|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
     r = rows["l2"]
     labels = {"l2": "L2 exact (DCT)", "l1": "L1 preset `l1` (ref. L1D)", "fast": "L1 preset `fast`"}
     for name, label in labels.items():
         r = rows[name]
         print(
-            f"| {label} | {r['median_s']:.3f} | {r['iqr_s']:.3f} | {r['cg_iterations']} | "
+            f"| {label} | {r['median_s']:.3f} | {r['iqr_s']:.3f} | {r['min_s']:.3f} | "
+            f"{r['cg_iterations']} | "
             f"{r['l1_energy']:.1f} | {r['l1_energy'] / e_ref:.6f} | {r['rmse_vs_reference']:.4f} |"
         )
     print(

@@ -134,6 +134,59 @@ def _run_reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------------- render
+def _add_render_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scene", help="Mitsuba XML file, or builtin:NAME (see gdpt.scenes)")
+    parser.add_argument("-o", "--output", type=Path, required=True, help="output buffers EXR")
+    parser.add_argument("--spp", type=int, default=64, help="samples per pixel (default: 64)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    parser.add_argument("--integrator", choices=["gdpt", "gdpt_rr"], default="gdpt")
+    parser.add_argument("--max-depth", type=int, default=6, help="longest path (default: 6)")
+    parser.add_argument("--no-gradients", action="store_true", help="plain path tracing")
+    parser.add_argument("--variance", action="store_true", help="also store variance buffers")
+    parser.add_argument("--half", action="store_true", help="store half floats")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing output")
+
+
+def _run_render(args: argparse.Namespace) -> int:
+    from gdpt.exr import check_writable, save_buffers
+    from gdpt.images import preview_path, save_png
+    from gdpt.render import load_scene, render
+
+    check_writable(args.output, force=args.force)
+    if args.scene.startswith("builtin:"):
+        from gdpt.backend import set_variant
+        from gdpt.scenes import builtin_scene
+
+        set_variant()
+        scene = load_scene(builtin_scene(args.scene.split(":", 1)[1]))
+    else:
+        scene = load_scene(args.scene)
+    buffers = render(
+        scene, spp=args.spp, seed=args.seed, integrator=args.integrator, progress=True,
+        max_depth=args.max_depth, gradients=not args.no_gradients, variance=args.variance,
+    )
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    save_buffers(args.output, buffers, half=args.half, force=args.force)
+    save_png(preview_path(args.output), buffers.primal, force=True)
+    print(f"wrote {args.output} ({buffers.metadata['render_seconds']:.2f} s)")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------- demo
+def _add_demo_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
+    parser.add_argument("--spp", type=int, default=32, help="G-PT samples per pixel")
+    parser.add_argument("--resolution", type=int, default=192, help="image width and height")
+
+
+def _run_demo(args: argparse.Namespace) -> int:
+    from gdpt.demo import DemoConfig, run_demo
+
+    run_demo(DemoConfig(out=args.out, spp=args.spp, resolution=args.resolution))
+    return 0
+
+
 # ------------------------------------------------------------------------------------- registry
 #: The subcommands, in the order ``gdpt --help`` lists them.
 COMMANDS: tuple[Command, ...] = (
@@ -144,6 +197,8 @@ COMMANDS: tuple[Command, ...] = (
         _add_reconstruct_arguments,
         _run_reconstruct,
     ),
+    Command("render", "render gradient-domain buffers to EXR", _add_render_arguments, _run_render),
+    Command("demo", "G-PT + Poisson vs path tracing at equal time", _add_demo_arguments, _run_demo),
 )
 
 
