@@ -6,12 +6,12 @@ torch, sets no variant and registers no plugin. The public names below are loade
     import gdpt
 
     gdpt.set_variant()                      # cuda_ad_rgb if available, else llvm_ad_rgb
-    buffers = gdpt.load_buffers("render.exr")
-    image = gdpt.reconstruction.reconstruct(buffers, method="l1", alpha=0.2)
+    buffers = gdpt.render("scene.xml", spp=64)   # or gdpt.load_buffers("render.exr")
+    image = gdpt.reconstruct(buffers, method="l1", alpha=0.2)
 
-Note that ``gdpt.reconstruct`` is the subpackage of reconstruction algorithms (Poisson solvers,
-networks); the dispatcher that applies one of them to a :class:`GradientBuffers` is
-:func:`gdpt.reconstruction.reconstruct`.
+``gdpt.reconstruct`` is both the subpackage of reconstruction algorithms (Poisson solvers,
+networks) and, called, the dispatcher :func:`gdpt.reconstruction.reconstruct`; likewise
+``gdpt.render`` is the module and, called, :func:`gdpt.render.render` (see ``gdpt._modules``).
 """
 
 from __future__ import annotations
@@ -40,6 +40,22 @@ if TYPE_CHECKING:
     from gdpt.buffers import GradientBuffers
     from gdpt.exr import load_buffers, save_buffers
     from gdpt.render import render, render_and_denoise
+
+
+def _dispatch_reconstruct(*args: Any, **kwargs: Any) -> Any:
+    from gdpt.reconstruction import reconstruct
+
+    return reconstruct(*args, **kwargs)
+
+
+def _bind_reconstruct() -> None:
+    import gdpt.reconstruct  # light: the subpackage's __init__ imports nothing
+    from gdpt._modules import make_callable
+
+    make_callable("gdpt.reconstruct", _dispatch_reconstruct)
+
+
+_bind_reconstruct()
 
 
 def __getattr__(name: str) -> Any:

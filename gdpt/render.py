@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 
+from gdpt._modules import make_callable
 from gdpt.buffers import GradientBuffers
 
 #: Integrators that produce gradient buffers.
@@ -37,8 +38,15 @@ class RenderResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def load_scene(scene: Any, *, resolution: tuple[int, int] | None = None):
+def load_scene(scene: Any, *, box_filter: bool = False, long_side: int | None = None):
     """A ``mi.Scene`` from a scene, an XML path or a scene dict (variant set if needed).
+
+    Args:
+        scene: ``mi.Scene``, scene dict, or path to a Mitsuba XML file.
+        box_filter (bool): XML only: replace the film's pixel filter by a box filter (gradient-
+            domain rendering needs one). The change is explicit: callers should report it.
+        long_side (int | None): XML only: rescale the film to this many pixels on its long side
+            (aspect ratio kept).
 
     Raises:
         FileNotFoundError: the XML file does not exist.
@@ -61,13 +69,51 @@ def load_scene(scene: Any, *, resolution: tuple[int, int] | None = None):
     path = Path(os.fspath(scene))
     if not path.is_file():
         raise FileNotFoundError(f"scene file not found: {path}")
-    params = {}
-    if resolution is not None:
-        params = {"resx": resolution[0], "resy": resolution[1]}
     try:
-        return mi.load_file(str(path), **params)
+        text = _edit_scene_xml(path, box_filter=box_filter, long_side=long_side)
+        resolver = mi.file_resolver()
+        saved = [resolver[i] for i in range(len(resolver))]
+        resolver.prepend(str(path.parent.resolve()))  # relative meshes and textures
+        try:
+            return mi.load_string(text)
+        finally:
+            resolver.clear()
+            for entry in saved:
+                resolver.append(entry)
     except Exception as exc:  # Mitsuba raises RuntimeError with its parser message
         raise ValueError(f"cannot load scene {path}: {exc}") from exc
+
+
+def _edit_scene_xml(path: Path, *, box_filter: bool, long_side: int | None) -> str:
+    """The scene XML with the film's filter and size changed as requested."""
+    import xml.etree.ElementTree as ET
+
+    tree = ET.parse(path)
+    root = tree.getroot()
+    film = root.find("./sensor/film")
+    if film is None or not (box_filter or long_side):
+        return ET.tostring(root, encoding="unicode")
+    if box_filter:
+        for old in film.findall("rfilter"):
+            film.remove(old)
+        ET.SubElement(film, "rfilter", {"type": "box"})
+    if long_side:
+        defaults = {d.get("name"): d.get("value") for d in root.findall("default")}
+
+        def size(name: str, fallback: int) -> tuple[ET.Element | None, int]:
+            node = next((n for n in film.findall("integer") if n.get("name") == name), None)
+            if node is None:
+                return None, fallback
+            value = node.get("value", "")
+            return node, int(defaults.get(value[1:], fallback) if value.startswith("$") else value)
+
+        (w_node, w), (h_node, h) = size("width", 768), size("height", 576)
+        scale = long_side / max(w, h)
+        for name, node, value in (("width", w_node, w), ("height", h_node, h)):
+            if node is None:
+                node = ET.SubElement(film, "integer", {"name": name})
+            node.set("value", str(max(1, round(value * scale))))
+    return ET.tostring(root, encoding="unicode")
 
 
 def make_integrator(name: str = "gdpt", **props: Any):
@@ -190,3 +236,6 @@ def render_and_denoise(
     t_rec = time.perf_counter() - t0
     timings = {"render": t_render, "reconstruct": t_rec, "total": t_render + t_rec}
     return RenderResult(image=image, buffers=buffers, timings=timings)
+
+
+make_callable(__name__, render)
