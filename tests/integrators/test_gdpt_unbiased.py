@@ -20,6 +20,8 @@ count ratio (the reference uses 8x more samples).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from stats import agreement, forward_differences
@@ -50,25 +52,31 @@ SLOW = [
 ]
 
 
-def _reference(scene_dict, max_depth):
+def _reference(scene, max_depth):
     import mitsuba as mi
 
-    d = dict(scene_dict, integrator={"type": "path", "max_depth": max_depth})
-    scene = mi.load_dict(d)
-    images = [np.array(mi.render(scene, spp=REF_SPP, seed=1000 + i)) for i in range(REF_PASSES)]
+    path = mi.load_dict({"type": "path", "max_depth": max_depth})
+    images = [
+        np.array(mi.render(scene, integrator=path, spp=REF_SPP, seed=1000 + i))
+        for i in range(REF_PASSES)
+    ]
     return np.mean(images, axis=0)
 
 
-def _check(scene_name, max_depth, integrator):
+def _check(scene, max_depth, integrator):
+    """Assert agreement of ``integrator`` on ``scene`` (a builtin name or a loaded scene)."""
     import gdpt
+    from gdpt.render import load_scene
     from gdpt.scenes import builtin_scene
 
-    d = builtin_scene(scene_name, resolution=(RES, RES))
-    ref = _reference(d, max_depth)
+    label = scene if isinstance(scene, str) else "scene"
+    if isinstance(scene, str):
+        scene = load_scene(builtin_scene(scene, resolution=(RES, RES)))
+    ref = _reference(scene, max_depth)
     runs = [
         gdpt.render(
-            d, spp=SPP, seed=11 + i, integrator=integrator, max_depth=max_depth, variance=True,
-            features=False,
+            scene, spp=SPP, seed=11 + i, integrator=integrator, max_depth=max_depth,
+            variance=True, features=False,
         )
         for i in range(RUNS)
     ]
@@ -91,7 +99,7 @@ def _check(scene_name, max_depth, integrator):
     }
     for name, a in results.items():
         median = float(np.median(np.abs(a.z)))
-        msg = f"{integrator} on {scene_name}, {name}: z_total {a.z_total:+.2f}, median|z| {median:.2f}"
+        msg = f"{integrator} on {label}, {name}: z_total {a.z_total:+.2f}, median|z| {median:.2f}"
         assert abs(a.z_total) < Z_TOTAL_MAX, msg
         assert median < MEDIAN_Z_MAX, msg
 
@@ -107,3 +115,17 @@ def test01_unbiased(variant, scene_name, max_depth, integrator):
 @pytest.mark.parametrize(("scene_name", "max_depth"), SLOW)
 def test02_unbiased_more_scenes(variant, scene_name, max_depth, integrator):
     _check(scene_name, max_depth, integrator)
+
+
+SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "scenes"
+
+
+@pytest.mark.parametrize("integrator", ["gdpt", "gdpt_rr"])
+@pytest.mark.parametrize("name", ["cornell-box", "veach-mis"])
+def test03_unbiased_real_scenes(variant, name, integrator):
+    from gdpt.render import load_scene
+
+    xml = SHARED / name / "scene.xml"
+    if not xml.is_file():
+        pytest.skip(f"held-out scenes not available ({xml} missing)")
+    _check(load_scene(xml, box_filter=True, long_side=16), 4, integrator)
