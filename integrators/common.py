@@ -277,6 +277,8 @@ class _Accumulator:
             values["sq_primal"] = [dr.square(dr.mean(s.primal))]
             for k, g in enumerate(s.gradients):
                 values[f"sq_g{k}"] = [dr.square(dr.mean(g))]
+        # One kernel for all outputs: evaluating them one by one would re-run the path loop.
+        dr.eval(values)
         for name, sums in self.sums.items():
             if name.startswith("sq_"):
                 comps = values[name]
