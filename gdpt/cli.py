@@ -100,6 +100,7 @@ def _add_reconstruct_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--png", action="store_true", help="also write a tone-mapped PNG next to the output"
     )
+    parser.add_argument("--model", type=Path, help="NGPT checkpoint for --method ngpt*")
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
 
 
@@ -117,7 +118,8 @@ def _run_reconstruct(args: argparse.Namespace) -> int:
         check_writable(path, force=args.force)
 
     buffers = load_buffers(args.file)
-    image = reconstruct(buffers, method=args.method, alpha=args.alpha)
+    options = {"model": args.model} if args.model is not None else {}
+    image = reconstruct(buffers, method=args.method, alpha=args.alpha, **options)
     metadata = {
         "source": str(args.file),
         "method": args.method,
@@ -187,6 +189,134 @@ def _run_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------------ evaluate
+def _add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--scenes", nargs="+", required=True, metavar="SCENE",
+        help="scene folders/XML files, a folder of <name>/scene.xml, builtin:NAME or "
+        "random:SEED[:VIEW]; comma-separated lists work too",
+    )
+    parser.add_argument("--out", type=Path, required=True, help="report folder (resumed)")
+    parser.add_argument("--quick", action="store_true",
+                        help="quick profile: small budgets and resolution, minutes on 2 cores")
+    parser.add_argument("--budgets", type=float, nargs="+", help="time budgets in seconds")
+    parser.add_argument("--resolution", type=int, help="pixels on the long side")
+    parser.add_argument("--methods", nargs="+", help="methods to compare (default: all)")
+    parser.add_argument("--metrics", nargs="+", help="metrics; the first one ranks methods")
+    parser.add_argument("--reference-spp", type=int, help="samples per pixel of the reference")
+    parser.add_argument("--max-depth", type=int,
+                        help="longest path (default: the scene's own setting, else 6)")
+    parser.add_argument("--seed", type=int, help="base seed")
+    parser.add_argument("--references", type=Path,
+                        help="reference cache folder (default: OUT/references)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _run_evaluate(args: argparse.Namespace) -> int:
+    import dataclasses
+    import shlex
+
+    from gdpt.eval_report import best_methods
+    from gdpt.evaluate import PRESETS, evaluate
+    from gdpt.methods import EVAL_METHODS
+    from gdpt.metrics import METRICS
+
+    for option, names, valid in (("--methods", args.methods, EVAL_METHODS),
+                                 ("--metrics", args.metrics, METRICS)):
+        if unknown := [n for n in names or () if n not in valid]:
+            raise UsageError(f"{option}: unknown {', '.join(unknown)}; valid: {', '.join(valid)}")
+    changes = {
+        "budgets": args.budgets, "resolution": args.resolution, "methods": args.methods,
+        "metrics": args.metrics, "reference_spp": args.reference_spp,
+        "max_depth": args.max_depth, "seed": args.seed, "reference_dir": args.references,
+    }
+    cfg = PRESETS["quick" if args.quick else "full"]
+    cfg = dataclasses.replace(cfg, **{k: v for k, v in changes.items() if v is not None})
+    command = shlex.join(["gdpt", *sys.argv[1:]]) if sys.argv[1:2] == ["evaluate"] else None
+    results = evaluate(args.scenes, args.out, cfg, progress=not args.no_progress,
+                       command=command)
+    for scene, row in best_methods(results).items():
+        best = ", ".join(f"{k} s: {v[0] if v else 'n/a'}" for k, v in row.items())
+        print(f"{scene}: {best}")
+    for scene, entry in results["scenes"].items():
+        if entry.get("status") != "ok":
+            print(f"{scene}: FAILED ({entry.get('error')})")
+    print(f"wrote {args.out}/ (results.json, results.md, plots/, crops/, index.html)")
+    return 0
+
+
+# ------------------------------------------------------------------------------------ dataset
+def _add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, required=True, help="dataset directory")
+    parser.add_argument("--scenes", type=int, required=True, help="procedural scenes")
+    parser.add_argument("--views", type=int, required=True, help="camera views per scene")
+    parser.add_argument("--resolution", type=int, default=128, help="crop side (default: 128)")
+    parser.add_argument("--spp-min", type=int, default=2, help="lowest input spp (default: 2)")
+    parser.add_argument("--spp-max", type=int, default=256, help="highest input spp (default: 256)")
+    parser.add_argument("--target-spp", type=int, default=4096, help="target spp (default: 4096)")
+    parser.add_argument("--max-depth", type=int, default=6, help="longest path (default: 6)")
+    parser.add_argument("--seed", type=int, default=0, help="dataset seed (default: 0)")
+    parser.add_argument("--workers", type=int, default=1, help="local worker processes, or the "
+                        "CPUs of a '--ray local' instance (default: 1)")
+    parser.add_argument("--ray", metavar="ADDRESS", default=None, help="render with Ray tasks: "
+                        "'local' starts a private instance, else a cluster address ('auto', ...)")
+    parser.add_argument("--variant", default=None, help="Mitsuba variant (default: automatic)")
+
+
+def _run_dataset(args: argparse.Namespace) -> int:
+    from gdpt.dataset import DatasetConfig, build_dataset
+
+    config = DatasetConfig(
+        scenes=args.scenes, views=args.views, resolution=args.resolution, spp_min=args.spp_min,
+        spp_max=args.spp_max, target_spp=args.target_spp, max_depth=args.max_depth,
+        seed=args.seed,
+    )
+    summary = build_dataset(config, args.out, workers=args.workers, ray_address=args.ray,
+                            variant=args.variant)
+    print(f"{args.out}: rendered {summary.rendered} crops, {summary.skipped} already done, "
+          f"{summary.seconds:.0f} s ({summary.crops_per_minute:.2f} crops/min)")
+    return 0
+
+
+# -------------------------------------------------------------------------------------- train
+def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", required=True, metavar="NAME", help="model config, a key of "
+                        "gdpt.reconstruct.dense_unet.CONFIGS (paper, nograd, fast, fast_xs, ...)")
+    parser.add_argument("--data", required=True, help="dataset directory (gdpt dataset)")
+    parser.add_argument("--out", required=True, help="run directory")
+    parser.add_argument("--val-data", default=None, help="validation dataset directory "
+                        "(default: every --holdout-every-th scene of --data)")
+    parser.add_argument("--holdout-every", type=int, default=10, help="default: 10")
+    parser.add_argument("--loss", choices=["flip", "flip_hdr", "l1", "elpips"], default="flip",
+                        help="training loss (default: flip)")
+    parser.add_argument("--steps", type=int, default=1000, help="updates (default: 1000)")
+    parser.add_argument("--batch", type=int, default=8, help="crops per update and process")
+    parser.add_argument("--crop", type=int, default=None, help="random sub-crop side "
+                        "(default: the dataset crop)")
+    parser.add_argument("--lr", type=float, default=5e-4, help="base learning rate")
+    parser.add_argument("--seed", type=int, default=0, help="training seed (default: 0)")
+    parser.add_argument("--val-every", type=int, default=100, help="default: 100 (0: never)")
+    parser.add_argument("--val-crops", type=int, default=32, help="validation elements")
+    parser.add_argument("--ckpt-every", type=int, default=100, help="default: 100")
+    parser.add_argument("--device", default=None, help="torch device (default: automatic)")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out")
+
+
+def _run_train(args: argparse.Namespace) -> int:
+    from gdpt.train import TrainConfig, train
+
+    config = TrainConfig(
+        model=args.config, data=args.data, out=args.out, val_data=args.val_data,
+        holdout_every=args.holdout_every, loss=args.loss, steps=args.steps, batch=args.batch,
+        crop=args.crop, lr=args.lr, seed=args.seed, val_every=args.val_every,
+        val_crops=args.val_crops, ckpt_every=args.ckpt_every, device=args.device,
+    )
+    path = train(config, resume=args.resume)
+    if int(os.environ.get("RANK", 0)) == 0:
+        print(f"wrote {path}")
+    return 0
+
+
 # ------------------------------------------------------------------------------------- registry
 #: The subcommands, in the order ``gdpt --help`` lists them.
 COMMANDS: tuple[Command, ...] = (
@@ -199,6 +329,16 @@ COMMANDS: tuple[Command, ...] = (
     ),
     Command("render", "render gradient-domain buffers to EXR", _add_render_arguments, _run_render),
     Command("demo", "G-PT + Poisson vs path tracing at equal time", _add_demo_arguments, _run_demo),
+    Command(
+        "evaluate",
+        "equal-time study: error vs measured time of every method on a scene set",
+        _add_evaluate_arguments,
+        _run_evaluate,
+    ),
+    Command("dataset", "render NGPT training crops (resumable, parallel, Ray)",
+            _add_dataset_arguments, _run_dataset),
+    Command("train", "train an NGPT network on a dataset (torchrun-ready)",
+            _add_train_arguments, _run_train),
 )
 
 

@@ -5,6 +5,8 @@ function ``f(buffers, *, alpha, **options) -> (H, W, 3) tensor``:
 
 * ``'l2'`` / ``'l1'``: screened Poisson reconstruction (:mod:`gdpt.reconstruct.poisson`), the
   closed-form L2 solution and its iteratively reweighted L1 variant.
+* ``'ngpt'`` / ``'ngpt-nograd'``: the dense U-Net (:mod:`gdpt.reconstruct.ngpt`) with a
+  checkpoint given as ``model=PATH``, ``$GDPT_NGPT_MODEL``, or shipped in ``gdpt/models/``.
 
 To add a method (e.g. the NGPT network from :mod:`gdpt.reconstruct.ngpt`), write such a function
 in this module and add it to :data:`METHODS`; the CLI offers every key of :data:`METHODS`.
@@ -12,8 +14,10 @@ in this module and add it to :data:`METHODS`; the CLI offers every key of :data:
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
-from functools import partial
+from functools import lru_cache, partial
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -40,10 +44,47 @@ def _poisson(
     )
 
 
-#: Method name -> implementation. Extension point for learned reconstructions ('ngpt').
+#: Folder of the models shipped with the package (``<name>.safetensors`` + ``<name>.json``).
+MODEL_DIR = Path(__file__).parent / "models"
+
+
+def model_path(name: str, model: str | os.PathLike | None = None) -> Path:
+    """The checkpoint to use: ``model``, else ``$GDPT_NGPT_MODEL`` (for ``ngpt``), else shipped.
+
+    Raises:
+        FileNotFoundError: no such checkpoint; the message says what to provide.
+    """
+    if model is None and name == "ngpt":
+        model = os.environ.get("GDPT_NGPT_MODEL")
+    path = Path(model) if model is not None else MODEL_DIR / f"{name}.safetensors"
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"NGPT checkpoint not found: {path}. No trained model ships with this version yet; "
+            f"pass model=PATH (a checkpoint written by 'gdpt train') or set GDPT_NGPT_MODEL"
+        )
+    return path
+
+
+@lru_cache(maxsize=4)
+def _reconstructor(path: Path) -> Any:
+    from gdpt.reconstruct.ngpt import NGPTReconstructor
+
+    return NGPTReconstructor.from_checkpoint(path)
+
+
+def _ngpt(
+    buffers: GradientBuffers, *, name: str, alpha: float, model: str | None = None, **_: Any
+) -> torch.Tensor:
+    """Neural reconstruction with a trained dense U-Net (``alpha`` does not apply)."""
+    return _reconstructor(model_path(name, model).resolve())(buffers)
+
+
+#: Method name -> implementation.
 METHODS: dict[str, Method] = {
     "l1": partial(_poisson, method="l1"),
     "l2": partial(_poisson, method="l2"),
+    "ngpt": partial(_ngpt, name="ngpt"),
+    "ngpt-nograd": partial(_ngpt, name="ngpt-nograd"),
 }
 
 

@@ -26,7 +26,7 @@ class BaseState:
 
     ray_d: mi.Vector3f  # direction of the segment that arrived at `si`
     si: mi.SurfaceInteraction3f  # current vertex x_i
-    prev: mi.SurfaceInteraction3f  # previous vertex x_{i-1}
+    prev: mi.Interaction3f  # previous vertex x_{i-1} (position and normal only)
     beta: mi.Spectrum  # β = f / p of the prefix
     eta: mi.Float  # relative IOR product (Russian roulette)
     pb_prev: mi.Float  # MIS pdf of the segment x_{i-1} -> x_i (1 for camera / delta)
@@ -45,7 +45,7 @@ class OffsetState:
     """
 
     si: mi.SurfaceInteraction3f  # own vertex y_i (while NOT_CONNECTED)
-    prev: mi.SurfaceInteraction3f  # own previous vertex y_{i-1}
+    prev: mi.Interaction3f  # own previous vertex y_{i-1}
     status: mi.UInt32  # NOT_CONNECTED / RECENTLY_CONNECTED / CONNECTED
     alive: mi.Bool  # False once the shift failed: the base then takes full MIS weight
     escaped: mi.Bool  # left the scene while the base continues (dies after its emission)
@@ -121,7 +121,7 @@ class GDPTIntegrator(GradientIntegratorBase):
         base = BaseState(
             ray_d=mi.Vector3f(rays[0].d),
             si=scene.ray_intersect(rays[0], active),
-            prev=dr.zeros(mi.SurfaceInteraction3f, n),
+            prev=dr.zeros(mi.Interaction3f, n),
             beta=mi.Spectrum(weights[0]),
             eta=mi.Float(1.0),
             pb_prev=mi.Float(1.0),
@@ -136,7 +136,7 @@ class GDPTIntegrator(GradientIntegratorBase):
             si_k = scene.ray_intersect(rays[k], active)
             offsets.append(OffsetState(
                 si=si_k,
-                prev=dr.zeros(mi.SurfaceInteraction3f, n),
+                prev=dr.zeros(mi.Interaction3f, n),
                 status=mi.UInt32(NOT_CONNECTED),
                 alive=mi.Bool(active),
                 escaped=base_hit & ~si_k.is_valid(),
@@ -167,33 +167,31 @@ class GDPTIntegrator(GradientIntegratorBase):
             base.L += base.beta * Le_x / (1 + ratio_x)
             c_main_num = base.beta * Le_x
 
+            # The offset's current vertex: its own y_i (NOT_CONNECTED), or the base's x_i seen
+            # from the offset's previous vertex (RECENTLY_CONNECTED: same point, other wi).
+            # Merging both into one interaction halves the virtual calls below.
+            views = []
             for o in offsets:
                 own = o.status == NOT_CONNECTED
                 recent = o.status == RECENTLY_CONNECTED
-                # Own vertex y_i, reached from y_{i-1}
-                ds_own = mi.DirectionSample3f(scene, o.si, o.prev)
-                pn_own = scene.pdf_emitter_direction(
-                    o.prev, ds_own, active & own & o.alive & ~base.delta_prev
-                )
-                Le_own = ds_own.emitter.eval(o.si, active & own & o.alive)
-                # Base vertex x_i, reached from y_{i-1} (reconnected last step)
-                ds_rec = mi.DirectionSample3f(scene, si, o.prev)
-                pn_rec = scene.pdf_emitter_direction(
-                    o.prev, ds_rec, active & recent & o.alive & ~base.delta_prev
-                )
-                wi_saved = mi.Vector3f(si.wi)  # copy: field access returns a view
+                view = dr.select(own, o.si, si)
                 turn = recent & si.is_valid()
-                si.wi = dr.select(turn, si.to_local(dr.normalize(o.prev.p - si.p)), si.wi)
-                Le_rec = ds.emitter.eval(si, active & recent & o.alive)
-                si.wi = wi_saved
+                view.wi = dr.select(turn, si.to_local(dr.normalize(o.prev.p - si.p)), view.wi)
+                views.append(view)
 
-                Le_y = dr.select(own, Le_own, dr.select(recent, Le_rec, Le_x))
+            for o, view in zip(offsets, views):
+                own = o.status == NOT_CONNECTED
+                recent = o.status == RECENTLY_CONNECTED
+                act = active & (own | recent) & o.alive
+                ds_y = mi.DirectionSample3f(scene, view, o.prev)
+                pn_y = scene.pdf_emitter_direction(o.prev, ds_y, act & ~base.delta_prev)
+                Le_y = dr.select(own | recent, ds_y.emitter.eval(view, act), Le_x)
                 # r' (1 + p_light(y) / p_bsdf(y)) without 0 * inf at grazing y: after a
                 # reconnection J p_light(y) = p_light(x) for area-sampled emitters (see NEE).
-                Jpn_rec = dr.select(cone, o.sJ * pn_rec, o.s * pn_x)
+                Jpn_rec = dr.select(cone, o.sJ * pn_y, o.s * pn_x)
                 extra = dr.select(
                     own,
-                    o.r * (1 + pn_own / dr.select(o.pb_prev > 0, o.pb_prev, 1)),
+                    o.r * (1 + pn_y / dr.select(o.pb_prev > 0, o.pb_prev, 1)),
                     dr.select(recent, o.r + Jpn_rec, o.r * (1 + ratio_x)),
                 )
                 den = 1 + ratio_x + dr.select(o.alive, extra, 0)
@@ -220,7 +218,7 @@ class GDPTIntegrator(GradientIntegratorBase):
             cone = _is_cone_sampled(ds.emitter)
             fixed_point = is_infinite | ds.delta  # light "vertex" shared exactly: J = 1
 
-            for o in offsets:
+            for o, view in zip(offsets, views):
                 own = o.status == NOT_CONNECTED
                 recent = o.status == RECENTLY_CONNECTED
                 act = active_em & o.alive
@@ -250,20 +248,18 @@ class GDPTIntegrator(GradientIntegratorBase):
                 front = dr.dot(ds.n, dir_y) < 0
                 pn_cone = scene.pdf_emitter_direction(y, ds_y, act_own & cone & front)
                 Jpn_own = dr.select(cone, J_own * pn_cone, pn_x)
-                f_own, pb_own = bsdf_y.eval_pdf(ctx, y, y.to_local(dir_y), act_own)
-                pb_own = dr.select(ds.delta, 0, pb_own)
-                # Recently connected: same light point seen from x_i, but arriving from y_{i-1}
-                wi_saved = mi.Vector3f(si.wi)  # copy: field access returns a view
-                si.wi = dr.select(recent, si.to_local(dr.normalize(o.prev.p - si.p)), si.wi)
-                f_rec, pb_rec = bsdf.eval_pdf(ctx, si, wo_em, act & recent)
-                si.wi = wi_saved
-                pb_rec = dr.select(ds.delta, 0, pb_rec)
-
-                f_y = dr.select(own, f_own, dr.select(recent, f_rec, f_x))
-                pb_y = dr.select(own, pb_own, dr.select(recent, pb_rec, pb_x))
+                # Own: BSDF at y_i towards the light point. Recently connected: the base's BSDF
+                # at x_i towards the same light sample, arriving from y_{i-1}.
+                f_v, pb_v = dr.select(own, bsdf_y, bsdf).eval_pdf(
+                    ctx, view, dr.select(own, view.to_local(dir_y), wo_em),
+                    act_own | (act & recent),
+                )
+                pb_v = dr.select(ds.delta, 0, pb_v)
+                f_y = dr.select(own | recent, f_v, f_x)
+                pb_y = dr.select(own | recent, pb_v, pb_x)
                 e_y = dr.select(own, em_own, em_val)
                 J = dr.select(own, J_own, 1.0)
-                Jp_y = dr.select(own, dr.select(act_own, Jpn_own, 0) + J_own * pb_own, pn_x + pb_y)
+                Jp_y = dr.select(own, dr.select(act_own, Jpn_own, 0) + J_own * pb_v, pn_x + pb_y)
                 den = pn_x + pb_x + dr.select(o.alive, o.r * Jp_y, 0)
                 c_shift = dr.select(o.alive, o.q * f_y * e_y * J, 0)
                 o.G += dr.select(active_em, finite((c_shift - nee_main) / den), 0)
@@ -278,7 +274,7 @@ class GDPTIntegrator(GradientIntegratorBase):
             rough_next = ~hit_next | ~mi.has_flag(si_next.bsdf().flags(), mi.BSDFFlags.Delta)
             reflect = mi.has_flag(bs.sampled_type, mi.BSDFFlags.DeltaReflection)
 
-            for o in offsets:
+            for o, view in zip(offsets, views):
                 act = active_next & o.alive
                 own = o.status == NOT_CONNECTED
                 recent = o.status == RECENTLY_CONNECTED
@@ -287,25 +283,25 @@ class GDPTIntegrator(GradientIntegratorBase):
                 y_smooth = mi.has_flag(bsdf_y.flags(), mi.BSDFFlags.Smooth)
                 reconnect = own & ~delta_x & rough_next & y_smooth
 
-                # Recently connected: x_i seen from y_{i-1}
-                wi_saved = mi.Vector3f(si.wi)  # copy: field access returns a view
-                si.wi = dr.select(recent, si.to_local(dr.normalize(o.prev.p - si.p)), si.wi)
-                f_rec, p_rec = bsdf.eval_pdf(ctx, si, bs.wo, act & recent)
-                si.wi = wi_saved
-
                 # Reconnection y_i -> x_{i+1} (or environment shift: copy the direction)
                 act_rc = act & reconnect
                 to_next = si_next.p - y.p
                 d_y2 = dr.squared_norm(to_next)
                 dir_rc = dr.select(hit_next, to_next * dr.rsqrt(d_y2), ray_next.d)
                 ray_rc = dr.select(hit_next, y.spawn_ray_to(si_next.p), y.spawn_ray(dir_rc))
-                visible = ~scene.ray_test(ray_rc, act_rc)
                 cos_x = dr.abs(dr.dot(si_next.n, ray_next.d))
                 cos_y = dr.abs(dr.dot(si_next.n, dir_rc))
                 J_rc = dr.select(
                     hit_next, safe_div(cos_y * dr.square(si_next.t), cos_x * d_y2), 1.0
                 )
-                f_rc, p_rc = bsdf_y.eval_pdf(ctx, y, y.to_local(dir_rc), act_rc)
+                # One BSDF evaluation: the reconnected y_i towards x_{i+1}, or (recently
+                # connected) the base's x_i towards the base's sample, arriving from y_{i-1}.
+                f_v, p_v = dr.select(own, bsdf_y, bsdf).eval_pdf(
+                    ctx, view, dr.select(own, view.to_local(dir_rc), bs.wo),
+                    act_rc | (act & recent),
+                )
+                f_rec, p_rec = f_v, p_v
+                f_rc, p_rc = f_v, p_v
 
                 # Delta lobe: sample the offset's lobe of the same kind
                 act_d = act & own & delta_x
@@ -325,7 +321,9 @@ class GDPTIntegrator(GradientIntegratorBase):
                 wo_y = dr.select(delta_x, bs_d.wo, bs_s.wo)
                 ray_y = y.spawn_ray(y.to_world(wo_y))
                 trace = act & own & ~reconnect
-                si_y = scene.ray_intersect(ray_y, trace)
+                # One traversal: the offset's own next vertex, or the reconnection's shadow ray
+                si_y = scene.ray_intersect(dr.select(reconnect, ray_rc, ray_y), trace | act_rc)
+                visible = ~si_y.is_valid()
                 hit_y = si_y.is_valid()
                 rough_y = ~hit_y | ~mi.has_flag(si_y.bsdf().flags(), mi.BSDFFlags.Delta)
                 # Non-invertible: the reverse shift from y would reconnect at this vertex
@@ -363,7 +361,7 @@ class GDPTIntegrator(GradientIntegratorBase):
                 o.pb_prev = pb_new
                 o.alive = act & ok
                 o.escaped = trace & ~hit_y & hit_next
-                o.prev = dr.select(own, y, si)
+                o.prev = _vertex(dr.select(own, y, si))
                 o.si = dr.select(trace, si_y, si_next)
                 o.status = dr.select(
                     own,
@@ -384,7 +382,7 @@ class GDPTIntegrator(GradientIntegratorBase):
             survive = sampler.next_1d() < rr_prob
 
             # ----------------------- Advance the base -----------------------
-            base.prev = si
+            base.prev = _vertex(si)
             base.si = si_next
             base.ray_d = ray_next.d
             base.pb_prev = dr.select(delta_x, 1.0, bs.pdf)
@@ -405,6 +403,11 @@ class GDPTIntegrator(GradientIntegratorBase):
             normal=feat.normal if feat is not None else None,
             depth=feat.depth if feat is not None else None,
         )
+
+
+def _vertex(si: mi.SurfaceInteraction3f) -> mi.Interaction3f:
+    """The part of a vertex later iterations need (keeps the loop state small)."""
+    return mi.Interaction3f(si.t, si.time, si.wavelengths, si.p, si.n)
 
 
 def _is_cone_sampled(emitter: mi.EmitterPtr) -> mi.Bool:

@@ -1,0 +1,682 @@
+"""Training data for NGPT: rendering crops of procedural scenes, and reading them back.
+
+:func:`build_dataset` renders, for every ``(scene, view)`` pair of :func:`gdpt.scenes.random_scene`,
+one *crop* (a small image, 128x128 by default) as in Kettunen et al. 2019 (section 3.5 of
+``gdpt-notes.md``):
+
+* ``levels`` (5) noisy gradient-domain inputs (``gdpt`` integrator, gradients and features) at
+  sample counts drawn log-uniformly in ``[spp_min, spp_max]``, stratified (one draw in each of
+  ``levels`` equal slices of the log range, like the reference's low-discrepancy sequence);
+* for each of them a path-traced input (``gradients=False``, features on) at ``pt_factor``
+  (2.5) times the samples, the equal-time input of the no-gradient baselines;
+* a target: ``target_spp`` samples of ``gdpt``, reconstructed with L1 screened Poisson
+  (``alpha = 0.2``), as the paper does.
+
+Everything (scene seed, sample counts, render seeds) is a pure function of ``(seed, scene,
+view)`` (:func:`plan_crop`), so a dataset can be extended with more scenes or views later and
+re-rendered identically.
+
+On-disk layout (one EXR per crop element, written by :func:`gdpt.exr.save_buffers`)::
+
+    DIR/dataset.json                  {"format", "config"}: the content-defining settings
+    DIR/manifest.jsonl                one JSON line per finished crop (see below)
+    DIR/crops/s00012-v003/in0.exr     noisy G-PT input, lowest spp (in0 .. in4, spp ascending)
+    DIR/crops/s00012-v003/pt0.exr     path-traced input at 2.5x the samples of in0 (pt0 .. pt4)
+    DIR/crops/s00012-v003/target.exr  target: ``primal`` = L1 Poisson reconstruction of the
+                                      high-spp render; dx, dy and features of that render
+
+The crop id is ``s<scene:05d>-v<view:03d>``. A manifest line holds ``crop``, ``scene``,
+``view``, ``scene_seed``, ``resolution`` ``[width, height]``, ``spp`` (list), ``pt_spp``,
+``target_spp``, ``seeds`` (render seeds), ``files`` (element name -> path relative to ``DIR``),
+``bytes`` (element name -> file size) and ``render_seconds``.
+
+Crash safety: the shards of a crop are written (atomically, then fsync'ed) before its manifest
+line, and the line is appended with one ``write`` + ``fsync`` on an ``O_APPEND`` descriptor, so
+the manifest only ever lists complete crops; a torn last line (e.g. out of disk) is ignored by
+readers, dropped (atomic rewrite) by the next :func:`build_dataset` run, and its crop rendered
+again. Re-running the same command skips the crops listed in
+the manifest, so a crash or kill loses at most the crops in flight.
+
+Parallelism: ``workers`` local processes (``spawn`` context; each sets the Mitsuba variant and
+uses ``cpu_count // workers`` Dr.Jit threads), or Ray tasks (one per crop) when a Ray address is
+given; results are written by the workers to ``DIR`` (shared storage on a cluster) and the
+manifest is appended by the driver only.
+
+:class:`CropDataset` reads a dataset for training (torch ``Dataset``): only ``gdpt.exr`` and
+torch are needed, not Mitsuba.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import multiprocessing
+import os
+import time
+import warnings
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from gdpt.exr import load_buffers
+
+if TYPE_CHECKING:
+    from gdpt.buffers import GradientBuffers
+    from gdpt.scenes import RandomSceneConfig
+
+#: Value of the ``format`` key of ``dataset.json``.
+DATASET_FORMAT = "gdpt-dataset/1"
+CONFIG_FILE = "dataset.json"
+MANIFEST_FILE = "manifest.jsonl"
+CROPS_DIR = "crops"
+
+#: Input kinds: element-name prefix and the buffers a network reads from them.
+INPUT_KINDS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "gdpt": ("in", ("primal", "dx", "dy", "albedo", "normal", "depth")),
+    "pt": ("pt", ("primal", "albedo", "normal", "depth")),
+}
+
+#: Salt separating the render-seed stream of a crop from the scene-seed stream.
+_CROP_SALT = 0xC409
+
+
+# --------------------------------------------------------------------------------- configuration
+@dataclass(frozen=True)
+class DatasetConfig:
+    """What :func:`build_dataset` renders.
+
+    Attributes:
+        scenes: number of procedural scenes (scene indices ``0 .. scenes-1``).
+        views: camera views per scene (view indices ``0 .. views-1``).
+        resolution: crop width and height in pixels.
+        spp_min: smallest input sample count.
+        spp_max: largest input sample count.
+        levels: noisy inputs per crop.
+        target_spp: samples of the target render.
+        pt_factor: path-traced input samples = ``round(pt_factor * spp)`` (equal time).
+        max_depth: longest path (integrator ``max_depth``).
+        alpha: screened-Poisson data weight of the L1 target reconstruction.
+        seed: dataset seed; everything rendered is a function of ``(seed, scene, view)``.
+        scene_config: knobs of the scene generator (``None``: its defaults).
+    """
+
+    scenes: int = 10
+    views: int = 4
+    resolution: int = 128
+    spp_min: int = 2
+    spp_max: int = 256
+    levels: int = 5
+    target_spp: int = 4096
+    pt_factor: float = 2.5
+    max_depth: int = 6
+    alpha: float = 0.2
+    seed: int = 0
+    scene_config: RandomSceneConfig | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("scenes", "views", "resolution", "spp_min", "levels", "target_spp",
+                     "max_depth"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.spp_max < self.spp_min:
+            raise ValueError(f"spp_max ({self.spp_max}) must be >= spp_min ({self.spp_min})")
+        if not (self.pt_factor > 0 and self.alpha > 0):
+            raise ValueError("pt_factor and alpha must be > 0")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
+
+    def content(self) -> dict[str, Any]:
+        """The settings that define the pixels (everything but ``scenes`` and ``views``).
+
+        A dataset directory keeps these in ``dataset.json``; extending it with more scenes or
+        views is allowed, changing any of these is not.
+        """
+        data = dataclasses.asdict(self)
+        del data["scenes"], data["views"]
+        if self.scene_config is None:
+            from gdpt.scenes import RandomSceneConfig
+
+            data["scene_config"] = dataclasses.asdict(RandomSceneConfig())
+        return json.loads(json.dumps(data))  # tuples -> lists, as read back from JSON
+
+
+@dataclass(frozen=True)
+class CropPlan:
+    """Everything needed to render one crop (a pure function of the dataset seed and ids).
+
+    Attributes:
+        scene: scene index.
+        view: view index.
+        scene_seed: seed passed to :func:`gdpt.scenes.random_scene`.
+        spp: input sample counts, ascending.
+        pt_spp: path-traced sample counts (``round(pt_factor * spp)``).
+        input_seeds: render seeds of the inputs.
+        pt_seeds: render seeds of the path-traced inputs.
+        target_seed: render seed of the target.
+    """
+
+    scene: int
+    view: int
+    scene_seed: int
+    spp: tuple[int, ...]
+    pt_spp: tuple[int, ...]
+    input_seeds: tuple[int, ...]
+    pt_seeds: tuple[int, ...]
+    target_seed: int
+
+    @property
+    def crop_id(self) -> str:
+        """``s<scene:05d>-v<view:03d>``."""
+        return crop_id(self.scene, self.view)
+
+
+def crop_id(scene: int, view: int) -> str:
+    """The id (and directory name) of the crop of ``scene`` seen from ``view``."""
+    return f"s{scene:05d}-v{view:03d}"
+
+
+def scene_seed(seed: int, scene: int) -> int:
+    """Seed of procedural scene ``scene`` in a dataset with seed ``seed`` (31-bit int)."""
+    state = np.random.SeedSequence([seed, scene]).generate_state(1, np.uint32)[0]
+    return int(state >> 1)
+
+
+def plan_crop(config: DatasetConfig, scene: int, view: int) -> CropPlan:
+    """Sample counts and seeds of one crop.
+
+    The ``levels`` sample counts are log-uniform in ``[spp_min, spp_max]`` and stratified: draw
+    ``k`` lies in the ``k``-th of ``levels`` equal slices of the log range (then rounded).
+
+    Args:
+        config: the dataset settings.
+        scene: scene index (>= 0).
+        view: view index (>= 0).
+
+    Returns:
+        The plan; identical for identical arguments.
+    """
+    rng = np.random.Generator(np.random.PCG64([config.seed, scene, view, _CROP_SALT]))
+    lo, hi = math.log(config.spp_min), math.log(config.spp_max)
+    u = (np.arange(config.levels) + rng.uniform(size=config.levels)) / config.levels
+    spp = np.clip(np.rint(np.exp(lo + u * (hi - lo))), config.spp_min, config.spp_max)
+    spp = tuple(int(s) for s in spp)
+    seeds = [int(s) for s in rng.integers(0, 2**31, size=2 * config.levels + 1)]
+    return CropPlan(
+        scene=scene,
+        view=view,
+        scene_seed=scene_seed(config.seed, scene),
+        spp=spp,
+        pt_spp=tuple(max(1, round(config.pt_factor * s)) for s in spp),
+        input_seeds=tuple(seeds[: config.levels]),
+        pt_seeds=tuple(seeds[config.levels : 2 * config.levels]),
+        target_seed=seeds[-1],
+    )
+
+
+# ------------------------------------------------------------------------------------ rendering
+def _fsync(path: Path) -> None:
+    """Flush a file's (or a directory's entries') data to disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _scene_config(content: dict[str, Any]) -> RandomSceneConfig:
+    from gdpt.scenes import RandomSceneConfig
+
+    fields = {k: tuple(v) if isinstance(v, list) else v
+              for k, v in content["scene_config"].items()}
+    return RandomSceneConfig(**fields)
+
+
+def render_crop(plan: CropPlan, root: str | os.PathLike[str], content: dict[str, Any],
+                variant: str | None = None) -> dict[str, Any]:
+    """Render and store all elements of one crop; returns its manifest record.
+
+    Sets the Mitsuba variant (:func:`gdpt.set_variant`), so it can run in a fresh worker
+    process. Existing (partial) shards of the crop are overwritten.
+
+    Args:
+        plan: what to render (:func:`plan_crop`).
+        root: dataset directory (must exist).
+        content: :meth:`DatasetConfig.content` of the dataset.
+        variant: Mitsuba variant (``None``: :func:`gdpt.set_variant`'s automatic choice).
+
+    Returns:
+        The manifest record (JSON-serialisable dict, see the module docstring).
+    """
+    from gdpt.backend import set_variant
+
+    set_variant(variant)
+    from gdpt.exr import save_buffers
+    from gdpt.reconstruction import reconstruct
+    from gdpt.render import load_scene, render
+    from gdpt.scenes import random_scene
+
+    root = Path(root)
+    res = int(content["resolution"])
+    scene = load_scene(random_scene(plan.scene_seed, resolution=(res, res), view=plan.view,
+                                    config=_scene_config(content)))
+    crop_dir = root / CROPS_DIR / plan.crop_id
+    crop_dir.mkdir(parents=True, exist_ok=True)
+    files: dict[str, str] = {}
+    sizes: dict[str, int] = {}
+    seconds: dict[str, float] = {}
+
+    def store(name: str, buffers: GradientBuffers, **extra: Any) -> None:
+        metadata = {**buffers.metadata, "crop": plan.crop_id, "element": name, **extra}
+        path = save_buffers(crop_dir / f"{name}.exr", buffers.replace(metadata=metadata),
+                            force=True)
+        _fsync(path)
+        files[name] = path.relative_to(root).as_posix()
+        sizes[name] = path.stat().st_size
+        seconds[name] = round(float(buffers.metadata["render_seconds"]), 4)
+
+    def draw(spp: int, seed: int, gradients: bool) -> GradientBuffers:
+        return render(scene, spp=spp, seed=seed, integrator="gdpt",
+                      max_depth=int(content["max_depth"]), gradients=gradients, features=True)
+
+    for k, (spp, seed) in enumerate(zip(plan.spp, plan.input_seeds, strict=True)):
+        store(f"in{k}", draw(spp, seed, True))
+    for k, (spp, seed) in enumerate(zip(plan.pt_spp, plan.pt_seeds, strict=True)):
+        store(f"pt{k}", draw(spp, seed, False))
+    target = draw(int(content["target_spp"]), plan.target_seed, True)
+    start = time.perf_counter()
+    image = reconstruct(target, method="l1", alpha=float(content["alpha"]))
+    solve = time.perf_counter() - start
+    store("target", target.replace(primal=image.float().contiguous()),
+          primal="l1_poisson", alpha=float(content["alpha"]), solve_seconds=round(solve, 4))
+    _fsync(crop_dir)
+    seconds["total"] = round(sum(seconds.values()) + solve, 4)
+    return {
+        "crop": plan.crop_id,
+        "scene": plan.scene,
+        "view": plan.view,
+        "scene_seed": plan.scene_seed,
+        "resolution": [res, res],
+        "spp": list(plan.spp),
+        "pt_spp": list(plan.pt_spp),
+        "target_spp": int(content["target_spp"]),
+        "seeds": {"inputs": list(plan.input_seeds), "pt": list(plan.pt_seeds),
+                  "target": plan.target_seed},
+        "files": files,
+        "bytes": sizes,
+        "render_seconds": seconds,
+    }
+
+
+def append_manifest(root: str | os.PathLike[str], record: dict[str, Any]) -> None:
+    """Append one record to ``manifest.jsonl`` with a single ``write`` + ``fsync``.
+
+    If the file does not end with a newline (a torn line from an earlier crash), the record
+    starts on a new line, so the torn line stays an isolated invalid line that readers skip.
+
+    Raises:
+        OSError: the write failed or was short (e.g. out of disk); the manifest then holds at
+            most a torn last line, never a corrupt complete one.
+    """
+    path = Path(root) / MANIFEST_FILE
+    data = (json.dumps(record, sort_keys=True) + "\n").encode()
+    fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        size = os.fstat(fd).st_size
+        if size and os.pread(fd, 1, size - 1) != b"\n":
+            data = b"\n" + data
+        written = os.write(fd, data)
+        if written != len(data):
+            raise OSError(f"{path}: short write ({written} of {len(data)} bytes), disk full?")
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def read_manifest(root: str | os.PathLike[str]) -> tuple[list[dict[str, Any]], list[str]]:
+    """The records of ``manifest.jsonl`` and the problems found in it.
+
+    Args:
+        root: dataset directory.
+
+    Returns:
+        ``(records, problems)``: one record per crop id (the last line wins), in file order,
+        and a description of every line that is not a complete record (torn or invalid).
+        A missing manifest gives ``([], [])``.
+    """
+    path = Path(root) / MANIFEST_FILE
+    if not path.is_file():
+        return [], []
+    records: dict[str, dict[str, Any]] = {}
+    problems = []
+    for number, line in enumerate(path.read_bytes().split(b"\n"), start=1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+            if not isinstance(record, dict) or not {"crop", "files", "resolution"} <= set(record):
+                raise ValueError("not a crop record")
+        except ValueError as error:
+            problems.append(f"{path.name}:{number}: invalid line ignored ({error})")
+            continue
+        records.pop(record["crop"], None)
+        records[record["crop"]] = record
+    return list(records.values()), problems
+
+
+def _rewrite_manifest(root: Path, records: list[dict[str, Any]]) -> None:
+    """Atomically replace the manifest by ``records`` (drops torn and duplicate lines)."""
+    path = root / MANIFEST_FILE
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w") as f:
+        f.writelines(json.dumps(record, sort_keys=True) + "\n" for record in records)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _check_config(root: Path, content: dict[str, Any]) -> None:
+    """Write ``dataset.json``, or check that an existing one has the same content settings."""
+    path = root / CONFIG_FILE
+    if path.exists():
+        stored = json.loads(path.read_text())
+        old = stored.get("config", {})
+        diff = [f"{k}: {old.get(k)!r} in {path} vs {content.get(k)!r} requested"
+                for k in sorted(set(old) | set(content)) if old.get(k) != content.get(k)]
+        if stored.get("format") != DATASET_FORMAT or diff:
+            raise ValueError(
+                f"{root} holds a dataset with other settings ({'; '.join(diff) or 'format'}); "
+                "use another --out directory or the same settings"
+            )
+        return
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps({"format": DATASET_FORMAT, "config": content}, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+def _init_worker(variant: str | None, threads: int) -> None:
+    """Worker-process set-up: Mitsuba variant and Dr.Jit thread count."""
+    from gdpt.backend import set_variant
+
+    set_variant(variant)
+    import drjit as dr
+
+    dr.set_thread_count(threads)
+
+
+def _render_task(args: tuple[CropPlan, str, dict[str, Any], str | None]) -> dict[str, Any]:
+    return render_crop(*args)
+
+
+def _ray_render_task(plan: CropPlan, root: str, content: dict[str, Any],
+                     variant: str | None) -> dict[str, Any]:
+    """Ray task body: one crop with one Dr.Jit thread (Ray runs one task per CPU)."""
+    _init_worker(variant, 1)
+    return render_crop(plan, root, content, variant)
+
+
+def _run_local(plans: list[CropPlan], root: Path, content: dict[str, Any], variant: str | None,
+               workers: int) -> Iterator[dict[str, Any]]:
+    """Render crops in this process (``workers == 1``) or in a spawn pool; yield records."""
+    if workers == 1:
+        for plan in plans:
+            yield render_crop(plan, root, content, variant)
+        return
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(workers, initializer=_init_worker, initargs=(variant, threads)) as pool:
+        tasks = [(plan, str(root), content, variant) for plan in plans]
+        yield from pool.imap_unordered(_render_task, tasks)
+
+
+def _run_ray(plans: list[CropPlan], root: Path, content: dict[str, Any], variant: str | None,
+             address: str, workers: int) -> Iterator[dict[str, Any]]:
+    """Render crops as Ray tasks (one per crop, 1 CPU each); yield records as they finish.
+
+    ``address == "local"`` starts a private single-node Ray instance with ``workers`` CPUs;
+    any other value is passed to ``ray.init(address=...)`` (e.g. ``auto`` or
+    ``ray://head:10001``). ``root`` must be on storage the Ray workers share.
+    """
+    try:
+        import ray
+    except ImportError as error:
+        raise RuntimeError("--ray needs Ray: pip install 'gdpt[dist]'") from error
+    owned = not ray.is_initialized()
+    if owned:
+        if address == "local":
+            ray.init(num_cpus=workers, include_dashboard=False)
+        else:
+            ray.init(address=address)
+    task = ray.remote(num_cpus=1)(_ray_render_task)
+    pending = [task.remote(plan, str(root.resolve()), content, variant) for plan in plans]
+    try:
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            yield ray.get(ready[0])
+    finally:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        if owned:
+            ray.shutdown()
+
+
+@dataclass(frozen=True)
+class BuildSummary:
+    """What :func:`build_dataset` did.
+
+    Attributes:
+        rendered: crops rendered by this call.
+        skipped: crops already in the manifest.
+        seconds: wall-clock seconds of this call.
+    """
+
+    rendered: int
+    skipped: int
+    seconds: float
+
+    @property
+    def crops_per_minute(self) -> float:
+        """Throughput of this call."""
+        return 60.0 * self.rendered / self.seconds if self.seconds > 0 else 0.0
+
+
+def build_dataset(config: DatasetConfig, out: str | os.PathLike[str], *, workers: int = 1,
+                  ray_address: str | None = None, variant: str | None = None,
+                  progress: bool = True) -> BuildSummary:
+    """Render the crops of ``config`` that ``out`` does not hold yet (resumable).
+
+    Args:
+        config: what to render.
+        out: dataset directory (created if needed).
+        workers: local worker processes; with Ray, the CPUs of a ``"local"`` instance.
+        ray_address: ``None`` (local processes), ``"local"`` (start a private Ray instance) or
+            the address of a Ray cluster.
+        variant: Mitsuba variant for every render (``None``: automatic choice).
+        progress: show a progress bar with ETA (tqdm).
+
+    Returns:
+        Counts and timing of this call.
+
+    Raises:
+        ValueError: ``out`` holds a dataset with other content settings, or ``workers < 1``.
+        OSError: writing failed (the manifest stays valid; re-run to continue).
+    """
+    from tqdm.auto import tqdm
+
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    start = time.perf_counter()
+    root = Path(out)
+    root.mkdir(parents=True, exist_ok=True)
+    content = config.content()
+    _check_config(root, content)
+    records, problems = read_manifest(root)
+    if problems:
+        warnings.warn(f"{root}: repairing {MANIFEST_FILE}:\n  " + "\n  ".join(problems),
+                      DatasetWarning, stacklevel=2)
+        _rewrite_manifest(root, records)
+    done = {record["crop"] for record in records}
+    ids = [(s, v) for s in range(config.scenes) for v in range(config.views)]
+    plans = [plan_crop(config, s, v) for s, v in ids if crop_id(s, v) not in done]
+    skipped = len(ids) - len(plans)
+    if ray_address is None:
+        results = _run_local(plans, root, content, variant, workers)
+    else:
+        results = _run_ray(plans, root, content, variant, ray_address, workers)
+    rendered = 0
+    with tqdm(total=len(ids), initial=skipped, unit="crop", desc="dataset",
+              disable=not progress, dynamic_ncols=True) as bar:
+        for record in results:
+            append_manifest(root, record)
+            rendered += 1
+            bar.update(1)
+            bar.set_postfix_str(f"last {record['crop']} {record['render_seconds']['total']:.0f}s")
+    return BuildSummary(rendered, skipped, time.perf_counter() - start)
+
+
+# -------------------------------------------------------------------------------------- reading
+class DatasetWarning(UserWarning):
+    """A corrupt or partial shard was skipped."""
+
+
+class CropDataset(Dataset):
+    """Elements of a dataset written by :func:`build_dataset`, as a torch ``Dataset``.
+
+    Element ``i`` is input level ``i % levels`` of usable crop ``i // levels``. Crops whose
+    files are missing, truncated (size differs from the manifest) or not EXR files are
+    skipped at construction with one :class:`DatasetWarning` listing them; a shard that turns
+    out unreadable when loaded is skipped with a warning and the next readable element is
+    returned instead, so training never stops on one.
+
+    Args:
+        root: dataset directory.
+        kind: ``"gdpt"`` (gradient-domain inputs ``in<k>``) or ``"pt"`` (path-traced inputs
+            ``pt<k>``, 2.5x the samples).
+        scenes: keep only crops whose scene index satisfies this predicate (``None``: all).
+
+    Raises:
+        FileNotFoundError: ``root`` is not a directory.
+        ValueError: unknown ``kind``; no finished crop (empty dataset, or none selected, or
+            all corrupt); crops of different sizes.
+    """
+
+    def __init__(self, root: str | os.PathLike[str], *, kind: str = "gdpt",
+                 scenes: Callable[[int], bool] | None = None) -> None:
+        if kind not in INPUT_KINDS:
+            raise ValueError(f"unknown input kind {kind!r}; valid: {', '.join(INPUT_KINDS)}")
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise FileNotFoundError(f"dataset directory {self.root} does not exist")
+        self.kind = kind
+        self.prefix, self.features = INPUT_KINDS[kind]
+        records, problems = read_manifest(self.root)
+        if not records:
+            raise ValueError(
+                f"{self.root}: empty dataset (no finished crop in {MANIFEST_FILE}); "
+                "render one with 'gdpt dataset --out DIR ...'"
+            )
+        if scenes is not None:
+            records = [r for r in records if scenes(int(r["scene"]))]
+            if not records:
+                raise ValueError(f"{self.root}: no crop of the selected scenes")
+        sizes = sorted({tuple(r["resolution"]) for r in records})
+        if len(sizes) > 1:
+            counts = {f"{w}x{h}": sum(tuple(r["resolution"]) == (w, h) for r in records)
+                      for w, h in sizes}
+            raise ValueError(f"{self.root}: crops of different sizes (crops per size: {counts}); "
+                             "a dataset must have one crop size")
+        self.resolution: tuple[int, int] = (int(sizes[0][0]), int(sizes[0][1]))
+        bad = list(problems)
+        self.crops: list[dict[str, Any]] = []
+        for record in records:
+            broken = [msg for name in self._element_names(record)
+                      if (msg := self._check_file(record, name))]
+            if broken:
+                bad.append(f"crop {record['crop']} skipped: {'; '.join(broken)}")
+            else:
+                self.crops.append(record)
+        if bad:
+            warnings.warn(f"{self.root}: skipped {len(bad)} corrupt/partial entries:\n  "
+                          + "\n  ".join(bad), DatasetWarning, stacklevel=2)
+        if not self.crops:
+            raise ValueError(f"{self.root}: no usable crop (all {len(records)} are corrupt)")
+        self.levels = min(len(r["spp"]) for r in self.crops)
+        self._unreadable: set[int] = set()
+
+    def _element_names(self, record: dict[str, Any]) -> list[str]:
+        return ["target", *(f"{self.prefix}{k}" for k in range(len(record["spp"])))]
+
+    def _check_file(self, record: dict[str, Any], name: str) -> str | None:
+        """``None`` if element ``name`` of ``record`` looks complete, else the reason."""
+        import OpenEXR
+
+        rel = record["files"].get(name)
+        if rel is None:
+            return f"no '{name}' in the manifest"
+        path = self.root / rel
+        if not path.is_file():
+            return f"{rel} missing"
+        size, expected = path.stat().st_size, record.get("bytes", {}).get(name)
+        if expected is not None and size != expected:
+            return f"{rel} has {size} bytes, the manifest says {expected} (partial)"
+        if not OpenEXR.isOpenExrFile(str(path)):
+            return f"{rel} is not an OpenEXR file"
+        return None
+
+    def __len__(self) -> int:
+        return len(self.crops) * self.levels
+
+    def element(self, index: int) -> tuple[dict[str, Any], int]:
+        """``(manifest record, input level)`` of element ``index``."""
+        return self.crops[index // self.levels], index % self.levels
+
+    def load(self, index: int) -> dict[str, Any]:
+        """Load element ``index`` (no fallback; see :meth:`__getitem__`).
+
+        Returns:
+            ``{"inputs": {name: (H, W, C) float32 CPU tensor for each of self.features},
+            "target": (H, W, 3) float32 CPU tensor, "spp": int, "crop": str, "level": int}``.
+
+        Raises:
+            ValueError: the shard is unreadable, lacks a buffer or has the wrong size.
+        """
+        record, level = self.element(index)
+        name = f"{self.prefix}{level}"
+        inputs = load_buffers(self.root / record["files"][name])
+        target = load_buffers(self.root / record["files"]["target"]).primal
+        width, height = self.resolution
+        tensors = {}
+        for feature in self.features:
+            tensor = getattr(inputs, feature)
+            if tensor is None:
+                raise ValueError(f"{record['files'][name]}: no '{feature}' buffer")
+            tensors[feature] = tensor
+        for what, tensor in (("input", inputs.primal), ("target", target)):
+            if tuple(tensor.shape[:2]) != (height, width):
+                raise ValueError(f"crop {record['crop']}: {what} is "
+                                 f"{tensor.shape[1]}x{tensor.shape[0]}, expected "
+                                 f"{width}x{height}")
+        spp = record["spp" if self.kind == "gdpt" else "pt_spp"][level]
+        return {"inputs": tensors, "target": target, "spp": int(spp), "crop": record["crop"],
+                "level": level}
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        """Element ``index`` as in :meth:`load`, or the next readable one (with a warning)."""
+        n = len(self)
+        for offset in range(n):
+            i = (index + offset) % n
+            if i in self._unreadable:
+                continue
+            try:
+                return self.load(i)
+            except (ValueError, OSError) as error:
+                self._unreadable.add(i)
+                warnings.warn(f"skipping unreadable element {i}: {error}", DatasetWarning,
+                              stacklevel=2)
+        raise RuntimeError(f"{self.root}: no readable element left")
+

@@ -1,0 +1,341 @@
+"""Rendering methods compared by the equal-time evaluation, registered by name.
+
+A method turns a scene and a sample count into a final image and reports the wall-clock time
+it took (sampling + reconstruction)::
+
+    result = EVAL_METHODS["gdpt+l1"].run(scene, spp=8, seed=3)
+    result.image, result.seconds
+
+Registered methods:
+
+* ``pt``: path tracing, primal only (``gdpt`` with ``gradients=False, features=False``).
+* ``pt+oidn``: path tracing + Intel Open Image Denoise (``pyoidn``, albedo + normal, HDR,
+  quality ``high``).
+* ``gdpt+l2`` / ``gdpt+l1``: gradient-domain path tracing + screened Poisson (L2 / L1).
+* ``gdpt+ngpt``: gradient-domain path tracing + the shipped NGPT network.
+* ``pt+ngpt-nograd``: path tracing (features, no gradients) + the NGPT ablation network.
+
+A method that cannot run here (package not installed, no shipped model) says so through its
+``check`` function and is skipped with that note. To add a method (NFOR, KPCN, ...), decorate a
+function ``f(scene, *, spp, seed) -> MethodResult`` with :func:`register_method`; the harness
+needs no change.
+
+Timing: :attr:`MethodResult.seconds` is the wall time from the start of sampling to the final
+image on the host, minus the time Dr.Jit spent compiling kernels during the call (read from
+Dr.Jit's kernel history when :data:`drjit.JitFlag.KernelHistory` is enabled, else 0). Callers
+warm a method up once per scene so that little compilation remains to subtract.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+if TYPE_CHECKING:
+    from gdpt.buffers import GradientBuffers
+    from gdpt.evaluate import EvalScene
+
+__all__ = [
+    "EVAL_METHODS",
+    "EvalMethod",
+    "MethodResult",
+    "MethodUnavailable",
+    "get_method",
+    "register_method",
+]
+
+
+class MethodUnavailable(RuntimeError):
+    """Raised by a method that cannot run here (missing package or model)."""
+
+
+@dataclass
+class MethodResult:
+    """One timed run of a method.
+
+    Attributes:
+        image: ``(H, W, 3)`` float32 linear radiance on the CPU.
+        seconds: wall time of sampling + reconstruction, kernel compilation excluded.
+        render_seconds: part of ``seconds`` spent sampling (compilation excluded).
+        reconstruct_seconds: part of ``seconds`` spent reconstructing (denoising).
+        compile_seconds: Dr.Jit kernel compilation observed during the call (not in
+            ``seconds``).
+    """
+
+    image: torch.Tensor
+    seconds: float
+    render_seconds: float = 0.0
+    reconstruct_seconds: float = 0.0
+    compile_seconds: float = 0.0
+
+
+#: ``f(scene, *, spp, seed) -> MethodResult``.
+RunFunction = Callable[..., MethodResult]
+
+
+@dataclass(frozen=True)
+class EvalMethod:
+    """A registered method.
+
+    Attributes:
+        name: registry key, e.g. ``"gdpt+l1"``.
+        description: one line for the report.
+        run: ``f(scene: EvalScene, *, spp: int, seed: int) -> MethodResult``.
+        check: returns ``None`` when the method can run here, else the reason it cannot.
+    """
+
+    name: str
+    description: str
+    run: RunFunction
+    check: Callable[[], str | None] = field(default=lambda: None)
+
+
+#: Registered methods, name -> :class:`EvalMethod`, in registration order.
+EVAL_METHODS: dict[str, EvalMethod] = {}
+
+
+def register_method(
+    name: str, description: str, *, check: Callable[[], str | None] | None = None
+) -> Callable[[RunFunction], RunFunction]:
+    """Decorator registering ``f(scene, *, spp, seed) -> MethodResult`` under ``name``.
+
+    Args:
+        name: registry key; must be new.
+        description: one line for the report.
+        check: availability test returning ``None`` or the reason the method cannot run.
+
+    Returns:
+        The decorator; it returns the function unchanged.
+
+    Raises:
+        ValueError: ``name`` is already registered.
+    """
+
+    def decorator(fn: RunFunction) -> RunFunction:
+        if name in EVAL_METHODS:
+            raise ValueError(f"method {name!r} is already registered")
+        EVAL_METHODS[name] = EvalMethod(name, description, fn, check or (lambda: None))
+        return fn
+
+    return decorator
+
+
+def get_method(name: str) -> EvalMethod:
+    """Look a method up by name.
+
+    Raises:
+        KeyError: unknown name; the message lists the registered names.
+    """
+    if name not in EVAL_METHODS:
+        raise KeyError(f"unknown method {name!r}; valid names: {', '.join(EVAL_METHODS)}")
+    return EVAL_METHODS[name]
+
+
+# ------------------------------------------------------------------------------------ timing
+def _drain_compile_seconds() -> float:
+    """Seconds of kernel compilation recorded by Dr.Jit since the last call (clears it)."""
+    import drjit as dr
+
+    if not dr.flag(dr.JitFlag.KernelHistory):
+        return 0.0
+    history = dr.kernel_history()
+    return sum(k.get("codegen_time", 0.0) + k.get("backend_time", 0.0) for k in history) / 1e3
+
+
+def _timed_run(
+    scene: EvalScene,
+    spp: int,
+    seed: int,
+    reconstruct: Callable[[GradientBuffers], torch.Tensor] | None,
+    **props: Any,
+) -> MethodResult:
+    """Render with ``gdpt`` (``props``), reconstruct, and time both parts."""
+    from gdpt.render import render
+
+    _drain_compile_seconds()
+    start = time.perf_counter()
+    buffers = render(scene.scene, spp=spp, seed=seed, max_depth=scene.max_depth, **props)
+    middle = time.perf_counter()
+    compile_seconds = _drain_compile_seconds()
+    image = buffers.primal if reconstruct is None else reconstruct(buffers)
+    image = image.detach().to("cpu", torch.float32).contiguous()  # waits for the device
+    end = time.perf_counter()
+    render_seconds = max(0.0, middle - start - compile_seconds)
+    return MethodResult(
+        image=image,
+        seconds=render_seconds + (end - middle),
+        render_seconds=render_seconds,
+        reconstruct_seconds=end - middle,
+        compile_seconds=compile_seconds,
+    )
+
+
+# ---------------------------------------------------------------------------------- methods
+@register_method("pt", "path tracing, primal only (gdpt integrator, gradients=False)")
+def path_tracing(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+    """Plain path tracing: the primal of ``gdpt`` with ``gradients=False``.
+
+    Args:
+        scene: the scene (its ``max_depth`` is used).
+        spp: samples per pixel.
+        seed: random seed.
+
+    Returns:
+        The image and its timing.
+    """
+    return _timed_run(scene, spp, seed, None, gradients=False, features=False)
+
+
+def _oidn_check() -> str | None:
+    try:
+        import pyoidn  # noqa: F401, PLC0415 (optional dependency)
+    except ImportError:
+        return "pyoidn is not installed (pip install pyoidn)"
+    return None
+
+
+def _oidn(buffers: GradientBuffers) -> torch.Tensor:
+    import pyoidn  # noqa: PLC0415 (optional dependency)
+
+    color = buffers.primal.clamp_min(0.0).contiguous()
+    albedo = buffers.albedo.clamp(0.0, 1.0).contiguous()
+    normal = buffers.normal.clamp(-1.0, 1.0).contiguous()
+    out = pyoidn.denoise(color, albedo, normal, hdr=True, quality="high")
+    return torch.as_tensor(out)
+
+
+@register_method(
+    "pt+oidn",
+    "path tracing + Intel Open Image Denoise (pyoidn; albedo + normal, HDR, quality high)",
+    check=_oidn_check,
+)
+def path_tracing_oidn(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+    """Path tracing with albedo and normal features, denoised by OIDN (``RT`` filter).
+
+    Args:
+        scene: the scene.
+        spp: samples per pixel.
+        seed: random seed.
+
+    Returns:
+        The image and its timing.
+
+    Raises:
+        MethodUnavailable: ``pyoidn`` is not installed.
+    """
+    if reason := _oidn_check():
+        raise MethodUnavailable(reason)
+    return _timed_run(scene, spp, seed, _oidn, gradients=False, features=True)
+
+
+def _poisson(method: str) -> Callable[[GradientBuffers], torch.Tensor]:
+    from gdpt.reconstruction import reconstruct
+
+    return lambda buffers: reconstruct(buffers, method=method)
+
+
+@register_method("gdpt+l2", "gradient-domain path tracing + screened Poisson, L2 (alpha 0.2)")
+def gdpt_l2(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+    """G-PT buffers reconstructed with closed-form L2 screened Poisson.
+
+    Args:
+        scene: the scene.
+        spp: samples per pixel.
+        seed: random seed.
+
+    Returns:
+        The image and its timing.
+    """
+    return _timed_run(scene, spp, seed, _poisson("l2"), gradients=True, features=False)
+
+
+@register_method("gdpt+l1", "gradient-domain path tracing + screened Poisson, L1 (alpha 0.2)")
+def gdpt_l1(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+    """G-PT buffers reconstructed with iteratively reweighted L1 screened Poisson.
+
+    Args:
+        scene: the scene.
+        spp: samples per pixel.
+        seed: random seed.
+
+    Returns:
+        The image and its timing.
+    """
+    return _timed_run(scene, spp, seed, _poisson("l1"), gradients=True, features=False)
+
+
+def _ngpt_method(gradients: bool) -> str:
+    """Name in :data:`gdpt.reconstruction.METHODS` of the NGPT model for these buffers."""
+    from gdpt.reconstruction import METHODS
+
+    if not gradients and "ngpt-nograd" in METHODS:
+        return "ngpt-nograd"
+    return "ngpt"
+
+
+def _ngpt_check() -> str | None:
+    from gdpt.reconstruction import METHODS
+
+    if "ngpt" not in METHODS:
+        return "no shipped NGPT model: gdpt.reconstruction.METHODS has no 'ngpt' method"
+    return None
+
+
+def _ngpt(gradients: bool) -> Callable[[GradientBuffers], torch.Tensor]:
+    from gdpt.reconstruction import reconstruct
+
+    name = _ngpt_method(gradients)
+    return lambda buffers: reconstruct(buffers, method=name)
+
+
+@register_method(
+    "gdpt+ngpt", "gradient-domain path tracing + the shipped NGPT network", check=_ngpt_check
+)
+def gdpt_ngpt(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+    """G-PT buffers with features, reconstructed by the NGPT network (``method='ngpt'``).
+
+    Args:
+        scene: the scene.
+        spp: samples per pixel.
+        seed: random seed.
+
+    Returns:
+        The image and its timing.
+
+    Raises:
+        MethodUnavailable: no NGPT method is registered.
+    """
+    if reason := _ngpt_check():
+        raise MethodUnavailable(reason)
+    return _timed_run(scene, spp, seed, _ngpt(True), gradients=True, features=True)
+
+
+@register_method(
+    "pt+ngpt-nograd",
+    "path tracing + the NGPT ablation network trained without gradients",
+    check=_ngpt_check,
+)
+def pt_ngpt_nograd(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+    """Primal-only buffers with features, reconstructed by the no-gradient NGPT model.
+
+    Uses ``METHODS['ngpt-nograd']`` if registered, else ``METHODS['ngpt']`` on buffers without
+    gradients (which then selects its no-gradient model, or raises).
+
+    Args:
+        scene: the scene.
+        spp: samples per pixel.
+        seed: random seed.
+
+    Returns:
+        The image and its timing.
+
+    Raises:
+        MethodUnavailable: no NGPT method is registered.
+    """
+    if reason := _ngpt_check():
+        raise MethodUnavailable(reason)
+    return _timed_run(scene, spp, seed, _ngpt(False), gradients=False, features=True)

@@ -1,0 +1,201 @@
+"""gdpt.dataset: deterministic plans, resumable rendering, manifest safety, corrupt shards, Ray."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+import gdpt.dataset as dataset_module
+from gdpt.cli import main
+from gdpt.dataset import (
+    MANIFEST_FILE,
+    CropDataset,
+    DatasetConfig,
+    DatasetWarning,
+    build_dataset,
+    plan_crop,
+    read_manifest,
+)
+from gdpt.exr import load_buffers
+
+#: Manifest fields that depend on timing (and thus on file headers), not on the content.
+TIMING_FIELDS = ("render_seconds", "bytes")
+
+
+def tiny_config(**changes) -> DatasetConfig:
+    """16x16 crops of one-object scenes (fast kernels), a handful of samples."""
+    from gdpt.scenes import RandomSceneConfig
+
+    scene = RandomSceneConfig(num_objects=(1, 1), p_extra_light=0.0, p_window=0.0,
+                              p_bitmap_env=0.0, p_thinlens=0.0)
+    settings = dict(scenes=1, views=2, resolution=16, spp_min=1, spp_max=4, target_spp=8,
+                    max_depth=4, scene_config=scene)
+    return DatasetConfig(**{**settings, **changes})
+
+
+def content_of(root: Path) -> dict[str, dict]:
+    records, problems = read_manifest(root)
+    assert not problems
+    return {r["crop"]: {k: v for k, v in r.items() if k not in TIMING_FIELDS} for r in records}
+
+
+def assert_same_pixels(root_a: Path, root_b: Path, crop: str) -> None:
+    for name in ("in0", "in4", "pt2", "target"):
+        a = load_buffers(root_a / "crops" / crop / f"{name}.exr")
+        b = load_buffers(root_b / "crops" / crop / f"{name}.exr")
+        assert a.present() == b.present()
+        for (_, ta), (_, tb) in zip(a.items(), b.items(), strict=True):
+            torch.testing.assert_close(ta, tb, rtol=1e-5, atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("dataset") / "tiny"
+    summary = build_dataset(tiny_config(), root, progress=False)
+    assert (summary.rendered, summary.skipped) == (2, 0)
+    return root
+
+
+@pytest.fixture
+def copy_of(tiny_dataset, tmp_path) -> Path:
+    return Path(shutil.copytree(tiny_dataset, tmp_path / "copy"))
+
+
+def test01_plan_is_deterministic_stratified_log_uniform():
+    config = DatasetConfig(spp_min=2, spp_max=1024, levels=5, seed=3)
+    plan = plan_crop(config, 7, 2)
+    assert plan == plan_crop(config, 7, 2)
+    assert plan.crop_id == "s00007-v002"
+    assert plan.scene_seed == plan_crop(config, 7, 0).scene_seed  # one scene, several views
+    assert plan.input_seeds != plan_crop(config, 7, 0).input_seeds
+    assert plan.scene_seed != plan_crop(DatasetConfig(seed=4), 7, 2).scene_seed
+    assert list(plan.spp) == sorted(plan.spp) and 2 <= plan.spp[0] and plan.spp[-1] <= 1024
+    assert plan.pt_spp == tuple(round(2.5 * s) for s in plan.spp)
+    seeds = [*plan.input_seeds, *plan.pt_seeds, plan.target_seed]
+    assert len(set(seeds)) == len(seeds)
+    # Stratified: draw k lies in the k-th fifth of the log range (up to rounding).
+    log_range = torch.tensor([2.0, 1024.0]).log()
+    for k in range(5):
+        edges = torch.exp(log_range[0] + (log_range[1] - log_range[0]) * torch.tensor([k, k + 1]) / 5)
+        assert edges[0].floor() <= plan.spp[k] <= edges[1].ceil()
+
+
+def test02_dataset_layout_and_reader(tiny_dataset):
+    records, _ = read_manifest(tiny_dataset)
+    assert [r["crop"] for r in records] == ["s00000-v000", "s00000-v001"]
+    record = records[0]
+    assert set(record["files"]) == {*(f"in{k}" for k in range(5)), *(f"pt{k}" for k in range(5)),
+                                    "target"}
+    assert record["resolution"] == [16, 16] and record["target_spp"] == 8
+    target = load_buffers(tiny_dataset / record["files"]["target"])
+    assert target.metadata["primal"] == "l1_poisson" and target.spp == 8 and target.has_gradients
+    pt = load_buffers(tiny_dataset / record["files"]["pt3"])
+    assert not pt.has_gradients and pt.spp == record["pt_spp"][3]
+
+    gdpt_set = CropDataset(tiny_dataset)
+    pt_set = CropDataset(tiny_dataset, kind="pt")
+    assert len(gdpt_set) == len(pt_set) == 10
+    item = gdpt_set[7]
+    assert (item["crop"], item["level"], item["spp"]) == ("s00000-v001", 2, records[1]["spp"][2])
+    assert {k: tuple(v.shape) for k, v in item["inputs"].items()} == {
+        "primal": (16, 16, 3), "dx": (16, 16, 3), "dy": (16, 16, 3), "albedo": (16, 16, 3),
+        "normal": (16, 16, 3), "depth": (16, 16, 1)}
+    assert set(pt_set[0]["inputs"]) == {"primal", "albedo", "normal", "depth"}
+    assert item["target"].shape == (16, 16, 3) and torch.isfinite(item["target"]).all()
+
+
+def test03_resume_after_kill_gives_the_same_dataset(tiny_dataset, tmp_path, monkeypatch):
+    root = tmp_path / "resumed"
+    real = dataset_module.render_crop
+    calls = []
+
+    def killed_on_second_crop(plan, out, content, variant=None):
+        calls.append(plan.crop_id)
+        if len(calls) == 2:  # the kill hits while crop 2 is half written
+            (Path(out) / "crops" / plan.crop_id).mkdir(parents=True)
+            (Path(out) / "crops" / plan.crop_id / "in0.exr").write_bytes(b"partial")
+            raise KeyboardInterrupt
+        return real(plan, out, content, variant)
+
+    monkeypatch.setattr(dataset_module, "render_crop", killed_on_second_crop)
+    with pytest.raises(KeyboardInterrupt):
+        build_dataset(tiny_config(), root, progress=False)
+    monkeypatch.undo()
+    # Out of disk while appending the next line: a torn line without newline.
+    with (root / MANIFEST_FILE).open("ab") as f:
+        f.write(b'{"crop": "s00000-v001", "fil')
+    with pytest.warns(DatasetWarning, match="invalid line"):
+        assert len(CropDataset(root)) == 5
+
+    with pytest.warns(DatasetWarning, match="repairing"):
+        summary = build_dataset(tiny_config(), root, progress=False)
+    assert (summary.rendered, summary.skipped) == (1, 1)
+    assert content_of(root) == content_of(tiny_dataset)
+    assert_same_pixels(root, tiny_dataset, "s00000-v001")
+    assert len(CropDataset(root)) == 10
+    assert build_dataset(tiny_config(), root, progress=False).rendered == 0
+
+
+def test04_corrupt_and_partial_shards_are_skipped_with_warning(copy_of):
+    partial = copy_of / "crops" / "s00000-v001" / "pt2.exr"
+    partial.write_bytes(partial.read_bytes()[:-100])
+    assert len(CropDataset(copy_of)) == 10  # the gdpt inputs do not use pt2
+    with pytest.warns(DatasetWarning, match=r"s00000-v001/pt2.exr has \d+ bytes"):
+        pt_set = CropDataset(copy_of, kind="pt")
+    assert len(pt_set) == 5 and {r["crop"] for r in pt_set.crops} == {"s00000-v000"}
+
+    # Same size, garbage inside: found only when loaded; the next element is returned.
+    corrupt = copy_of / "crops" / "s00000-v000" / "in1.exr"
+    data = bytearray(corrupt.read_bytes())
+    data[400:] = b"\xff" * (len(data) - 400)
+    corrupt.write_bytes(bytes(data))
+    gdpt_set = CropDataset(copy_of)
+    with pytest.warns(DatasetWarning, match="unreadable element 1"):
+        item = gdpt_set[1]
+    assert (item["crop"], item["level"]) == ("s00000-v000", 2)
+
+
+def test05_empty_missing_and_mismatched_datasets(copy_of, tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        CropDataset(tmp_path / "nowhere")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="empty dataset"):
+        CropDataset(tmp_path / "empty")
+    with pytest.raises(ValueError, match="no crop of the selected scenes"):
+        CropDataset(copy_of, scenes=lambda s: s > 0)
+    lines = (copy_of / MANIFEST_FILE).read_text().splitlines()
+    record = json.loads(lines[1])
+    record["resolution"] = [32, 32]
+    (copy_of / MANIFEST_FILE).write_text(lines[0] + "\n" + json.dumps(record) + "\n")
+    with pytest.raises(ValueError, match="different sizes.*16x16.*32x32"):
+        CropDataset(copy_of)
+
+
+def test06_rerun_with_other_settings_is_refused(copy_of, capsys):
+    with pytest.raises(ValueError, match="target_spp: 8 .* vs 16 requested"):
+        build_dataset(tiny_config(target_spp=16), copy_of, progress=False)
+    status = main(["dataset", "--out", str(copy_of), "--scenes", "1", "--views", "1"])
+    assert status == 2
+    assert "gdpt dataset: error:" in capsys.readouterr().err
+
+
+def test07_ray_local_mode(tiny_dataset, tmp_path):
+    pytest.importorskip("ray")
+    root = tmp_path / "ray"
+    summary = build_dataset(tiny_config(views=1), root, ray_address="local", progress=False)
+    assert summary.rendered == 1
+    expected = content_of(tiny_dataset)
+    assert content_of(root) == {"s00000-v000": expected["s00000-v000"]}
+    assert_same_pixels(root, tiny_dataset, "s00000-v000")
+
+
+def test08_local_worker_processes(tiny_dataset, tmp_path):
+    root = tmp_path / "workers"
+    summary = build_dataset(tiny_config(), root, workers=2, progress=False)
+    assert summary.rendered == 2
+    assert content_of(root) == content_of(tiny_dataset)
+    assert_same_pixels(root, tiny_dataset, "s00000-v001")
