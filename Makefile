@@ -25,7 +25,7 @@ test-all: $(STAMP)
 	$(PY) -m pytest -q
 
 demo: $(STAMP)
-	$(PY) -m gdpt.cli demo --out out/demo
+	$(PY) -m gdpt.cli demo --out out/demo --force
 
 bench: $(STAMP)
 	$(PY) benchmarks/poisson.py

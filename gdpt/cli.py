@@ -180,12 +180,13 @@ def _add_demo_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
     parser.add_argument("--spp", type=int, default=32, help="G-PT samples per pixel")
     parser.add_argument("--resolution", type=int, default=192, help="image width and height")
+    parser.add_argument("--force", action="store_true", help="overwrite an earlier demo's outputs")
 
 
 def _run_demo(args: argparse.Namespace) -> int:
     from gdpt.demo import DemoConfig, run_demo
 
-    run_demo(DemoConfig(out=args.out, spp=args.spp, resolution=args.resolution))
+    run_demo(DemoConfig(out=args.out, spp=args.spp, resolution=args.resolution, force=args.force))
     return 0
 
 

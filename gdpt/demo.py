@@ -1,7 +1,7 @@
 """The ``make demo`` job: G-PT + screened Poisson against path tracing at equal time.
 
 Renders the built-in ``cbox-demo`` scene with ``gdpt`` at a low sample count, reconstructs with
-L1 and L2 screened Poisson, renders plain path tracing (``gdpt`` with ``gradients=False``) with
+L1 (reference preset and the accelerated solver) and L2 screened Poisson, renders plain path tracing (``gdpt`` with ``gradients=False``) with
 as many samples as fit in the same wall-clock time, and compares all of them with a cached
 high-spp reference. Writes EXR files, PNG previews and a side-by-side montage.
 """
@@ -27,6 +27,7 @@ class DemoConfig:
     reference_spp: int = 4096
     max_depth: int = 6
     seed: int = 1
+    force: bool = False  # overwrite the outputs of an earlier run (the reference cache is kept)
 
 
 def _relmse(image: torch.Tensor, ref: torch.Tensor) -> float:
@@ -53,6 +54,8 @@ def run_demo(cfg: DemoConfig) -> dict:
 
     from gdpt.backend import set_variant
 
+    if (cfg.out / "results.json").exists() and not cfg.force:
+        raise FileExistsError(f"{cfg.out} holds an earlier demo; pass --force to overwrite it")
     cfg.out.mkdir(parents=True, exist_ok=True)
     set_variant()
     scene = load_scene(builtin_scene(cfg.scene, resolution=(cfg.resolution, cfg.resolution)))
@@ -75,17 +78,17 @@ def run_demo(cfg: DemoConfig) -> dict:
 
     gbuf, t_gdpt = _timed_render(scene, spp=cfg.spp, seed=cfg.seed, progress=True, **common)
     images, seconds = {}, {}
-    for method in ("l1", "l2"):
+    for method in ("l1", "l1-fast", "l2"):
         start = time.perf_counter()
         images[f"gdpt+{method}"] = reconstruct(gbuf, method=method)
         seconds[f"gdpt+{method}"] = t_gdpt + time.perf_counter() - start
     images["gdpt primal"] = gbuf.primal
     seconds["gdpt primal"] = t_gdpt
 
-    # Equal time: measure the cost of one path-traced sample, then fill the L1 budget.
+    # Equal time: measure the cost of one path-traced sample, then fill the G-PT + fast-L1 budget.
     probe_spp = max(1, cfg.spp // 2)
     _, t_probe = _timed_render(scene, spp=probe_spp, seed=cfg.seed + 1, gradients=False, **common)
-    pt_spp = max(1, int(probe_spp * seconds["gdpt+l1"] / t_probe))
+    pt_spp = max(1, int(probe_spp * seconds["gdpt+l1-fast"] / t_probe))
     pbuf, t_pt = _timed_render(
         scene, spp=pt_spp, seed=cfg.seed + 2, gradients=False, progress=True, **common
     )
@@ -95,13 +98,13 @@ def run_demo(cfg: DemoConfig) -> dict:
     results = {"config": {k: str(v) for k, v in asdict(cfg).items()}, "methods": {}}
     print(f"\n{'method':<16}{'seconds':>10}{'relMSE':>12}")
     for name, image in images.items():
-        stem = name.split(" ")[0].replace("+", "_")
+        stem = name.split(" ")[0].replace("+", "_").replace("-", "_")
         save_image(cfg.out / f"{stem}.exr", image, force=True)
-        save_png(cfg.out / f"{stem}.png", image)
+        save_png(cfg.out / f"{stem}.png", image, force=True)
         err = _relmse(image, reference)
         results["methods"][name] = {"seconds": seconds[name], "relmse": err}
         print(f"{name:<16}{seconds[name]:>10.2f}{err:>12.4f}")
-    side_by_side({"reference": reference, **images}, cfg.out / "side_by_side.png")
+    side_by_side({"reference": reference, **images}, cfg.out / "side_by_side.png", force=True)
     (cfg.out / "results.json").write_text(json.dumps(results, indent=2))
     print(f"\nwrote {cfg.out}/ (EXR + PNG per method, side_by_side.png, results.json)")
     return results

@@ -3,8 +3,9 @@
 :func:`reconstruct` looks a method up by name in :data:`METHODS` and applies it. Each entry is a
 function ``f(buffers, *, alpha, **options) -> (H, W, 3) tensor``:
 
-* ``'l2'`` / ``'l1'``: screened Poisson reconstruction (:mod:`gdpt.reconstruct.poisson`), the
-  closed-form L2 solution and its iteratively reweighted L1 variant.
+* ``'l2'`` / ``'l1'`` / ``'l1-fast'``: screened Poisson reconstruction
+  (:mod:`gdpt.reconstruct.poisson`): the closed-form L2 solution, the reference IRLS L1 preset
+  and the accelerated L1 solver (same or lower L1 energy, fewer CG iterations).
 * ``'ngpt'`` / ``'ngpt-nograd'``: the dense U-Net (:mod:`gdpt.reconstruct.ngpt`) with a
   checkpoint given as ``model=PATH``, ``$GDPT_NGPT_MODEL``, or shipped in ``gdpt/models/``.
 
@@ -83,6 +84,7 @@ def _ngpt(
 METHODS: dict[str, Method] = {
     "l1": partial(_poisson, method="l1"),
     "l2": partial(_poisson, method="l2"),
+    "l1-fast": partial(_poisson, method="l1_fast"),
     "ngpt": partial(_ngpt, name="ngpt"),
     "ngpt-nograd": partial(_ngpt, name="ngpt-nograd"),
 }

@@ -72,7 +72,6 @@ from gdpt.reconstruct.transforms import (
     AUGMENTATIONS,
     OUTPUT_TRANSFORM,
     Padding,
-    crop,
     pad_buffers,
     stack_input,
     transform_buffers,
@@ -425,6 +424,8 @@ def make_optimizer(model: nn.Module, config: TrainConfig) -> torch.optim.Adam:
 # ----------------------------------------------------------------------------------- validation
 @dataclass
 class _ValElement:
+    """A validation input (``(H, W, C)`` buffers), its target and the L1-Poisson scores."""
+
     inputs: dict[str, torch.Tensor]
     target: torch.Tensor
     l1: dict[str, float]
@@ -621,22 +622,22 @@ def train(config: TrainConfig, *, resume: bool = False, progress: bool = True) -
     try:
         run = Path(config.out)
         config = prepare_run(config, resume)
-        if world > 1:
-            dist.barrier()  # every rank has checked the run dir before rank 0 writes it
-        if rank == 0:
-            (run / "checkpoints").mkdir(parents=True, exist_ok=True)
-            _write_json(run / "config.json", config.to_dict())
-
         torch.manual_seed(config.seed)
         model = build_model(config.model)
         features = default_features(model.config.in_channels)
         kind = "gdpt" if "dx" in features else "pt"
         train_set, val_set = _datasets(config, kind)
         side = config.crop or min(train_set.resolution)
-        if (side + 2 * config.pad) % model.alignment:
-            raise ValueError(f"crop {side} + 2 * pad {config.pad} must be a multiple of the "
+        if side > min(train_set.resolution) or (side + 2 * config.pad) % model.alignment:
+            raise ValueError(f"crop {side} must fit the {train_set.resolution} dataset crops and "
+                             f"crop + 2 * pad ({config.pad}) must be a multiple of the "
                              f"{config.model!r} alignment {model.alignment}")
         loss_fn = get_loss(config.loss).to(device)
+        if world > 1:
+            dist.barrier()  # every rank has checked the run dir before rank 0 writes it
+        if rank == 0:
+            (run / "checkpoints").mkdir(parents=True, exist_ok=True)
+            _write_json(run / "config.json", config.to_dict())
         model = model.to(device, memory_format=torch.channels_last)
         optimizer = make_optimizer(model, config)
         start, elapsed = 0, 0.0
