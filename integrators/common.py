@@ -31,6 +31,9 @@ import mitsuba as mi
 SHIFTS = ((1, 0), (0, 1), (-1, 0), (0, -1))
 RIGHT, DOWN, LEFT, UP = range(4)
 
+#: Roughness at or below which a lobe counts as near-specular (Kettunen et al. 2015 default).
+DEFAULT_SHIFT_THRESHOLD = 0.001
+
 #: Default number of path samples traced per kernel launch (bounds memory and kernel size).
 DEFAULT_SAMPLES_PER_PASS = 1 << 20
 
@@ -115,13 +118,50 @@ def finite(x):
     return dr.select(dr.isfinite(x), x, 0)
 
 
+#: Plugin classes the shift mappings handle (Mitsuba ``class_name()``), tested in the suite.
+SUPPORTED_BSDFS = frozenset({
+    "SmoothDiffuse", "RoughConductor", "SmoothConductor", "RoughPlastic", "SmoothPlastic",
+    "SmoothDielectric", "RoughDielectric", "ThinDielectric", "TwoSidedBRDF", "Principled",
+})
+SUPPORTED_EMITTERS = frozenset({
+    "AreaLight", "PointLight", "ConstantBackgroundEmitter", "EnvironmentMapEmitter",
+    "SunskyEmitter",
+})
+
+
+def check_scene(scene: mi.Scene, plugin: str) -> None:
+    """Refuse scenes with plugins the shift mappings do not handle (instead of a wrong image).
+
+    Raises:
+        ValueError: naming the unsupported BSDF, emitter or participating medium and its shape.
+    """
+    for shape in scene.shapes():
+        name = shape.id() or shape.class_name()
+        if shape.is_medium_transition():
+            raise ValueError(f"{plugin}: participating media are not supported (shape '{name}')")
+        bsdf = shape.bsdf().class_name()
+        if bsdf not in SUPPORTED_BSDFS:
+            raise ValueError(
+                f"{plugin}: BSDF '{bsdf}' on shape '{name}' is not supported; supported: "
+                f"{', '.join(sorted(SUPPORTED_BSDFS))}"
+            )
+    for emitter in scene.emitters():
+        if emitter.class_name() not in SUPPORTED_EMITTERS:
+            raise ValueError(
+                f"{plugin}: emitter '{emitter.class_name()}' is not supported; supported: "
+                f"{', '.join(sorted(SUPPORTED_EMITTERS))}"
+            )
+
+
 class GradientIntegratorBase(mi.SamplingIntegrator):
     """Common properties and ``render()`` of the gradient-domain integrators.
 
     Properties: ``max_depth`` (int, 6; -1 = unbounded), ``rr_depth`` (int, 5),
     ``gradients`` (bool, true: trace offset paths; false = plain path tracing with features),
     ``features`` (bool, true), ``variance`` (bool, false),
-    ``samples_per_pass`` (int, 2^20: samples traced per kernel launch).
+    ``samples_per_pass`` (int, 2^20: samples traced per kernel launch),
+    ``shift_threshold`` (float, 0.001; only the default is supported: delta lobes count as
+    near-specular, every other lobe is reconnectable).
     """
 
     def __init__(self, props: mi.Properties):
@@ -139,6 +179,13 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         self.samples_per_pass = int(props.get("samples_per_pass", DEFAULT_SAMPLES_PER_PASS))
         if self.samples_per_pass < 1:
             raise ValueError(f"{self.plugin_name}: 'samples_per_pass' must be >= 1")
+        threshold = float(props.get("shift_threshold", DEFAULT_SHIFT_THRESHOLD))
+        if threshold != DEFAULT_SHIFT_THRESHOLD:
+            raise ValueError(
+                f"{self.plugin_name}: 'shift_threshold' other than {DEFAULT_SHIFT_THRESHOLD} is not "
+                f"supported yet (got {threshold}): delta lobes are shifted, every rough lobe is "
+                "reconnected, as the reference does at its default for microfacet alpha > 0.001"
+            )
         if props.get("hide_emitters", False):
             raise ValueError(f"{self.plugin_name}: 'hide_emitters' is not supported")
         #: Optional ``callable(spp_done, spp_total)`` called after every pass (progress bars).
@@ -192,6 +239,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             )
         if not develop:
             raise ValueError(f"{self.plugin_name}: develop=False is not supported")
+        check_scene(scene, self.plugin_name)
         spp = int(spp) if spp else int(sensor.sampler().sample_count())
         width, height = (int(v) for v in film.crop_size())
         n_pix = width * height
@@ -344,6 +392,7 @@ def camera_transform(sensor: mi.Sensor):
 __all__ = [
     "SHIFTS",
     "GradientIntegratorBase",
+    "check_scene",
     "PathSamples",
     "FeatureState",
     "update_features",

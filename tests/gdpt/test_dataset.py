@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from gdpt.dataset import (
     CropDataset,
     DatasetConfig,
     DatasetWarning,
+    append_manifest,
     build_dataset,
     plan_crop,
     read_manifest,
@@ -80,7 +82,8 @@ def test01_plan_is_deterministic_stratified_log_uniform():
     # Stratified: draw k lies in the k-th fifth of the log range (up to rounding).
     log_range = torch.tensor([2.0, 1024.0]).log()
     for k in range(5):
-        edges = torch.exp(log_range[0] + (log_range[1] - log_range[0]) * torch.tensor([k, k + 1]) / 5)
+        fraction = torch.tensor([k, k + 1]) / 5
+        edges = torch.exp(log_range[0] + (log_range[1] - log_range[0]) * fraction)
         assert edges[0].floor() <= plan.spp[k] <= edges[1].ceil()
 
 
@@ -199,3 +202,21 @@ def test08_local_worker_processes(tiny_dataset, tmp_path):
     assert summary.rendered == 2
     assert content_of(root) == content_of(tiny_dataset)
     assert_same_pixels(root, tiny_dataset, "s00000-v001")
+
+
+def test09_out_of_disk_while_appending_leaves_a_valid_manifest(tmp_path, monkeypatch):
+    append_manifest(tmp_path, {"crop": "a", "files": {}, "resolution": [8, 8]})
+    real_write = os.write
+
+    def disk_full(fd, data):  # the disk fills up half way through the line
+        return real_write(fd, data[: len(data) // 2])
+
+    monkeypatch.setattr(os, "write", disk_full)
+    with pytest.raises(OSError, match="short write"):
+        append_manifest(tmp_path, {"crop": "b", "files": {}, "resolution": [8, 8]})
+    monkeypatch.undo()
+    records, problems = read_manifest(tmp_path)
+    assert [r["crop"] for r in records] == ["a"] and len(problems) == 1
+    append_manifest(tmp_path, {"crop": "b", "files": {}, "resolution": [8, 8]})
+    records, problems = read_manifest(tmp_path)
+    assert [r["crop"] for r in records] == ["a", "b"] and len(problems) == 1

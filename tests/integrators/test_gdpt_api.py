@@ -25,7 +25,7 @@ def _xml(integrator: str, rfilter: str = "box", extra: str = "") -> str:
 def test01_usable_from_xml(variant, name):
     import mitsuba as mi
 
-    scene = mi.load_string(_xml(name))
+    scene = mi.load_string(_xml(name, extra='<float name="shift_threshold" value="0.001"/>'))
     assert scene.integrator().max_depth == 3
     image = mi.render(scene, spp=4)
     assert image.shape == (6, 8, 16)  # primal, dx, dy, albedo, normal, depth
@@ -51,6 +51,7 @@ def test02_non_box_filter_is_refused(variant):
         ('<boolean name="hide_emitters" value="true"/>', "hide_emitters"),
         ('<integer name="rr_depth" value="0"/>', "rr_depth"),
         ('<integer name="max_depth" value="-3"/>', "max_depth"),
+        ('<float name="shift_threshold" value="0.1"/>', "shift_threshold"),
     ],
 )
 def test03_invalid_properties(variant, extra, message):
@@ -129,3 +130,18 @@ def test08_passes_split_the_work(variant):
     rel = float((one.primal.mean() - many.primal.mean()).abs() / one.primal.mean())
     assert rel < 0.05
     assert not np.array_equal(one.primal.numpy(), many.primal.numpy())  # different seeds
+
+
+def test09_unsupported_plugins_are_named(variant):
+    import gdpt
+    import mitsuba as mi
+
+    for old, new, expected in [
+        ('<bsdf type="diffuse"/>', '<bsdf type="blendbsdf"><float name="weight" value="0.5"/>'
+         '<bsdf type="diffuse"/><bsdf type="conductor"/></bsdf>', "BSDF 'BlendBSDF'"),
+        ('<emitter type="constant"/>', '<emitter type="directional"><vector name="direction" '
+         'value="0,-1,0"/></emitter>', "emitter 'DirectionalEmitter'"),
+    ]:
+        scene = mi.load_string(_xml("gdpt").replace(old, new))
+        with pytest.raises(ValueError, match=expected):
+            gdpt.render(scene, spp=1)
