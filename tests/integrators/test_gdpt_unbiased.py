@@ -49,6 +49,7 @@ SLOW = [
     ("plastic", 4),
     ("thin-dielectric", 4),
     ("tir-glass", 6),
+    ("principled", 4),
 ]
 
 
