@@ -137,9 +137,12 @@ def _html_table(head: list[str], rows: list[list[str]]) -> str:
 
 
 def _skips(entry: dict[str, Any]) -> list[str]:
-    return [f"{name}: skipped ({info.get('note')})"
-            for name, info in entry.get("methods", {}).items()
-            if info.get("status") == "skipped"]
+    out = []
+    for name, info in entry.get("methods", {}).items():
+        if info.get("status") == "skipped":
+            out.append(f"{name}: skipped ({info.get('note')})")
+        out += [f"{name} at {k} s: failed ({v})" for k, v in info.get("errors", {}).items()]
+    return out
 
 
 def _run_summary(results: dict[str, Any]) -> list[str]:
@@ -188,7 +191,7 @@ def _markdown(results: dict[str, Any], plots: dict[str, str], crops: dict[str, s
         ref = entry.get("reference", {})
         out += ["", f"{entry['resolution'][0]}x{entry['resolution'][1]} px, "
                 f"reference {ref.get('spp')} spp (seed {ref.get('seed')}, "
-                f"{ref.get('seconds', 0):.0f} s). " + "; ".join(entry.get("notes", [])) + "."]
+                f"{ref.get('seconds', 0):.1f} s). " + "; ".join(entry.get("notes", [])) + "."]
         out += ["", _md_table(*_scene_table(results, entry))]
         if skips := _skips(entry):
             out += [""] + [f"- {s}" for s in skips]
@@ -323,7 +326,7 @@ def _crops(results: dict[str, Any], scene: str, entry: dict[str, Any], out: Path
     axes[0][0].set_title("reference", fontsize=8)
     axes[1][0].imshow(to_srgb8(ref), interpolation="nearest")
     axes[1][0].add_patch(Rectangle((x - 0.5, y - 0.5), size, size, fill=False, ec="red"))
-    axes[1][0].set_title("full reference, crop", fontsize=8)
+    axes[1][0].set_title("full reference\n(red: crop)", fontsize=8)
     image = None
     for col, (name, im) in enumerate(images.items(), start=1):
         cell = cells[name]
@@ -332,7 +335,7 @@ def _crops(results: dict[str, Any], scene: str, entry: dict[str, Any], out: Path
         image = axes[1][col].imshow(errors[name][y:y + size, x:x + size].numpy(), cmap="magma",
                                     vmin=0.0, vmax=vmax, interpolation="nearest")
         value = cell["metrics"].get("relmse")
-        axes[1][col].set_title(f"relMSE map ({_fmt(value)} overall)", fontsize=8)
+        axes[1][col].set_title(f"relMSE map\n{_fmt(value)} overall", fontsize=8)
     if image is not None:
         fig.colorbar(image, ax=axes[1].tolist(), shrink=0.8, label="per-pixel relMSE")
     fig.suptitle(f"{scene} at {budget} s")

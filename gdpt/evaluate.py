@@ -19,10 +19,11 @@ Protocol, per scene:
    chunks whose running mean is saved, so an interrupted reference resumes; the finished file
    is cached with its spp, seed and resolution in its name and metadata.
 3. Per method: warm up (1 and 2 spp, untimed, compiles the kernels), then fit
-   ``t(spp) = a + b * spp`` from a median of 1-spp runs and a probe run, solve for each budget,
-   render and check the achieved time; if it is off by more than ``tolerance`` the model is
-   corrected and the cell rendered again (``max_rounds`` times at most). Achieved times,
-   every attempt and kernel compilation (excluded from the times) are recorded.
+   ``t(spp) = a + b * spp`` from a median of 1-spp runs and geometrically growing probe runs
+   (:func:`calibrate`), solve for each budget, render and check the achieved time; if it is off
+   by more than ``tolerance`` the model is corrected and the cell rendered again
+   (``max_rounds`` times at most). Achieved times, every attempt and kernel compilation
+   (excluded from the times) are recorded.
 4. Metrics of every cell; ``results.json`` is rewritten after each cell, so an interrupted run
    resumes without recomputing finished cells.
 
@@ -129,10 +130,8 @@ class EvaluateConfig:
             raise ValueError("reference_spp and reference_chunk_spp must be >= 1")
         if not self.metrics:
             raise ValueError("at least one metric is needed")
-        if unknown := set(self.metric_options) - set(self.metrics):
-            self.metric_options = {
-                k: v for k, v in self.metric_options.items() if k not in unknown
-            }
+        # options of metrics not requested are dropped (e.g. elpips when --metrics omits it)
+        self.metric_options = {k: v for k, v in self.metric_options.items() if k in self.metrics}
         if not 0 < self.tolerance < 1 or self.max_rounds < 1:
             raise ValueError("tolerance must be in (0, 1) and max_rounds >= 1")
 
@@ -140,8 +139,7 @@ class EvaluateConfig:
         """The config as a JSON-serialisable dict."""
         out = dataclasses.asdict(self)
         out["reference_dir"] = None if self.reference_dir is None else str(self.reference_dir)
-        out["budgets"] = list(self.budgets)
-        return out
+        return json.loads(json.dumps(out))  # tuples -> lists, as read back from results.json
 
 
 #: Named configurations. ``quick`` finishes in minutes on 2 CPU cores; ``full`` is for long runs.
@@ -149,7 +147,7 @@ PRESETS: dict[str, EvaluateConfig] = {
     "quick": EvaluateConfig(
         budgets=(0.5, 1.0, 2.0),
         resolution=128,
-        reference_spp=2048,
+        reference_spp=16384,
         metrics=("relmse", "smape", "one_minus_ssim", "flip_ldr"),
         metric_options={},
         profile="quick",
@@ -466,20 +464,50 @@ class TimeModel:
     Attributes:
         fixed: seconds independent of the sample count (reconstruction, launch overheads).
         per_spp: seconds per sample per pixel.
-        measurements: the ``(spp, seconds)`` timings the model was fitted to.
+        measurements: the ``(spp, seconds)`` timings the model is fitted to (least squares).
     """
 
     fixed: float
     per_spp: float
     measurements: list[tuple[int, float]] = field(default_factory=list)
 
-    def spp_for(self, budget: float) -> int:
-        """The sample count whose predicted time is closest to ``budget`` (at least 1)."""
-        return max(1, round((budget - self.fixed) / self.per_spp))
+    @classmethod
+    def fit(cls, measurements: list[tuple[int, float]]) -> TimeModel:
+        """Least-squares line through ``(spp, seconds)`` timings (at least one).
 
-    def predict(self, spp: int) -> float:
-        """Predicted seconds at ``spp``."""
-        return self.fixed + self.per_spp * spp
+        A non-positive slope (timing noise) falls back to the line through the origin and the
+        largest measurement; a negative intercept to the least-squares line through the origin.
+        """
+        spp = torch.tensor([m[0] for m in measurements], dtype=torch.float64)
+        sec = torch.tensor([m[1] for m in measurements], dtype=torch.float64)
+        slope = fixed = 0.0
+        if len(set(spp.tolist())) > 1:
+            ds = spp - spp.mean()
+            slope = float((ds * (sec - sec.mean())).sum() / ds.square().sum())
+            fixed = float(sec.mean()) - slope * float(spp.mean())
+        if slope <= 0:
+            largest = int(spp.argmax())
+            slope, fixed = float(sec[largest] / spp[largest]), 0.0
+        elif fixed < 0:
+            slope, fixed = float((spp * sec).sum() / spp.square().sum()), 0.0
+        return cls(fixed=fixed, per_spp=max(slope, 1e-9), measurements=list(measurements))
+
+    def spp_for(self, budget: float) -> int:
+        """The sample count whose predicted time is closest to ``budget`` (at least 1).
+
+        Extrapolation is capped at 16 times the through-origin estimate from the largest
+        measurement, so that a noisy fit cannot ask for an absurd sample count.
+        """
+        spp = round((budget - self.fixed) / self.per_spp)
+        if self.measurements:
+            s_max, t_max = max(self.measurements)
+            spp = min(spp, math.ceil(16 * s_max * budget / max(t_max, 1e-9)))
+        return max(1, spp)
+
+    def update(self, spp: int, seconds: float) -> None:
+        """Add a timing and refit."""
+        refit = TimeModel.fit([*self.measurements, (spp, seconds)])
+        self.fixed, self.per_spp, self.measurements = refit.fixed, refit.per_spp, refit.measurements
 
 
 def _run(method: EvalMethod, scene: EvalScene, spp: int, seed: int) -> MethodResult:
@@ -488,13 +516,14 @@ def _run(method: EvalMethod, scene: EvalScene, spp: int, seed: int) -> MethodRes
 
 def calibrate(
     method: EvalMethod, scene: EvalScene, *, budget: float, seed: int, repeats: int = 3,
-    probe_fraction: float = 0.5,
+    probe_fraction: float = 0.5, max_probe_spp: int = 1 << 16,
 ) -> TimeModel:
     """Fit a :class:`TimeModel` by timing ``method`` on ``scene``.
 
-    Warms up at 1 and 2 spp (untimed: kernels compile), takes the median of ``repeats``
-    1-spp runs and of a 2-spp run pair, then times one probe run whose predicted duration is
-    ``probe_fraction * budget`` and fits the line through the 1-spp median and the probe.
+    Warms up at 1 and 2 spp (untimed: the kernels compile), takes the median of ``repeats``
+    1-spp runs, then raises the sample count geometrically (x2 to x8, aiming at the target)
+    until a run takes at least ``probe_fraction * budget`` (and at least two probes ran); the
+    least-squares line through these timings is the model.
 
     Args:
         method: the method.
@@ -502,7 +531,8 @@ def calibrate(
         budget: the smallest budget the model will be used for (seconds).
         seed: seed of the calibration renders (their images are discarded).
         repeats: number of 1-spp timings whose median is used.
-        probe_fraction: the probe aims at this fraction of ``budget``.
+        probe_fraction: the probing stops at this fraction of ``budget``.
+        max_probe_spp: the probing stops at this sample count.
 
     Returns:
         The fitted model.
@@ -512,16 +542,14 @@ def calibrate(
     """
     _run(method, scene, 1, seed)
     _run(method, scene, 2, seed)
-    t1 = statistics.median(_run(method, scene, 1, seed + i).seconds for i in range(repeats))
-    t2 = statistics.median(_run(method, scene, 2, seed + i).seconds for i in range(2))
-    per_spp = max(t2 - t1, 1e-4)
-    measurements = [(1, t1), (2, t2)]
-    probe = max(2, round((probe_fraction * budget - t1) / per_spp) + 1)
-    if probe > 2:
-        tp = _run(method, scene, probe, seed).seconds
-        measurements.append((probe, tp))
-        per_spp = max((tp - t1) / (probe - 1), 1e-6)
-    return TimeModel(fixed=max(t1 - per_spp, 0.0), per_spp=per_spp, measurements=measurements)
+    t = statistics.median(_run(method, scene, 1, seed + i).seconds for i in range(repeats))
+    measurements = [(1, t)]
+    spp, target = 1, probe_fraction * budget
+    while (t < target or len(measurements) < 3) and spp < max_probe_spp:
+        spp = min(max_probe_spp, spp * min(8, max(2, round(target / max(t, 1e-6)))))
+        t = _run(method, scene, spp, seed + spp).seconds
+        measurements.append((spp, t))
+    return TimeModel.fit(measurements)
 
 
 def run_at_budget(
@@ -532,8 +560,8 @@ def run_at_budget(
 
     Renders at ``model.spp_for(budget)``; while the achieved time misses the budget by more
     than ``tolerance`` (relative) and rounds remain, the per-spp cost is re-estimated from the
-    achieved time and the cell rendered again. The run closest to the budget is returned; the
-    model is updated in place with the last estimate.
+    achieved time (:meth:`TimeModel.update`) and the cell rendered again. The run closest to
+    the budget is returned; the model keeps the last estimate.
 
     Args:
         method: the method.
@@ -546,7 +574,8 @@ def run_at_budget(
 
     Returns:
         The chosen run and a record: ``spp``, ``seconds``, ``relative_error``, ``attempts``
-        (``[{"spp", "seconds", "seed"}]``), ``within_tolerance``, ``over_budget_at_1spp``.
+        (``[{"spp", "seconds", "seed", "compile_seconds"}]``), ``within_tolerance``,
+        ``over_budget_at_1spp``.
     """
     attempts: list[dict[str, Any]] = []
     best: tuple[float, MethodResult, int, int] | None = None
@@ -560,12 +589,7 @@ def run_at_budget(
             best = (error, result, spp, seed + k)
         if error <= tolerance:
             break
-        variable = result.seconds - model.fixed
-        if variable > 0:
-            model.per_spp = variable / spp
-        else:  # the fixed cost was overestimated: trust the measurement
-            model.fixed, model.per_spp = 0.0, result.seconds / spp
-        model.measurements.append((spp, result.seconds))
+        model.update(spp, result.seconds)
         new_spp = model.spp_for(budget)
         if new_spp == spp:
             break
@@ -740,9 +764,9 @@ def evaluate(
         methods={m: _method_info(EVAL_METHODS[m]) for m in methods},
         protocol=(
             "per scene and budget, each method's spp is calibrated by timing on this machine "
-            "in this run (t = a + b*spp from 1-spp medians and a probe, then verified and "
-            f"re-rendered if off by more than {cfg.tolerance:.0%}); reference: path tracing "
-            f"at {cfg.reference_spp} spp on the same box-filtered film"
+            "in this run (t = a + b*spp fitted to 1-spp medians and growing probes, then "
+            f"verified and re-rendered if off by more than {cfg.tolerance:.0%}); reference: "
+            f"path tracing at {cfg.reference_spp} spp on the same box-filtered film"
         ),
     )
     results["runs"].append({"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -855,7 +879,7 @@ def _evaluate_method(
         except MethodUnavailable as err:
             reason = str(err)
         except Exception as err:  # e.g. a model that fails to load, an unsupported plugin
-            reason = f"failed on this scene: {type(err).__name__}: {' '.join(str(err).split())}"
+            reason = f"could not run: {type(err).__name__}: {' '.join(str(err).split())}"
     if model is None:
         info.update(status="skipped", note=reason)
         _write_json(results_path, results)
@@ -866,8 +890,15 @@ def _evaluate_method(
         key = _budget_key(budget)
         bar.set_postfix_str(f"{scene.name}/{method.name}: {key} s")
         seed = _cell_seed(cfg.seed, scene.name, method.name, key)
-        result, record = run_at_budget(method, scene, model, budget=budget, seed=seed,
-                                       tolerance=cfg.tolerance, max_rounds=cfg.max_rounds)
+        try:
+            result, record = run_at_budget(method, scene, model, budget=budget, seed=seed,
+                                           tolerance=cfg.tolerance, max_rounds=cfg.max_rounds)
+        except Exception as err:  # e.g. out of memory at a large spp: report, retry on resume
+            info.setdefault("errors", {})[key] = f"{type(err).__name__}: {err}"
+            _write_json(results_path, results)
+            bar.update(1)
+            continue
+        info.get("errors", {}).pop(key, None)
         metrics = compute_metrics(result.image, reference, cfg.metrics,
                                   options=cfg.metric_options)
         record.update(
