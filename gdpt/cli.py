@@ -22,8 +22,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from gdpt.version import __version__
 from gdpt.reconstruction import METHODS
+from gdpt.version import __version__
 
 
 class UsageError(Exception):
@@ -178,15 +178,19 @@ def _run_render(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------------------- demo
 def _add_demo_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
-    parser.add_argument("--spp", type=int, default=32, help="G-PT samples per pixel")
+    parser.add_argument("--budget", type=float, default=2.0,
+                        help="seconds of sampling + reconstruction per image (default: 2)")
     parser.add_argument("--resolution", type=int, default=192, help="image width and height")
+    parser.add_argument("--reference-spp", type=int, default=4096,
+                        help="path-traced reference spp (default: 4096)")
     parser.add_argument("--force", action="store_true", help="overwrite an earlier demo's outputs")
 
 
 def _run_demo(args: argparse.Namespace) -> int:
     from gdpt.demo import DemoConfig, run_demo
 
-    run_demo(DemoConfig(out=args.out, spp=args.spp, resolution=args.resolution, force=args.force))
+    run_demo(DemoConfig(out=args.out, budget=args.budget, resolution=args.resolution,
+                        reference_spp=args.reference_spp, force=args.force))
     return 0
 
 
@@ -318,6 +322,46 @@ def _run_train(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------- model-report
+def _add_model_report_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", required=True, help="dataset directory (gdpt dataset)")
+    parser.add_argument("--run", action="append", required=True, metavar="NAME=RUN_DIR",
+                        dest="runs",
+                        help="a gdpt train run directory and its model name (ngpt, "
+                        "ngpt-nograd); repeat for several")
+    parser.add_argument("--out", type=Path, required=True, help="report folder")
+    parser.add_argument("--holdout-every", type=int, default=10,
+                        help="held-out scenes, as in gdpt train (default: 10)")
+    parser.add_argument("--ship", action="store_true",
+                        help="copy each run's network into gdpt/models/NAME with a model card")
+
+
+def _run_model_report(args: argparse.Namespace) -> int:
+    from gdpt.model_report import compare_models, comparison_markdown, plot_training, ship_model
+
+    runs = {}
+    for item in args.runs:
+        name, sep, run = item.partition("=")
+        if not sep or not name or not run:
+            raise ValueError(f"--run {item!r}: expected NAME=RUN_DIR")
+        if not (Path(run) / "model.safetensors").is_file():
+            raise FileNotFoundError(f"--run {item!r}: {run}/model.safetensors not found")
+        runs[name] = Path(run)
+    args.out.mkdir(parents=True, exist_ok=True)
+    plot_training(runs, args.out / "training.png")
+    result = compare_models(args.data, {k: v / "model.safetensors" for k, v in runs.items()},
+                            holdout_every=args.holdout_every)
+    (args.out / "comparison.json").write_text(json.dumps(result, indent=2) + "\n")
+    table = comparison_markdown(result)
+    (args.out / "comparison.md").write_text(table)
+    print(table)
+    if args.ship:
+        for name, run in runs.items():
+            print(f"shipped {ship_model(run, name, comparison=result)}")
+    print(f"wrote {args.out}/ (training.png, comparison.json, comparison.md)")
+    return 0
+
+
 # ------------------------------------------------------------------------------------- registry
 #: The subcommands, in the order ``gdpt --help`` lists them.
 COMMANDS: tuple[Command, ...] = (
@@ -329,7 +373,8 @@ COMMANDS: tuple[Command, ...] = (
         _run_reconstruct,
     ),
     Command("render", "render gradient-domain buffers to EXR", _add_render_arguments, _run_render),
-    Command("demo", "G-PT + Poisson vs path tracing at equal time", _add_demo_arguments, _run_demo),
+    Command("demo", "every method on a built-in scene at equal time", _add_demo_arguments,
+            _run_demo),
     Command(
         "evaluate",
         "equal-time study: error vs measured time of every method on a scene set",
@@ -340,6 +385,8 @@ COMMANDS: tuple[Command, ...] = (
             _add_dataset_arguments, _run_dataset),
     Command("train", "train an NGPT network on a dataset (torchrun-ready)",
             _add_train_arguments, _run_train),
+    Command("model-report", "training curves and held-out comparison of trained networks",
+            _add_model_report_arguments, _run_model_report),
 )
 
 

@@ -1,110 +1,92 @@
-"""The ``make demo`` job: G-PT + screened Poisson against path tracing at equal time.
+"""The ``make demo`` job: every method on the built-in ``cbox-demo`` scene at one equal time.
 
-Renders the built-in ``cbox-demo`` scene with ``gdpt`` at a low sample count, reconstructs with
-L1 (reference preset and the accelerated solver) and L2 screened Poisson, renders plain path tracing (``gdpt`` with ``gradients=False``) with
-as many samples as fit in the same wall-clock time, and compares all of them with a cached
-high-spp reference. Writes EXR files, PNG previews and a side-by-side montage.
+The demo is a one-scene, one-budget run of the equal-time study (:func:`gdpt.evaluate.evaluate`):
+G-PT reconstructed by the shipped NGPT network, L1 and L2 screened Poisson; path tracing alone,
+with Intel Open Image Denoise, and with the no-gradient NGPT ablation. Each method's sample
+count is calibrated by timing so that sampling + reconstruction takes ``budget`` seconds on this
+machine (kernel compilation excluded); errors are measured against a cached high-spp path-traced
+reference. Writes the study's report (``results.json``, ``results.md``, ``index.html``, crops),
+an EXR and a PNG per method, and a labelled montage ``side_by_side.png``.
 """
 
 from __future__ import annotations
 
-import json
-import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
-import torch
+#: Methods shown by the demo, best first in the montage.
+DEMO_METHODS = ("gdpt+ngpt", "gdpt+l1", "gdpt+l2", "pt+oidn", "pt+ngpt-nograd", "pt")
 
 
-@dataclass
+@dataclass(frozen=True)
 class DemoConfig:
-    """Options of :func:`run_demo`."""
+    """Options of :func:`run_demo`.
+
+    Attributes:
+        out: output folder (its ``references/`` cache survives ``force``).
+        scene: a :func:`gdpt.scenes.builtin_scene` name.
+        resolution: film width and height in pixels.
+        budget: seconds of sampling + reconstruction per image.
+        reference_spp: samples per pixel of the path-traced reference.
+        max_depth: longest path.
+        methods: names from :data:`gdpt.methods.EVAL_METHODS`.
+        seed: base seed of the study.
+        force: overwrite the outputs of an earlier demo.
+    """
 
     out: Path = Path("out/demo")
     scene: str = "cbox-demo"
     resolution: int = 192
-    spp: int = 32
+    budget: float = 2.0
     reference_spp: int = 4096
     max_depth: int = 6
+    methods: tuple[str, ...] = DEMO_METHODS
     seed: int = 1
-    force: bool = False  # overwrite the outputs of an earlier run (the reference cache is kept)
+    force: bool = False
 
 
-def _relmse(image: torch.Tensor, ref: torch.Tensor) -> float:
-    """NGPT relMSE: mean((x - r)^2 / (1e-3 + mean_c(r)^2))."""
-    den = 1e-3 + ref.mean(-1, keepdim=True) ** 2
-    return float(((image - ref) ** 2 / den).mean())
+def run_demo(cfg: DemoConfig, *, progress: bool = True) -> dict[str, Any]:
+    """Run the demo, print its table and return the study's results (``results.json``).
 
+    Raises:
+        FileExistsError: ``cfg.out`` holds an earlier demo and ``cfg.force`` is false.
+    """
+    from gdpt.evaluate import EvaluateConfig, evaluate
+    from gdpt.exr import load_image
+    from gdpt.images import side_by_side
 
-def _timed_render(scene, **kwargs):
-    from gdpt.render import render
-
-    start = time.perf_counter()
-    buffers = render(scene, **kwargs)
-    return buffers, time.perf_counter() - start
-
-
-def run_demo(cfg: DemoConfig) -> dict:
-    """Run the demo and return its numbers (also written to ``out/results.json``)."""
-    from gdpt.exr import load_image, save_image
-    from gdpt.images import save_png, side_by_side
-    from gdpt.reconstruction import reconstruct
-    from gdpt.render import load_scene
-    from gdpt.scenes import builtin_scene
-
-    from gdpt.backend import set_variant
-
-    if (cfg.out / "results.json").exists() and not cfg.force:
-        raise FileExistsError(f"{cfg.out} holds an earlier demo; pass --force to overwrite it")
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    set_variant()
-    scene = load_scene(builtin_scene(cfg.scene, resolution=(cfg.resolution, cfg.resolution)))
-    common = dict(max_depth=cfg.max_depth, features=False)
-
-    ref_path = cfg.out / f"reference-{cfg.scene}-{cfg.resolution}px-{cfg.reference_spp}spp.exr"
-    if ref_path.exists():
-        reference = load_image(ref_path)
-    else:
-        print(f"rendering the reference ({cfg.reference_spp} spp, cached in {ref_path})")
-        ref_buffers, _ = _timed_render(
-            scene, spp=cfg.reference_spp, seed=10_000, gradients=False, progress=True, **common
-        )
-        reference = ref_buffers.primal.clone()
-        save_image(ref_path, reference, force=True)
-
-    # Warm-up renders compile the kernels; the timed runs below exclude compilation.
-    _timed_render(scene, spp=1, seed=0, **common)
-    _timed_render(scene, spp=1, seed=0, gradients=False, **common)
-
-    gbuf, t_gdpt = _timed_render(scene, spp=cfg.spp, seed=cfg.seed, progress=True, **common)
-    images, seconds = {}, {}
-    for method in ("l1", "l1-fast", "l2"):
-        start = time.perf_counter()
-        images[f"gdpt+{method}"] = reconstruct(gbuf, method=method)
-        seconds[f"gdpt+{method}"] = t_gdpt + time.perf_counter() - start
-    images["gdpt primal"] = gbuf.primal
-    seconds["gdpt primal"] = t_gdpt
-
-    # Equal time: measure the cost of one path-traced sample, then fill the G-PT + fast-L1 budget.
-    probe_spp = max(1, cfg.spp // 2)
-    _, t_probe = _timed_render(scene, spp=probe_spp, seed=cfg.seed + 1, gradients=False, **common)
-    pt_spp = max(1, int(probe_spp * seconds["gdpt+l1-fast"] / t_probe))
-    pbuf, t_pt = _timed_render(
-        scene, spp=pt_spp, seed=cfg.seed + 2, gradients=False, progress=True, **common
+    out = Path(cfg.out)
+    results_path = out / "results.json"
+    if results_path.exists():
+        if not cfg.force:
+            raise FileExistsError(f"{out} holds an earlier demo; pass --force to overwrite it")
+        results_path.unlink()  # a fresh study; the reference cache is kept
+    study = EvaluateConfig(
+        budgets=(cfg.budget,), resolution=cfg.resolution, reference_spp=cfg.reference_spp,
+        max_depth=cfg.max_depth, metrics=("relmse", "flip_ldr"), metric_options={},
+        methods=cfg.methods, seed=cfg.seed, profile="demo",
     )
-    images[f"pt ({pt_spp} spp)"] = pbuf.primal
-    seconds[f"pt ({pt_spp} spp)"] = t_pt
+    results = evaluate([f"builtin:{cfg.scene}"], out, study, progress=progress,
+                       command="gdpt demo")
+    entry = results["scenes"][cfg.scene]
+    if entry.get("status") != "ok":
+        raise RuntimeError(f"the demo scene failed: {entry.get('error')}")
 
-    results = {"config": {k: str(v) for k, v in asdict(cfg).items()}, "methods": {}}
-    print(f"\n{'method':<16}{'seconds':>10}{'relMSE':>12}")
-    for name, image in images.items():
-        stem = name.split(" ")[0].replace("+", "_").replace("-", "_")
-        save_image(cfg.out / f"{stem}.exr", image, force=True)
-        save_png(cfg.out / f"{stem}.png", image, force=True)
-        err = _relmse(image, reference)
-        results["methods"][name] = {"seconds": seconds[name], "relmse": err}
-        print(f"{name:<16}{seconds[name]:>10.2f}{err:>12.4f}")
-    side_by_side({"reference": reference, **images}, cfg.out / "side_by_side.png", force=True)
-    (cfg.out / "results.json").write_text(json.dumps(results, indent=2))
-    print(f"\nwrote {cfg.out}/ (EXR + PNG per method, side_by_side.png, results.json)")
+    montage = {"reference": load_image(out / "images" / cfg.scene / "reference.exr")}
+    print(f"\n{cfg.scene}, {cfg.resolution}x{cfg.resolution} px, budget {cfg.budget:g} s "
+          f"(compilation excluded), reference {cfg.reference_spp} spp")
+    print(f"{'method':<16}{'spp':>6}{'seconds':>9}{'relMSE':>10}{'FLIP':>8}")
+    for name in cfg.methods:
+        info = entry["methods"].get(name, {})
+        cells = list(info.get("cells", {}).values())
+        if not cells:
+            print(f"{name:<16}  skipped: {info.get('note') or info.get('errors')}")
+            continue
+        cell, metrics = cells[0], cells[0]["metrics"]
+        print(f"{name:<16}{cell['spp']:>6}{cell['seconds']:>9.2f}"
+              f"{metrics['relmse']:>10.4f}{metrics['flip_ldr']:>8.4f}")
+        montage[f"{name} ({cell['spp']} spp)"] = load_image(out / cell["image"])
+    side_by_side(montage, out / "side_by_side.png", force=True)
+    print(f"\nwrote {out}/: side_by_side.png, index.html, results.md, images/ (EXR + PNG)")
     return results

@@ -846,8 +846,10 @@ def _evaluate_scene(
     image_dir = out / "images" / spec.name
     image_dir.mkdir(parents=True, exist_ok=True)
     from gdpt.exr import save_image
+    from gdpt.images import save_png
 
     save_image(image_dir / "reference.exr", reference, metadata=ref_meta, force=True)
+    save_png(image_dir / "reference.png", reference, force=True)
     for name in methods:
         _evaluate_method(EVAL_METHODS[name], scene, reference, cfg, entry, results,
                          results_path, image_dir, bar)
@@ -860,6 +862,7 @@ def _evaluate_method(
 ) -> None:
     """Calibrate one method on one scene and fill its missing budget cells."""
     from gdpt.exr import save_image
+    from gdpt.images import save_png
     from gdpt.metrics import compute_metrics
 
     info = entry["methods"].setdefault(method.name, {"cells": {}})
@@ -911,6 +914,7 @@ def _evaluate_method(
         save_image(image_dir / f"{method.name}-{key}s.exr", result.image,
                    metadata={"method": method.name, "spp": record["spp"], "budget": budget,
                              "seed": record["seed"]}, force=True)
+        save_png(image_dir / f"{method.name}-{key}s.png", result.image, force=True)
         info["cells"][key] = record
         info["calibration"] = dataclasses.asdict(model)
         _write_json(results_path, results)

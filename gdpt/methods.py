@@ -31,6 +31,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -190,7 +191,8 @@ def path_tracing(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     return _timed_run(scene, spp, seed, None, gradients=False, features=False)
 
 
-def _oidn_check() -> str | None:
+def oidn_check() -> str | None:
+    """``None`` when Intel Open Image Denoise (``pyoidn``) can run here, else why not."""
     try:
         import pyoidn  # noqa: F401, PLC0415 (optional dependency)
     except ImportError:
@@ -198,20 +200,27 @@ def _oidn_check() -> str | None:
     return None
 
 
-def _oidn(buffers: GradientBuffers) -> torch.Tensor:
+def oidn_denoise(primal: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor
+                 ) -> torch.Tensor:
+    """OIDN ``RT`` filter, HDR, quality ``high``, on ``(H, W, 3)`` float32 CPU tensors.
+
+    Colour is clamped to >= 0, albedo to [0, 1] and normals to [-1, 1] as OIDN expects.
+    """
     import pyoidn  # noqa: PLC0415 (optional dependency)
 
-    color = buffers.primal.clamp_min(0.0).contiguous()
-    albedo = buffers.albedo.clamp(0.0, 1.0).contiguous()
-    normal = buffers.normal.clamp(-1.0, 1.0).contiguous()
-    out = pyoidn.denoise(color, albedo, normal, hdr=True, quality="high")
+    out = pyoidn.denoise(primal.clamp_min(0.0).contiguous(), albedo.clamp(0.0, 1.0).contiguous(),
+                         normal.clamp(-1.0, 1.0).contiguous(), hdr=True, quality="high")
     return torch.as_tensor(out)
+
+
+def _oidn(buffers: GradientBuffers) -> torch.Tensor:
+    return oidn_denoise(buffers.primal, buffers.albedo, buffers.normal)
 
 
 @register_method(
     "pt+oidn",
     "path tracing + Intel Open Image Denoise (pyoidn; albedo + normal, HDR, quality high)",
-    check=_oidn_check,
+    check=oidn_check,
 )
 def path_tracing_oidn(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     """Path tracing with albedo and normal features, denoised by OIDN (``RT`` filter).
@@ -227,7 +236,7 @@ def path_tracing_oidn(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     Raises:
         MethodUnavailable: ``pyoidn`` is not installed.
     """
-    if reason := _oidn_check():
+    if reason := oidn_check():
         raise MethodUnavailable(reason)
     return _timed_run(scene, spp, seed, _oidn, gradients=False, features=True)
 
@@ -268,32 +277,26 @@ def gdpt_l1(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     return _timed_run(scene, spp, seed, _poisson("l1"), gradients=True, features=False)
 
 
-def _ngpt_method(gradients: bool) -> str:
-    """Name in :data:`gdpt.reconstruction.METHODS` of the NGPT model for these buffers."""
-    from gdpt.reconstruction import METHODS
+def _ngpt_check(name: str) -> str | None:
+    """``None`` when the NGPT model ``name`` (``ngpt``/``ngpt-nograd``) can be found, else why."""
+    from gdpt.reconstruction import model_path
 
-    if not gradients and "ngpt-nograd" in METHODS:
-        return "ngpt-nograd"
-    return "ngpt"
-
-
-def _ngpt_check() -> str | None:
-    from gdpt.reconstruction import METHODS
-
-    if "ngpt" not in METHODS:
-        return "no shipped NGPT model: gdpt.reconstruction.METHODS has no 'ngpt' method"
+    try:
+        model_path(name)
+    except FileNotFoundError as err:
+        return str(err)
     return None
 
 
-def _ngpt(gradients: bool) -> Callable[[GradientBuffers], torch.Tensor]:
+def _ngpt(name: str) -> Callable[[GradientBuffers], torch.Tensor]:
     from gdpt.reconstruction import reconstruct
 
-    name = _ngpt_method(gradients)
     return lambda buffers: reconstruct(buffers, method=name)
 
 
 @register_method(
-    "gdpt+ngpt", "gradient-domain path tracing + the shipped NGPT network", check=_ngpt_check
+    "gdpt+ngpt", "gradient-domain path tracing + the shipped NGPT network",
+    check=partial(_ngpt_check, "ngpt"),
 )
 def gdpt_ngpt(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     """G-PT buffers with features, reconstructed by the NGPT network (``method='ngpt'``).
@@ -307,23 +310,20 @@ def gdpt_ngpt(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
         The image and its timing.
 
     Raises:
-        MethodUnavailable: no NGPT method is registered.
+        MethodUnavailable: the model is not shipped and not given.
     """
-    if reason := _ngpt_check():
+    if reason := _ngpt_check("ngpt"):
         raise MethodUnavailable(reason)
-    return _timed_run(scene, spp, seed, _ngpt(True), gradients=True, features=True)
+    return _timed_run(scene, spp, seed, _ngpt("ngpt"), gradients=True, features=True)
 
 
 @register_method(
     "pt+ngpt-nograd",
     "path tracing + the NGPT ablation network trained without gradients",
-    check=_ngpt_check,
+    check=partial(_ngpt_check, "ngpt-nograd"),
 )
 def pt_ngpt_nograd(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     """Primal-only buffers with features, reconstructed by the no-gradient NGPT model.
-
-    Uses ``METHODS['ngpt-nograd']`` if registered, else ``METHODS['ngpt']`` on buffers without
-    gradients (which then selects its no-gradient model, or raises).
 
     Args:
         scene: the scene.
@@ -334,8 +334,8 @@ def pt_ngpt_nograd(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
         The image and its timing.
 
     Raises:
-        MethodUnavailable: no NGPT method is registered.
+        MethodUnavailable: the model is not shipped and not given.
     """
-    if reason := _ngpt_check():
+    if reason := _ngpt_check("ngpt-nograd"):
         raise MethodUnavailable(reason)
-    return _timed_run(scene, spp, seed, _ngpt(False), gradients=False, features=True)
+    return _timed_run(scene, spp, seed, _ngpt("ngpt-nograd"), gradients=False, features=True)

@@ -60,8 +60,8 @@ def model_path(name: str, model: str | os.PathLike | None = None) -> Path:
     path = Path(model) if model is not None else MODEL_DIR / f"{name}.safetensors"
     if not path.is_file():
         raise FileNotFoundError(
-            f"NGPT checkpoint not found: {path}. No trained model ships with this version yet; "
-            f"pass model=PATH (a checkpoint written by 'gdpt train') or set GDPT_NGPT_MODEL"
+            f"NGPT checkpoint not found: {path}. Pass model=PATH (a checkpoint written by "
+            f"'gdpt train'), or set GDPT_NGPT_MODEL for 'ngpt'"
         )
     return path
 

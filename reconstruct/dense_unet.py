@@ -44,6 +44,8 @@ name          params    GFLOP    time          notes
 ``fast_xs``   0.47 M    83       1.9 - 2.9 s   2x space-to-depth, 3 levels, k = 24/32/48
 ============  ========  =======  ============  ================================================
 
+``fast_xs_nograd`` is ``fast_xs`` without dx/dy (10 input channels), the matching ablation.
+
 Layout, dtype, device: :meth:`DenseUNet.forward` takes an ``(N, C_in, H, W)`` float tensor on the
 module's device, in either memory format (``torch.channels_last`` is faster on CPU), with ``H``
 and ``W`` multiples of :attr:`DenseUNet.alignment`, and returns ``(N, 3, H, W)`` in the same
@@ -174,6 +176,7 @@ CONFIGS: dict[str, ModelConfig] = {
         unpool_features=(48, 64),
     ),
 }
+CONFIGS["fast_xs_nograd"] = dataclasses.replace(CONFIGS["fast_xs"], in_channels=10)
 
 
 def get_config(name: str) -> ModelConfig:

@@ -1,0 +1,253 @@
+"""Reports on trained NGPT networks: training curves, the held-out comparison, shipping.
+
+* :func:`plot_training`: training loss and validation relMSE / FLIP over wall-clock time of
+  one or more ``gdpt train`` run directories (PNG).
+* :func:`compare_models`: every held-out crop and input level of a dataset reconstructed by each
+  network (16-channel networks read the G-PT input ``in<k>``, 10-channel ones the path-traced
+  input ``pt<k>`` rendered with 2.5x the samples), by L1 screened Poisson on ``in<k>`` and, when
+  ``pyoidn`` is installed, by OIDN on ``pt<k>``; mean relMSE and LDR-FLIP per input level, with
+  the measured render times of both inputs from the dataset manifest (so the equal-time claim of
+  the 2.5x rule can be checked) and the measured reconstruction times.
+* :func:`ship_model`: copy a run's final network into ``gdpt/models/<name>`` with a model card
+  (data, steps, wall time, the comparison numbers).
+
+Command: ``gdpt model-report --data DIR --run ngpt=RUN --run ngpt-nograd=RUN --out DIR``.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+#: Largest network (float32 weights) shipped inside the package.
+MAX_SHIPPED_MIB = 20
+#: Scene selection of the held-out set: the same rule as ``gdpt train --holdout-every``.
+HOLDOUT_EVERY = 10
+
+
+def _read_jsonl(path: Path) -> list[dict[str, Any]]:
+    if not path.is_file():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def _smooth(values: list[float], window: int) -> list[float]:
+    """Centred running mean of ``values`` over ``window`` entries (shorter at the ends)."""
+    out, half = [], window // 2
+    for i in range(len(values)):
+        part = values[max(0, i - half):i + half + 1]
+        out.append(sum(part) / len(part))
+    return out
+
+
+def plot_training(runs: Mapping[str, str | Path], path: str | Path) -> Path:
+    """Plot training loss and validation relMSE / FLIP against wall-clock hours.
+
+    Args:
+        runs: label -> ``gdpt train`` run directory (``log.jsonl``, ``val.jsonl``).
+        path: the PNG to write (overwritten).
+
+    Returns:
+        ``path``.
+
+    Raises:
+        FileNotFoundError: a run has no ``log.jsonl``.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    for index, (label, run) in enumerate(runs.items()):
+        log = _read_jsonl(Path(run) / "log.jsonl")
+        if not log:
+            raise FileNotFoundError(f"{run}: no log.jsonl (not a gdpt train run directory?)")
+        colour = f"C{index}"
+        hours = [r["time"] / 3600 for r in log]
+        axes[0].plot(hours, [r["loss"] for r in log], color=colour, alpha=0.15, lw=0.5)
+        axes[0].plot(hours, _smooth([r["loss"] for r in log], 101), color=colour, label=label)
+        val = _read_jsonl(Path(run) / "val.jsonl")
+        if val:
+            vh = [r["time"] / 3600 for r in val]
+            for ax, key in ((axes[1], "relmse"), (axes[2], "flip")):
+                ax.plot(vh, [r[key] for r in val], "o-", ms=3, color=colour, label=label)
+                ax.axhline(val[-1][f"l1_{key}"], color=colour, ls="--", lw=1,
+                           label=f"L1 Poisson on the {label} validation inputs")
+    axes[0].set(title="training loss (101-step running mean)", xlabel="wall-clock hours",
+                ylabel="loss")
+    axes[1].set(title="validation relMSE", xlabel="wall-clock hours", yscale="log")
+    axes[2].set(title="validation LDR-FLIP", xlabel="wall-clock hours")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def _timed(fn: Any, *args: Any) -> tuple[torch.Tensor, float]:
+    start = time.perf_counter()
+    out = fn(*args)
+    return out, time.perf_counter() - start
+
+
+def compare_models(
+    data: str | Path, models: Mapping[str, str | Path], *, holdout_every: int = HOLDOUT_EVERY,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Score networks and baselines on the held-out crops of a dataset.
+
+    Args:
+        data: ``gdpt dataset`` directory; scenes with ``index % holdout_every ==
+            holdout_every - 1`` are the held-out set (never trained on with the same rule).
+        models: method label -> checkpoint (``.safetensors``); the input kind follows the
+            network's input channels.
+        holdout_every: see ``data``.
+        progress: show a progress bar.
+
+    Returns:
+        ``{"crops": n, "levels": [{"spp", "pt_spp", "render_seconds": {"gdpt", "pt"},
+        "methods": {label: {"relmse", "flip", "seconds"}}}], "mean": {label: {...}}}`` where
+        every number is a mean over the held-out crops; ``seconds`` is the reconstruction time.
+    """
+    from tqdm.auto import tqdm
+
+    from gdpt.dataset import CropDataset
+    from gdpt.methods import oidn_check, oidn_denoise
+    from gdpt.metrics import flip_ldr, relmse
+    from gdpt.reconstruct.ngpt import NGPTReconstructor
+    from gdpt.reconstruct.poisson import reconstruct as poisson
+
+    held = lambda s: s % holdout_every == holdout_every - 1  # noqa: E731
+    sets = {kind: CropDataset(data, kind=kind, scenes=held) for kind in ("gdpt", "pt")}
+    nets = {}
+    for label, path in models.items():
+        rec = NGPTReconstructor.from_checkpoint(path)
+        nets[label] = (rec, "gdpt" if "dx" in rec.features else "pt")
+    methods: dict[str, tuple[str, Any]] = {
+        label: (kind, rec) for label, (rec, kind) in nets.items()}
+    methods["gdpt+l1"] = ("gdpt", lambda b: poisson(b["primal"], b["dx"], b["dy"], method="l1",
+                                                      alpha=0.2))
+    if oidn_check() is None:
+        methods["pt+oidn"] = ("pt", lambda b: oidn_denoise(b["primal"], b["albedo"],
+                                                            b["normal"]))
+    methods["pt"] = ("pt", lambda b: b["primal"])
+
+    gdpt_set = sets["gdpt"]
+    levels = gdpt_set.levels
+    scores: list[dict[str, list[float]]] = [{} for _ in range(levels)]
+    bar = tqdm(total=len(gdpt_set), unit="element", desc="compare", disable=not progress)
+    for index in range(len(gdpt_set)):
+        record, level = gdpt_set.element(index)
+        items = {kind: sets[kind].load(index) for kind in sets}
+        target = items["gdpt"]["target"]
+        bucket = scores[level]
+        bucket.setdefault("spp", []).append(record["spp"][level])
+        bucket.setdefault("pt_spp", []).append(record["pt_spp"][level])
+        seconds = record["render_seconds"]
+        bucket.setdefault("render_gdpt", []).append(seconds[f"in{level}"])
+        bucket.setdefault("render_pt", []).append(seconds[f"pt{level}"])
+        for label, (kind, fn) in methods.items():
+            with torch.no_grad():
+                image, took = _timed(fn, items[kind]["inputs"])
+            bucket.setdefault(f"{label}/relmse", []).append(relmse(image, target))
+            bucket.setdefault(f"{label}/flip", []).append(flip_ldr(image, target))
+            bucket.setdefault(f"{label}/seconds", []).append(took)
+        bar.update(1)
+    bar.close()
+
+    def mean(values: list[float]) -> float:
+        return float(statistics.fmean(values))
+
+    out_levels = []
+    for bucket in scores:
+        out_levels.append({
+            "spp": mean(bucket["spp"]), "pt_spp": mean(bucket["pt_spp"]),
+            "render_seconds": {"gdpt": mean(bucket["render_gdpt"]),
+                               "pt": mean(bucket["render_pt"])},
+            "methods": {label: {m: mean(bucket[f"{label}/{m}"])
+                                for m in ("relmse", "flip", "seconds")} for label in methods},
+        })
+    overall = {label: {m: mean([lv["methods"][label][m] for lv in out_levels])
+                       for m in ("relmse", "flip", "seconds")} for label in methods}
+    return {"data": str(data), "holdout_every": holdout_every,
+            "crops": len(gdpt_set.crops), "models": {k: str(v) for k, v in models.items()},
+            "levels": out_levels, "mean": overall}
+
+
+def comparison_markdown(result: Mapping[str, Any]) -> str:
+    """The comparison as a Markdown table: one row per input level, relMSE / FLIP per method
+    (the lowest relMSE of a row in bold)."""
+    labels = list(result["mean"])
+    head = ["input spp (G-PT / PT)", "render s (G-PT / PT)"] + labels
+    rows = []
+    for level in [*result["levels"], None]:
+        entry = result["mean"] if level is None else level["methods"]
+        best = min(labels, key=lambda k: entry[k]["relmse"])
+        cells = [f"**{entry[k]['relmse']:.4f}** / {entry[k]['flip']:.3f}" if k == best
+                 else f"{entry[k]['relmse']:.4f} / {entry[k]['flip']:.3f}" for k in labels]
+        if level is None:
+            rows.append(["mean over levels", ""] + cells)
+        else:
+            rows.append([f"{level['spp']:.0f} / {level['pt_spp']:.0f}",
+                         f"{level['render_seconds']['gdpt']:.2f} / "
+                         f"{level['render_seconds']['pt']:.2f}"] + cells)
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines) + (
+        f"\n\nrelMSE / LDR-FLIP, means over {result['crops']} held-out crops (128 px) per "
+        "level; G-PT methods read the gradient-domain input, PT methods the path-traced input "
+        "with 2.5x the samples.\n")
+
+
+def ship_model(run: str | Path, name: str, *, comparison: Mapping[str, Any] | None = None,
+               dest: str | Path | None = None) -> Path:
+    """Copy a run's final network into the package as ``<dest>/<name>.safetensors`` + card.
+
+    The card adds to the run's own card: the dataset configuration and size, the wall-clock
+    training time, the run's config, and ``comparison`` (from :func:`compare_models`).
+
+    Args:
+        run: ``gdpt train`` run directory holding ``model.safetensors``.
+        name: model name (``ngpt``, ``ngpt-nograd``).
+        comparison: held-out comparison to record.
+        dest: target folder (default: ``gdpt/models`` of this package).
+
+    Returns:
+        The written ``.safetensors`` path.
+
+    Raises:
+        FileNotFoundError: the run has no final model.
+    """
+    from gdpt.reconstruct.ngpt import load_checkpoint, save_checkpoint
+    from gdpt.reconstruction import MODEL_DIR
+
+    run = Path(run)
+    model, card = load_checkpoint(run / "model.safetensors")
+    log = _read_jsonl(run / "log.jsonl")
+    config = json.loads((run / "config.json").read_text())
+    data = Path(config["data"]) / "dataset.json"
+    reserved = {"format", "config_name", "config", "features", "parameter_count"}
+    extra = {k: v for k, v in card.items() if k not in reserved}
+    extra.update(
+        name=name,
+        wall_clock_hours=round(log[-1]["time"] / 3600, 3) if log else None,
+        train_config=config,
+        dataset=json.loads(data.read_text()) if data.is_file() else None,
+    )
+    if comparison is not None:
+        extra["heldout_comparison"] = comparison
+    size = sum(p.numel() for p in model.state_dict().values()) * 4 / 2**20
+    if size > MAX_SHIPPED_MIB:
+        raise ValueError(f"{run}: a {size:.1f} MiB network exceeds the {MAX_SHIPPED_MIB} MiB "
+                         "limit of shipped models")
+    weights, _ = save_checkpoint(model, Path(dest or MODEL_DIR) / name, extra)
+    return weights

@@ -1,0 +1,40 @@
+"""Smoke and bad-input tests of the ``make demo`` job on a tiny render."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from gdpt.demo import DemoConfig, run_demo
+
+
+def _tiny(out, **kw) -> DemoConfig:
+    return DemoConfig(out=out, resolution=24, budget=0.3, reference_spp=64,
+                      methods=("gdpt+l1", "pt"), **kw)
+
+
+def test_demo_writes_montage_images_and_table(tmp_path, capsys):
+    results = run_demo(_tiny(tmp_path), progress=False)
+    cells = results["scenes"]["cbox-demo"]["methods"]
+    assert set(cells) == {"gdpt+l1", "pt"}
+    for name in ("gdpt+l1", "pt"):
+        (cell,) = cells[name]["cells"].values()
+        assert cell["metrics"]["relmse"] > 0 and cell["spp"] >= 1
+        assert (tmp_path / cell["image"]).is_file()
+        assert (tmp_path / cell["image"]).with_suffix(".png").is_file()
+    for name in ("side_by_side.png", "index.html", "results.md", "results.json"):
+        assert (tmp_path / name).is_file(), name
+    printed = capsys.readouterr().out
+    assert "gdpt+l1" in printed and "relMSE" in printed
+
+
+def test_demo_refuses_to_overwrite_and_force_keeps_reference(tmp_path):
+    run_demo(_tiny(tmp_path), progress=False)
+    with pytest.raises(FileExistsError, match="--force"):
+        run_demo(_tiny(tmp_path), progress=False)
+    references = sorted((tmp_path / "references").glob("*.exr"))
+    results = run_demo(_tiny(tmp_path, force=True), progress=False)
+    assert sorted((tmp_path / "references").glob("*.exr")) == references
+    assert results["scenes"]["cbox-demo"]["reference"]["cached"] is True
+    assert len(json.loads((tmp_path / "results.json").read_text())["runs"]) == 1

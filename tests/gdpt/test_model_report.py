@@ -1,0 +1,88 @@
+"""gdpt.model_report: training plot, held-out comparison bookkeeping, shipping, CLI errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from gdpt.reconstruct.ngpt import NGPTReconstructor
+
+from gdpt import model_report
+from gdpt.cli import main
+from gdpt.dataset import DatasetConfig, build_dataset, read_manifest
+from gdpt.exr import load_buffers
+from gdpt.metrics import relmse
+from gdpt.train import TrainConfig, train
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> tuple[Path, dict[str, Path]]:
+    """A 2-crop dataset and two 2-step runs (G-PT and no-gradient networks) on it."""
+    from gdpt.scenes import RandomSceneConfig
+
+    root = tmp_path_factory.mktemp("report")
+    scene = RandomSceneConfig(num_objects=(1, 1), p_extra_light=0.0, p_window=0.0,
+                              p_bitmap_env=0.0, p_thinlens=0.0)
+    data = root / "data"
+    build_dataset(DatasetConfig(scenes=1, views=2, resolution=16, spp_min=1, spp_max=4,
+                                target_spp=8, max_depth=4, scene_config=scene), data,
+                  progress=False)
+    out = {}
+    for name, config in (("ngpt", "fast_xs"), ("ngpt-nograd", "fast_xs_nograd")):
+        out[name] = root / name
+        train(TrainConfig(model=config, data=str(data), val_data=str(data), out=str(out[name]),
+                          loss="l1", steps=2, batch=1, vary_padding=2, val_every=1, val_crops=2),
+              progress=False)
+    return data, out
+
+
+def test_cli_writes_plot_and_comparison(runs, tmp_path):
+    data, run_dirs = runs
+    status = main(["model-report", "--data", str(data), "--holdout-every", "1", "--out",
+                   str(tmp_path), *[f"--run={k}={v}" for k, v in run_dirs.items()]])
+    assert status == 0
+    assert (tmp_path / "training.png").stat().st_size > 10_000
+    result = json.loads((tmp_path / "comparison.json").read_text())
+    assert result["crops"] == 2 and len(result["levels"]) == 5
+    assert {"ngpt", "ngpt-nograd", "gdpt+l1", "pt"} <= set(result["mean"])
+    assert "| mean over levels |" in (tmp_path / "comparison.md").read_text()
+
+
+def test_comparison_scores_the_right_inputs(runs):
+    """The ``pt`` row must equal relMSE of each crop's own path-traced input at that level."""
+    data, run_dirs = runs
+    result = model_report.compare_models(
+        data, {"ngpt": run_dirs["ngpt"] / "model.safetensors"}, holdout_every=1, progress=False)
+    records, _ = read_manifest(data)
+    for level, entry in enumerate(result["levels"]):
+        expected = []
+        for record in records:
+            pt = load_buffers(data / record["files"][f"pt{level}"]).primal
+            target = load_buffers(data / record["files"]["target"]).primal
+            expected.append(relmse(pt, target))
+        assert entry["methods"]["pt"]["relmse"] == pytest.approx(sum(expected) / 2, rel=1e-6)
+        assert entry["spp"] == sum(r["spp"][level] for r in records) / 2
+
+
+def test_ship_model_writes_a_loadable_card_and_enforces_the_size_limit(runs, tmp_path,
+                                                                        monkeypatch):
+    _, run_dirs = runs
+    path = model_report.ship_model(run_dirs["ngpt"], "ngpt", comparison={"x": 1}, dest=tmp_path)
+    card = NGPTReconstructor.from_checkpoint(path).card
+    assert card["name"] == "ngpt" and card["heldout_comparison"] == {"x": 1}
+    assert card["wall_clock_hours"] >= 0 and card["dataset"]["config"]["target_spp"] == 8
+    assert card["train_config"]["model"] == "fast_xs"
+    monkeypatch.setattr(model_report, "MAX_SHIPPED_MIB", 0.1)
+    with pytest.raises(ValueError, match="exceeds the 0.1 MiB"):
+        model_report.ship_model(run_dirs["ngpt"], "big", dest=tmp_path)
+    assert not (tmp_path / "big.safetensors").exists()
+
+
+@pytest.mark.parametrize("run, message", [("ngpt", "expected NAME=RUN_DIR"),
+                                          ("ngpt=/nonexistent", "model.safetensors not found")])
+def test_cli_bad_run_argument(runs, tmp_path, capsys, run, message):
+    data, _ = runs
+    status = main(["model-report", "--data", str(data), "--out", str(tmp_path), "--run", run])
+    assert status == 2
+    assert message in capsys.readouterr().err
