@@ -80,7 +80,9 @@ def update_features(
 
     Follows the path through delta-only BSDFs (mirrors, glass), stops at the first vertex whose
     BSDF has a smooth component. A path that escapes records albedo 0, normal ``-ray.d`` and
-    depth 0. The normal is the shading normal flipped to face the arriving ray, in the sensor's
+    depth 0. The albedo is Mitsuba's ``eval_diffuse_reflectance`` clamped to [0, 1]: for glossy
+    BSDFs it evaluates the lobe for one direction pair and exceeds 1 by orders of magnitude on
+    narrow lobes, which no denoiser expects of an albedo. The normal is the shading normal flipped to face the arriving ray, in the sensor's
     camera's view frame: +x image right, +y image up, +z towards the viewer (so normals facing
     the camera have z > 0).
     """
@@ -91,7 +93,7 @@ def update_features(
 
     n = si.sh_frame.n
     n = dr.select(dr.dot(n, ray_d) > 0, -n, n)
-    albedo = bsdf.eval_diffuse_reflectance(si, rough)
+    albedo = dr.clip(bsdf.eval_diffuse_reflectance(si, rough), 0.0, 1.0)
     feat.albedo = dr.select(rough, albedo, feat.albedo)
     feat.normal = dr.select(rough, _to_view(to_camera, n), feat.normal)
 

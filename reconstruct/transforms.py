@@ -60,10 +60,17 @@ _TRANSPOSE_SWAP: dict[str, str] = {"dx": "dy", "dy": "dx", "var_dx": "var_dy", "
 
 
 # ----------------------------------------------------------------------------- transforms
-class Log1p:
-    """Primal / output transform: ``forward(x) = log(1 + max(0, x))``, ``inverse = exp(y) - 1``.
+#: Largest log-radiance the output transform maps back: ``exp(40) - 1 ~ 2.4e17`` stays finite
+#: in float32 even when squared by a loss, so an untrained or diverging network cannot make the
+#: loss NaN through an overflowing ``exp``.
+LOG_RADIANCE_MAX = 40.0
 
-    ``inverse(forward(x)) == x`` for ``x >= 0`` (to float rounding).
+
+class Log1p:
+    """Primal / output transform: ``forward(x) = log(1 + max(0, x))``,
+    ``inverse(y) = exp(min(y, LOG_RADIANCE_MAX)) - 1``.
+
+    ``inverse(forward(x)) == x`` for ``0 <= x <= exp(LOG_RADIANCE_MAX) - 1`` (to float rounding).
     """
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -72,7 +79,7 @@ class Log1p:
 
     def inverse(self, y: torch.Tensor) -> torch.Tensor:
         """Tensor of any shape -> same shape/dtype/device."""
-        return torch.expm1(y)
+        return torch.expm1(y.clamp_max(LOG_RADIANCE_MAX))
 
 
 class SignedLog1p:

@@ -49,6 +49,15 @@ def test01_transform_inverses_exact():
     assert torch.equal(T.Log1p().forward(torch.tensor([-3.0])), torch.tensor([0.0]))
 
 
+def test01b_output_transform_never_overflows():
+    """A diverging network (log-radiance 100 or inf) must not produce inf or NaN radiance, nor a
+    NaN in a squared loss."""
+    y = torch.tensor([0.0, 30.0, 100.0, float("inf")])
+    out = T.OUTPUT_TRANSFORM.inverse(y)
+    assert torch.isfinite(out).all() and torch.isfinite(out.square()).all()
+    assert out[1] == torch.expm1(torch.tensor(30.0)) and out[2] == out[3]
+
+
 @settings(max_examples=50, deadline=None)
 @given(st.floats(-1e6, 1e6, allow_nan=False), st.floats(0.1, 1.1))
 def test02_signed_log_and_depth_properties(value, scale):
