@@ -90,6 +90,17 @@ METHODS: dict[str, Method] = {
 }
 
 
+#: Method name -> the integrator outputs it reads (``gdpt`` properties ``gradients`` and
+#: ``features``); :func:`gdpt.render_and_denoise` renders only these unless told otherwise.
+NEEDS: dict[str, dict[str, bool]] = {
+    "l1": {"gradients": True, "features": False},
+    "l2": {"gradients": True, "features": False},
+    "l1-fast": {"gradients": True, "features": False},
+    "ngpt": {"gradients": True, "features": True},
+    "ngpt-nograd": {"gradients": False, "features": True},
+}
+
+
 def reconstruct(
     buffers: GradientBuffers, method: str = "l1", *, alpha: float = 0.2, **options: Any
 ) -> torch.Tensor:

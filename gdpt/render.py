@@ -219,13 +219,23 @@ def render_and_denoise(
         seed (int): random seed.
         alpha (float): screened-Poisson data weight.
         progress (bool): progress bar while rendering.
-        **props: integrator properties, as in :func:`render`.
+        **props: integrator properties, as in :func:`render`. ``gradients`` and ``features``
+            default to what ``method`` reads (:data:`gdpt.reconstruction.NEEDS`): the Poisson
+            methods skip the features, ``ngpt-nograd`` the offset paths.
 
     Returns:
         RenderResult: the image ``(H, W, 3)``, the buffers and the timings.
-    """
-    from gdpt.reconstruction import reconstruct
 
+    Raises:
+        ValueError: unknown ``method``, or ``props`` turn off a buffer the method needs.
+    """
+    from gdpt.reconstruction import METHODS, NEEDS, reconstruct
+
+    if method not in METHODS:
+        raise ValueError(
+            f"unknown reconstruction method {method!r}; valid methods: {', '.join(METHODS)}"
+        )
+    props = {**NEEDS.get(method, {}), **props}
     start = time.perf_counter()
     buffers = render(scene, spp=spp, seed=seed, progress=progress, **props)
     t_render = time.perf_counter() - start

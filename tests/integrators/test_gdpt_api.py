@@ -157,3 +157,25 @@ def test09_unsupported_plugins_are_named(variant):
         scene = mi.load_string(_xml("gdpt").replace(old, new))
         with pytest.raises(ValueError, match=expected):
             gdpt.render(scene, spp=1)
+
+
+def test10_render_and_denoise_renders_only_what_the_method_reads(variant):
+    import torch
+
+    import gdpt
+    from gdpt.scenes import builtin_scene
+
+    scene = builtin_scene("diffuse-box", resolution=(16, 12))
+    res = gdpt.render_and_denoise(scene, spp=4, method="l1", seed=3)
+    assert res.image.shape == (12, 16, 3) and torch.isfinite(res.image).all()
+    assert res.buffers.dx is not None and res.buffers.albedo is None  # no features for Poisson
+    torch.testing.assert_close(res.image, gdpt.reconstruct(res.buffers, method="l1"))
+    assert set(res.timings) == {"render", "reconstruct", "total"}
+
+    res = gdpt.render_and_denoise(scene, spp=2, method="l2", features=True)  # explicit wins
+    assert res.buffers.albedo is not None
+
+    with pytest.raises(ValueError, match="unknown reconstruction method 'l3'"):
+        gdpt.render_and_denoise(scene, spp=1, method="l3")
+    with pytest.raises(ValueError, match="needs dx and dy"):
+        gdpt.render_and_denoise(scene, spp=1, method="l1", gradients=False)
