@@ -214,6 +214,9 @@ def _add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, help="base seed")
     parser.add_argument("--references", type=Path,
                         help="reference cache folder (default: OUT/references)")
+    parser.add_argument("--references-only", action="store_true",
+                        help="only render the cached references (no timing: safe on a busy "
+                        "machine); run again without it on an idle machine for the cells")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -222,7 +225,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     import shlex
 
     from gdpt.eval_report import best_methods
-    from gdpt.evaluate import PRESETS, evaluate
+    from gdpt.evaluate import PRESETS, evaluate, render_references
     from gdpt.methods import EVAL_METHODS
     from gdpt.metrics import METRICS
 
@@ -237,6 +240,12 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     }
     cfg = PRESETS["quick" if args.quick else "full"]
     cfg = dataclasses.replace(cfg, **{k: v for k, v in changes.items() if v is not None})
+    if args.references_only:
+        cache = args.references or args.out / "references"
+        status = render_references(args.scenes, cache, cfg, progress=not args.no_progress)
+        for scene, path in status.items():
+            print(f"{scene}: {path}")
+        return 1 if any(p.startswith("failed:") for p in status.values()) else 0
     command = shlex.join(["gdpt", *sys.argv[1:]]) if sys.argv[1:2] == ["evaluate"] else None
     results = evaluate(args.scenes, args.out, cfg, progress=not args.no_progress,
                        command=command)
@@ -292,8 +301,9 @@ def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--val-data", default=None, help="validation dataset directory "
                         "(default: every --holdout-every-th scene of --data)")
     parser.add_argument("--holdout-every", type=int, default=10, help="default: 10")
-    parser.add_argument("--loss", choices=["flip", "flip_hdr", "l1", "elpips"], default="flip",
-                        help="training loss (default: flip)")
+    parser.add_argument("--loss", choices=["flip", "flip_log", "flip_hdr", "l1", "elpips"],
+                        default="flip", help="training loss (default: flip; flip_log adds an "
+                        "L1 in log space that pins bright pixels, see gdpt.reconstruct.losses)")
     parser.add_argument("--steps", type=int, default=1000, help="updates (default: 1000)")
     parser.add_argument("--batch", type=int, default=8, help="crops per update and process")
     parser.add_argument("--crop", type=int, default=None, help="random sub-crop side "

@@ -795,6 +795,58 @@ def evaluate(
     return results
 
 
+def render_references(
+    scenes: Sequence[str | os.PathLike[str] | SceneSpec],
+    cache_dir: str | os.PathLike[str],
+    cfg: EvaluateConfig | None = None,
+    *,
+    progress: bool = True,
+) -> dict[str, str]:
+    """Render (or finish) the cached references of a study without timing anything.
+
+    References take most of a study's compute but no timing, so they can be rendered while the
+    machine is busy; the timed cells (:func:`evaluate` with ``reference_dir=cache_dir``) then
+    run later on an idle machine and find them cached.
+
+    Args:
+        scenes: as for :func:`evaluate`.
+        cache_dir: reference cache folder (:func:`render_reference`).
+        cfg: options (``resolution``, ``max_depth``, ``reference_spp``, ``reference_chunk_spp``,
+            ``seed``); default :data:`PRESETS` ``["full"]``.
+        progress: show a progress bar over the scenes.
+
+    Returns:
+        Scene name -> path of its reference EXR, or ``"failed: <error>"`` for a scene that does
+        not load or render (the others still run).
+    """
+    from tqdm.auto import tqdm
+
+    from gdpt.backend import set_variant
+
+    cfg = cfg or PRESETS["full"]
+    specs: list[SceneSpec] = []
+    for item in scenes:
+        specs += [item] if isinstance(item, SceneSpec) else resolve_scenes([item])
+    import mitsuba as mi
+
+    if mi.variant() is None:
+        set_variant()
+    done: dict[str, str] = {}
+    bar = tqdm(specs, unit="scene", desc="references", disable=not progress, dynamic_ncols=True)
+    for spec in bar:
+        try:
+            scene = load_eval_scene(spec, resolution=cfg.resolution, max_depth=cfg.max_depth)
+            _, meta = render_reference(
+                scene, Path(cache_dir), spp=cfg.reference_spp,
+                chunk_spp=cfg.reference_chunk_spp, seed=_reference_seed(cfg.seed),
+                source=spec.source, progress=bar,
+            )
+            done[spec.name] = meta["path"]
+        except Exception as err:  # reported, the other scenes still run
+            done[spec.name] = f"failed: {type(err).__name__}: {err}"
+    return done
+
+
 def _method_info(method: EvalMethod) -> dict[str, Any]:
     reason = method.check()
     return {"description": method.description, "available": reason is None, "note": reason}

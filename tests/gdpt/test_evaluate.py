@@ -19,6 +19,7 @@ from gdpt.evaluate import (
     calibrate,
     evaluate,
     load_eval_scene,
+    render_references,
     resolve_scenes,
     run_at_budget,
 )
@@ -155,6 +156,25 @@ def test_bad_input_is_reported_and_resume_skips_done_cells(variant, tmp_path, mo
 
     with pytest.raises(ValueError, match="different settings"):
         evaluate(["builtin:cbox-demo"], out, _tiny_cfg(resolution=16), progress=False)
+
+
+def test_references_only_then_cells_reuse_them(variant, tmp_path, monkeypatch, capsys):
+    cache = tmp_path / "refs"
+    status = main(["evaluate", "--scenes", "random:3", str(tmp_path / "missing.xml"),
+                   "--out", str(tmp_path / "report"), "--references", str(cache),
+                   "--resolution", "24", "--reference-spp", "64", "--references-only",
+                   "--no-progress"])
+    assert status == 1  # one scene failed, and says so
+    printed = capsys.readouterr().out
+    assert "missing: failed" in printed and "not found" in printed
+    assert not (tmp_path / "report" / "results.json").exists()  # nothing was timed
+    (exr,) = cache.glob("random-3-24x24-d6-64spp-seed*.exr")
+
+    cfg = _tiny_cfg(methods=("pt",), reference_dir=cache)
+    assert render_references(["random:3"], cache, cfg, progress=False) == {"random-3": str(exr)}
+    results = evaluate(["random:3"], tmp_path / "report", cfg, progress=False, report=False)
+    assert results["scenes"]["random-3"]["reference"]["cached"] is True
+    assert set(results["scenes"]["random-3"]["methods"]["pt"]["cells"]) == {"0.1", "0.2"}
 
 
 def test_time_model_fit_and_noise_guard():

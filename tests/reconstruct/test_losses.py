@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import colour
@@ -148,6 +149,11 @@ def test_l1_terms_known_values() -> None:
     # Horizontal ramp I = x: dx = 1 except the zero last column, R(1) = 0.5, dy = 0.
     ramp = torch.arange(4.0).expand(1, 3, 4, 4)
     assert L.gradient_l1_tonemapped(ramp, zeros[:1]).item() == pytest.approx(0.5 * 3 / 4)
+    # log1p does not saturate: 1e4 vs 1e2 differs by log(10001/101), Reinhard by < 0.01
+    big, small = torch.full((1, 3, 2, 2), 1e4), torch.full((1, 3, 2, 2), 1e2)
+    assert L.l1_log(big, small).item() == pytest.approx(math.log(10001 / 101), rel=1e-5)
+    assert L.l1_tonemapped(big, small).item() < 0.01
+    assert L.l1_log(zeros, ones).item() == pytest.approx(math.log(2.0))
 
 
 def test_l1_terms_gradcheck() -> None:
@@ -156,6 +162,7 @@ def test_l1_terms_gradcheck() -> None:
     target = torch.rand(1, 3, 4, 5, generator=gen, dtype=torch.float64) + 0.1
     assert torch.autograd.gradcheck(lambda p: L.l1_tonemapped(p, target), (pred,))
     assert torch.autograd.gradcheck(lambda p: L.gradient_l1_tonemapped(p, target), (pred,))
+    assert torch.autograd.gradcheck(lambda p: L.l1_log(p, target), (pred,))
 
 
 def test_l1_terms_shape_errors() -> None:
@@ -175,7 +182,10 @@ def test_registry_weights_and_errors() -> None:
                 + 0.01 * L.l1_tonemapped(pred, target)
                 + 0.01 * L.gradient_l1_tonemapped(pred, target))
     assert torch.allclose(flip(pred, target), expected)
-    with pytest.raises(KeyError, match=r"valid names: \['elpips', 'flip', 'flip_hdr', 'l1'\]"):
+    flip_log = L.get_loss("flip_log")
+    assert torch.allclose(flip_log(pred, target), expected + 0.1 * L.l1_log(pred, target))
+    with pytest.raises(KeyError,
+                       match=r"valid names: \['elpips', 'flip', 'flip_hdr', 'flip_log', 'l1'\]"):
         L.get_loss("lpips")
 
 
