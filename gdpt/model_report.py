@@ -212,8 +212,9 @@ def ship_model(run: str | Path, name: str, *, comparison: Mapping[str, Any] | No
                dest: str | Path | None = None) -> Path:
     """Copy a run's final network into the package as ``<dest>/<name>.safetensors`` + card.
 
-    The card adds to the run's own card: the dataset configuration and size, the wall-clock
-    training time, the run's config, and ``comparison`` (from :func:`compare_models`).
+    The card adds to the run's own card: the dataset configuration and size (crops, scenes,
+    held-out scenes), the wall-clock training time, the run's config, and ``comparison`` (from
+    :func:`compare_models`).
 
     Args:
         run: ``gdpt train`` run directory holding ``model.safetensors``.
@@ -235,6 +236,9 @@ def ship_model(run: str | Path, name: str, *, comparison: Mapping[str, Any] | No
     log = _read_jsonl(run / "log.jsonl")
     config = json.loads((run / "config.json").read_text())
     data = Path(config["data"]) / "dataset.json"
+    manifest = _read_jsonl(Path(config["data"]) / "manifest.jsonl")
+    scenes = sorted({row["scene"] for row in manifest if "scene" in row})
+    holdout = config.get("holdout_every") or HOLDOUT_EVERY
     reserved = {"format", "config_name", "config", "features", "parameter_count"}
     extra = {k: v for k, v in card.items() if k not in reserved}
     extra.update(
@@ -242,6 +246,11 @@ def ship_model(run: str | Path, name: str, *, comparison: Mapping[str, Any] | No
         wall_clock_hours=round(log[-1]["time"] / 3600, 3) if log else None,
         train_config=config,
         dataset=json.loads(data.read_text()) if data.is_file() else None,
+        dataset_size={
+            "crops": len(manifest), "scenes": len(scenes),
+            "heldout_scenes": [s for s in scenes if s % holdout == holdout - 1]
+            if config.get("val_data") is None else "separate validation set",
+        },
     )
     if comparison is not None:
         extra["heldout_comparison"] = comparison

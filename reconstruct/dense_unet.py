@@ -45,6 +45,9 @@ name          params    GFLOP    time          notes
 ============  ========  =======  ============  ================================================
 
 ``fast_xs_nograd`` is ``fast_xs`` without dx/dy (10 input channels), the matching ablation.
+``fast_xs_res`` / ``fast_xs_res_nograd`` are the same networks predicting a correction of the
+input primal (``ModelConfig.residual``; same parameters and cost): our addition for CPU-length
+training, where direct prediction (the paper's) had not yet learnt to keep the input's colours.
 
 Layout, dtype, device: :meth:`DenseUNet.forward` takes an ``(N, C_in, H, W)`` float tensor on the
 module's device, in either memory format (``torch.channels_last`` is faster on CPU), with ``H``
@@ -88,6 +91,11 @@ class ModelConfig:
         out_channels: output channels (RGB).
         relu_factor: negative slope of every LeakyReLU.
         weight_norm: weight-normalised convolutions (reference) or plain ones.
+        residual: predict a correction of the (log-transformed) input primal, the first three
+            input channels, instead of the image itself: the output is ``head(x) + x[:, :3]``
+            with no final activation, and the last conv starts at zero (gain or weight), so
+            the untrained network is the identity on the noisy primal. Not in the paper; see
+            the ``*_res`` configurations.
     """
 
     in_channels: int = 16
@@ -103,6 +111,7 @@ class ModelConfig:
     out_channels: int = 3
     relu_factor: float = 0.01
     weight_norm: bool = True
+    residual: bool = False
 
     def __post_init__(self) -> None:
         levels = len(self.growth_rates)
@@ -177,6 +186,8 @@ CONFIGS: dict[str, ModelConfig] = {
     ),
 }
 CONFIGS["fast_xs_nograd"] = dataclasses.replace(CONFIGS["fast_xs"], in_channels=10)
+CONFIGS["fast_xs_res"] = dataclasses.replace(CONFIGS["fast_xs"], residual=True)
+CONFIGS["fast_xs_res_nograd"] = dataclasses.replace(CONFIGS["fast_xs_nograd"], residual=True)
 
 
 def get_config(name: str) -> ModelConfig:
@@ -359,6 +370,9 @@ class DenseUNet(nn.Module):
                 Conv(width, cfg.head_features * s * s, 1, weight_norm=wn, scale=s),
                 Conv(cfg.head_features + cfg.in_channels, cfg.out_channels, 3, weight_norm=wn),
             ])
+        if cfg.residual:
+            last = self.head[-1]
+            nn.init.zeros_(last.gain if last.gain is not None else last.weight)
 
     @property
     def alignment(self) -> int:
@@ -428,11 +442,14 @@ class DenseUNet(nn.Module):
             y = self._forward_buffers(x.contiguous(memory_format=torch.channels_last))
         else:
             y = self._forward_lists(x)
-        y = F.leaky_relu(self.head[0](y), cfg.relu_factor)
         if cfg.space_to_depth > 1:
-            y = F.pixel_shuffle(y, cfg.space_to_depth)
-            y = F.leaky_relu(self.head[1](torch.cat([y, net_in], dim=1)), cfg.relu_factor)
-        return y
+            y = F.leaky_relu(self.head[0](y), cfg.relu_factor)
+            y = self.head[1](torch.cat([F.pixel_shuffle(y, cfg.space_to_depth), net_in], dim=1))
+        else:
+            y = self.head[0](y)
+        if cfg.residual:
+            return y + net_in[:, :3]
+        return F.leaky_relu(y, cfg.relu_factor)
 
     def _forward_lists(self, x: torch.Tensor) -> torch.Tensor:
         """Encoder/decoder with Python lists of feature maps (autograd-friendly)."""

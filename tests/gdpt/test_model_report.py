@@ -73,6 +73,8 @@ def test_ship_model_writes_a_loadable_card_and_enforces_the_size_limit(runs, tmp
     assert card["name"] == "ngpt" and card["heldout_comparison"] == {"x": 1}
     assert card["wall_clock_hours"] >= 0 and card["dataset"]["config"]["target_spp"] == 8
     assert card["train_config"]["model"] == "fast_xs"
+    manifest = (Path(card["train_config"]["data"]) / "manifest.jsonl").read_text().splitlines()
+    assert card["dataset_size"]["crops"] == len(manifest) > 0
     monkeypatch.setattr(model_report, "MAX_SHIPPED_MIB", 0.1)
     with pytest.raises(ValueError, match="exceeds the 0.1 MiB"):
         model_report.ship_model(run_dirs["ngpt"], "big", dest=tmp_path)

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from gdpt.reconstruct import dense_unet
 from gdpt.reconstruct.dense_unet import CONFIGS, DenseUNet, ModelConfig, build_model
@@ -105,6 +106,17 @@ def test07_inference_path_and_fuse_match_autograd_path(name):
         fused = model.fuse()(x)
     torch.testing.assert_close(buffered, reference.detach(), rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(fused, reference.detach(), rtol=1e-4, atol=1e-4)
+
+
+def test07b_residual_starts_as_identity_and_adds_the_input_primal():
+    x = torch.randn(2, 16, 16, 24)
+    residual = build_model("fast_xs_res")
+    torch.testing.assert_close(residual(x), x[:, :3])  # untrained: the noisy input primal
+    direct = _perturbed(build_model("fast_xs"), seed=2)
+    residual.load_state_dict(direct.state_dict())  # same parameters, other output rule
+    pre_activation = residual(x) - x[:, :3]
+    torch.testing.assert_close(F.leaky_relu(pre_activation, 0.01), direct(x))
+    assert (pre_activation < 0).any()  # no final activation clips the correction
 
 
 def test08_input_errors():

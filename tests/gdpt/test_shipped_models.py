@@ -1,0 +1,55 @@
+"""The networks shipped in ``gdpt/models``: present, documented, the default, and useful.
+
+The quality check renders the built-in Cornell box at low sample counts and requires each shipped
+network to reduce the relMSE of its noisy input against a converged reference; a network that
+paints or blows up pixels (as under-trained ones did) fails it.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+import gdpt
+from gdpt.metrics import relmse
+from gdpt.model_report import MAX_SHIPPED_MIB
+from gdpt.reconstruction import MODEL_DIR
+from gdpt.scenes import builtin_scene
+
+SHIPPED = {"ngpt": True, "ngpt-nograd": False}  # name -> reads gradients
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_model_has_weights_and_card(name):
+    weights, card_path = MODEL_DIR / f"{name}.safetensors", MODEL_DIR / f"{name}.json"
+    assert weights.is_file() and card_path.is_file(), f"{name} is not shipped in {MODEL_DIR}"
+    assert weights.stat().st_size <= MAX_SHIPPED_MIB * 2**20
+    card = json.loads(card_path.read_text())
+    assert card["name"] == name
+    assert card["steps"] > 0 and card["wall_clock_hours"] > 0
+    assert card["dataset_size"]["crops"] > 0 and card["train_config"]["loss"]
+    assert ("dx" in card["features"]) is SHIPPED[name]
+    assert card["heldout_comparison"]["crops"] > 0
+
+
+@pytest.fixture(scope="module")
+def cbox():
+    gdpt.set_variant("llvm_ad_rgb")
+    scene = builtin_scene("cbox-demo", resolution=(48, 48))
+    reference = gdpt.render(scene, spp=2048, seed=99, gradients=False, features=False).primal
+    return scene, reference.cpu()
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_model_is_the_default_and_reduces_error(name, cbox, monkeypatch):
+    monkeypatch.delenv("GDPT_NGPT_MODEL", raising=False)
+    scene, reference = cbox
+    buffers = gdpt.render(scene, spp=8, seed=1, gradients=SHIPPED[name])
+    image = gdpt.reconstruct(buffers, method=name)
+    explicit = gdpt.reconstruct(buffers, method=name, model=MODEL_DIR / f"{name}.safetensors")
+    assert torch.equal(image, explicit)
+    assert torch.isfinite(image).all()
+    noisy = relmse(buffers.primal.cpu(), reference)
+    assert relmse(image.cpu(), reference) < noisy
