@@ -93,9 +93,9 @@ class ModelConfig:
         weight_norm: weight-normalised convolutions (reference) or plain ones.
         residual: predict a correction of the (log-transformed) input primal, the first three
             input channels, instead of the image itself: the output is ``head(x) + x[:, :3]``
-            with no final activation, and the last conv starts at zero (gain or weight), so
-            the untrained network is the identity on the noisy primal. Not in the paper; see
-            the ``*_res`` configurations.
+            with no final activation. Not in the paper; see the ``*_res`` configurations. (A
+            zero-initialised last layer, i.e. an identity network at the start, trained far
+            too slowly: with weight normalisation its gain alone sets the output scale.)
     """
 
     in_channels: int = 16
@@ -370,9 +370,6 @@ class DenseUNet(nn.Module):
                 Conv(width, cfg.head_features * s * s, 1, weight_norm=wn, scale=s),
                 Conv(cfg.head_features + cfg.in_channels, cfg.out_channels, 3, weight_norm=wn),
             ])
-        if cfg.residual:
-            last = self.head[-1]
-            nn.init.zeros_(last.gain if last.gain is not None else last.weight)
 
     @property
     def alignment(self) -> int:

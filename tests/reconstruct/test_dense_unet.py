@@ -108,10 +108,9 @@ def test07_inference_path_and_fuse_match_autograd_path(name):
     torch.testing.assert_close(fused, reference.detach(), rtol=1e-4, atol=1e-4)
 
 
-def test07b_residual_starts_as_identity_and_adds_the_input_primal():
+def test07b_residual_adds_the_input_primal():
     x = torch.randn(2, 16, 16, 24)
     residual = build_model("fast_xs_res")
-    torch.testing.assert_close(residual(x), x[:, :3])  # untrained: the noisy input primal
     direct = _perturbed(build_model("fast_xs"), seed=2)
     residual.load_state_dict(direct.state_dict())  # same parameters, other output rule
     pre_activation = residual(x) - x[:, :3]
