@@ -301,9 +301,10 @@ def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--val-data", default=None, help="validation dataset directory "
                         "(default: every --holdout-every-th scene of --data)")
     parser.add_argument("--holdout-every", type=int, default=10, help="default: 10")
-    parser.add_argument("--loss", choices=["flip", "flip_log", "flip_hdr", "l1", "elpips"],
-                        default="flip", help="training loss (default: flip; flip_log adds an "
-                        "L1 in log space that pins bright pixels, see gdpt.reconstruct.losses)")
+    parser.add_argument("--loss", choices=["flip", "flip_rel", "flip_log", "flip_hdr", "l1",
+                                           "elpips"],
+                        default="flip", help="training loss (default: flip; flip_rel / flip_log "
+                        "add a relative / log-space L1, see gdpt.reconstruct.losses)")
     parser.add_argument("--steps", type=int, default=1000, help="updates (default: 1000)")
     parser.add_argument("--batch", type=int, default=8, help="crops per update and process")
     parser.add_argument("--crop", type=int, default=None, help="random sub-crop side "

@@ -105,7 +105,7 @@ class TrainConfig:
         val_data: validation dataset directory; ``None`` holds out every ``holdout_every``-th
             scene of ``data`` (scene index ``% holdout_every == holdout_every - 1``).
         holdout_every: see ``val_data``.
-        loss: ``flip``, ``flip_log``, ``flip_hdr``, ``l1`` or ``elpips``
+        loss: ``flip``, ``flip_rel``, ``flip_log``, ``flip_hdr``, ``l1`` or ``elpips``
             (:func:`gdpt.reconstruct.losses.get_loss`).
         steps: total optimizer updates.
         batch: crops per update and process.

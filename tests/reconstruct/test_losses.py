@@ -154,6 +154,10 @@ def test_l1_terms_known_values() -> None:
     assert L.l1_log(big, small).item() == pytest.approx(math.log(10001 / 101), rel=1e-5)
     assert L.l1_tonemapped(big, small).item() < 0.01
     assert L.l1_log(zeros, ones).item() == pytest.approx(math.log(2.0))
+    # relative L1 divides by eps + the reference's channel mean, per pixel
+    dark = torch.tensor([0.01, 0.02, 0.03]).view(1, 3, 1, 1).expand(1, 3, 2, 2)
+    assert L.l1_relative(dark * 2, dark).item() == pytest.approx(0.02 / 0.03, rel=1e-5)
+    assert L.l1_relative(big, small).item() == pytest.approx(9900 / 100.01, rel=1e-5)
 
 
 def test_l1_terms_gradcheck() -> None:
@@ -163,6 +167,7 @@ def test_l1_terms_gradcheck() -> None:
     assert torch.autograd.gradcheck(lambda p: L.l1_tonemapped(p, target), (pred,))
     assert torch.autograd.gradcheck(lambda p: L.gradient_l1_tonemapped(p, target), (pred,))
     assert torch.autograd.gradcheck(lambda p: L.l1_log(p, target), (pred,))
+    assert torch.autograd.gradcheck(lambda p: L.l1_relative(p, target), (pred,))
 
 
 def test_l1_terms_shape_errors() -> None:
@@ -184,8 +189,10 @@ def test_registry_weights_and_errors() -> None:
     assert torch.allclose(flip(pred, target), expected)
     flip_log = L.get_loss("flip_log")
     assert torch.allclose(flip_log(pred, target), expected + 0.1 * L.l1_log(pred, target))
-    with pytest.raises(KeyError,
-                       match=r"valid names: \['elpips', 'flip', 'flip_hdr', 'flip_log', 'l1'\]"):
+    flip_rel = L.get_loss("flip_rel")
+    assert torch.allclose(flip_rel(pred, target), expected + L.l1_relative(pred, target))
+    with pytest.raises(KeyError, match=r"valid names: \['elpips', 'flip', 'flip_hdr', "
+                       r"'flip_log', 'flip_rel', 'l1'\]"):
         L.get_loss("lpips")
 
 
