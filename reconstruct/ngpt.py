@@ -188,7 +188,8 @@ class NGPTReconstructor:
     The input is transformed (:mod:`~gdpt.reconstruct.transforms`), mirror-padded by ``margin``
     and up to the network alignment, cut into tiles of ``tile_size`` output pixels that overlap
     by the receptive radius rounded up to the alignment (so tiling does not change the result
-    beyond float rounding), run through the network, mapped back with ``exp(y) - 1`` and
+    beyond float rounding), run through the network, mapped back with ``exp(y) - 1``, clamped to
+    ``>= 0`` (radiance; residual networks can undershoot ``y = 0`` in dark regions) and
     cropped. The weights are snapshotted (with weight normalisation folded) at construction.
 
     Args:
@@ -259,7 +260,7 @@ class NGPTReconstructor:
         x = stack_input(pad_buffers(inputs, padding), self.features)
         x = x.contiguous(memory_format=torch.channels_last)
         y = self._run_tiled(self._model_on(first.device), x)
-        out = crop(OUTPUT_TRANSFORM.inverse(y).permute(0, 2, 3, 1), padding)
+        out = crop(OUTPUT_TRANSFORM.inverse(y).clamp_min(0).permute(0, 2, 3, 1), padding)
         out = out.float().contiguous()
         return out[0] if first.dim() == 3 else out
 

@@ -32,7 +32,7 @@ def checkpoint(tmp_path):
 def test01_ngpt_with_explicit_checkpoint(checkpoint):
     image = gdpt.reconstruct(_buffers(), method="ngpt", model=checkpoint)
     assert image.shape == (13, 17, 3) and image.dtype == torch.float32
-    assert torch.isfinite(image).all()
+    assert torch.isfinite(image).all() and (image >= 0).all()  # radiance: clamped at 0
 
 
 def test02_checkpoint_from_environment(checkpoint, monkeypatch):
