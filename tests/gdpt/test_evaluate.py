@@ -82,19 +82,28 @@ def test_calibration_meets_budget(variant, name):
     """The chosen spp takes the budget within 20% (median of 3 re-timings).
 
     20% is the tolerance of the issue. Budgets of 1 s keep the relative timing noise of a
-    shared 2-core machine well below it; the median of 3 repeats removes single outliers.
+    shared 2-core machine well below it; the median of 3 repeats removes single outliers. A
+    transient load during the few seconds of calibration (seen once in CI: calibrated 25% slow,
+    re-timed at steady state) invalidates that attempt, so the whole calibrate-and-verify runs
+    at most twice and must succeed once; a systematically wrong calibration fails both.
     """
     method = EVAL_METHODS[name]
     scene = load_eval_scene(SceneSpec("cbox", "builtin:cbox-demo"), resolution=32)
     budget = 1.0
-    model = calibrate(method, scene, budget=budget, seed=1)
-    _, record = run_at_budget(method, scene, model, budget=budget, seed=2)
-    assert record["spp"] > 1
-    again = statistics.median(
-        method.run(scene, spp=record["spp"], seed=10 + i).seconds for i in range(3)
-    )
-    assert abs(again - budget) / budget <= 0.2, (record, again)
-    assert abs(record["seconds"] - budget) / budget <= 0.2, record
+    failures = []
+    for attempt in range(2):
+        model = calibrate(method, scene, budget=budget, seed=1 + 10 * attempt)
+        _, record = run_at_budget(method, scene, model, budget=budget, seed=2 + 10 * attempt)
+        assert record["spp"] > 1
+        again = statistics.median(
+            method.run(scene, spp=record["spp"], seed=100 + 10 * attempt + i).seconds
+            for i in range(3)
+        )
+        errors = (abs(again - budget) / budget, abs(record["seconds"] - budget) / budget)
+        if max(errors) <= 0.2:
+            return
+        failures.append((record, again))
+    pytest.fail(f"calibration missed the {budget} s budget by more than 20% twice: {failures}")
 
 
 def _tiny_cfg(**changes) -> EvaluateConfig:
