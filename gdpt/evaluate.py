@@ -711,6 +711,22 @@ def _method_list(cfg: EvaluateConfig) -> list[str]:
     return names
 
 
+def _as_specs(scenes: Sequence[str | os.PathLike[str] | SceneSpec]) -> list[SceneSpec]:
+    specs: list[SceneSpec] = []
+    for item in scenes:
+        specs += [item] if isinstance(item, SceneSpec) else resolve_scenes([item])
+    return specs
+
+
+def _study_reference(scene: EvalScene, spec: SceneSpec, cfg: EvaluateConfig, cache: Path,
+                     bar: Any) -> tuple[torch.Tensor, dict[str, Any]]:
+    """:func:`render_reference` with the study's settings (shared by every entry point)."""
+    return render_reference(
+        scene, cache, spp=cfg.reference_spp, chunk_spp=cfg.reference_chunk_spp,
+        seed=_reference_seed(cfg.seed), source=spec.source, progress=bar,
+    )
+
+
 def evaluate(
     scenes: Sequence[str | os.PathLike[str] | SceneSpec],
     out_dir: str | os.PathLike[str],
@@ -746,9 +762,7 @@ def evaluate(
     for name in cfg.metrics:
         get_metric(name)
     methods = _method_list(cfg)
-    specs: list[SceneSpec] = []
-    for item in scenes:
-        specs += [item] if isinstance(item, SceneSpec) else resolve_scenes([item])
+    specs = _as_specs(scenes)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "images").mkdir(exist_ok=True)
@@ -821,26 +835,14 @@ def render_references(
     """
     from tqdm.auto import tqdm
 
-    from gdpt.backend import set_variant
-
     cfg = cfg or PRESETS["full"]
-    specs: list[SceneSpec] = []
-    for item in scenes:
-        specs += [item] if isinstance(item, SceneSpec) else resolve_scenes([item])
-    import mitsuba as mi
-
-    if mi.variant() is None:
-        set_variant()
+    specs = _as_specs(scenes)
     done: dict[str, str] = {}
     bar = tqdm(specs, unit="scene", desc="references", disable=not progress, dynamic_ncols=True)
     for spec in bar:
         try:
             scene = load_eval_scene(spec, resolution=cfg.resolution, max_depth=cfg.max_depth)
-            _, meta = render_reference(
-                scene, Path(cache_dir), spp=cfg.reference_spp,
-                chunk_spp=cfg.reference_chunk_spp, seed=_reference_seed(cfg.seed),
-                source=spec.source, progress=bar,
-            )
+            _, meta = _study_reference(scene, spec, cfg, Path(cache_dir), bar)
             done[spec.name] = meta["path"]
         except Exception as err:  # reported, the other scenes still run
             done[spec.name] = f"failed: {type(err).__name__}: {err}"
@@ -881,10 +883,7 @@ def _evaluate_scene(
         entry.update(resolution=list(scene.resolution), max_depth=scene.max_depth,
                      notes=scene.notes, film_filter=scene.film_filter)
         stage = "reference"
-        reference, ref_meta = render_reference(
-            scene, cache, spp=cfg.reference_spp, chunk_spp=cfg.reference_chunk_spp,
-            seed=_reference_seed(cfg.seed), source=spec.source, progress=bar,
-        )
+        reference, ref_meta = _study_reference(scene, spec, cfg, cache, bar)
     except Exception as err:  # a broken scene is a result, not the end of the study
         entry.update(status="failed", stage=stage, error=f"{type(err).__name__}: {err}")
         entry.pop("reference", None)
