@@ -96,6 +96,11 @@ class GDPTIntegrator(GradientIntegratorBase):
     heuristic over base/offset BSDF and light sampling, computed in a ratio form. Failed shifts
     give the base full weight. A vertex is "rough" when its BSDF has no delta lobe.
 
+    Cost: the loop runs in two phases. While some offset still has vertices of its own it runs
+    the full shift (per-offset work for own vertices sits in ``dr.if_stmt`` blocks, which skip
+    packets without such lanes); once every offset has reconnected or failed, the rest of the
+    path is a plain path tracer whose radiance all offsets share with fixed weights.
+
     The output ``dx``/``dy`` are the sums of the two MIS halves, i.e. unbiased estimates of
     ``I(x+1) - I(x)``; the primal is the standard base-path estimate. Needs a box pixel filter.
     The short twin :ref:`gdpt_rr <integrator-gdpt_rr>` (random replay) serves as an oracle.
@@ -120,7 +125,7 @@ class GDPTIntegrator(GradientIntegratorBase):
 
         base = BaseState(
             ray_d=mi.Vector3f(rays[0].d),
-            si=scene.ray_intersect(rays[0], active),
+            si=_primary_hit(scene, rays[0], active),
             prev=dr.zeros(mi.Interaction3f, n),
             beta=mi.Spectrum(weights[0]),
             eta=mi.Float(1.0),
@@ -133,7 +138,7 @@ class GDPTIntegrator(GradientIntegratorBase):
         base_hit = base.si.is_valid()
         offsets = []
         for k in range(1, n_off + 1):
-            si_k = scene.ray_intersect(rays[k], active)
+            si_k = _primary_hit(scene, rays[k], active)
             offsets.append(OffsetState(
                 si=si_k,
                 prev=dr.zeros(mi.Interaction3f, n),
@@ -149,10 +154,8 @@ class GDPTIntegrator(GradientIntegratorBase):
             ))
         feat = FeatureState.zeros(n) if self.features else None
 
-        def cond(sampler, base, offsets, feat):
-            return base.active
-
-        def body(sampler, base, offsets, feat):
+        def body(sampler, base, offsets, feat, beta_scale=None):
+            """One vertex of the base path and of ``offsets`` (``beta_scale``: see phase 2)."""
             si, active = base.si, base.active
             bsdf = si.bsdf()
             if feat is not None:
@@ -222,44 +225,49 @@ class GDPTIntegrator(GradientIntegratorBase):
                 own = o.status == NOT_CONNECTED
                 recent = o.status == RECENTLY_CONNECTED
                 act = active_em & o.alive
-                # Own vertex: reconnect y_i to the base's light point
-                y = o.si
-                bsdf_y = y.bsdf()
-                to_light = ds.p - y.p
-                dist_y = dr.norm(to_light)
-                dir_y = dr.select(is_infinite, ds.d, to_light / dist_y)
-                dist_y = dr.select(is_infinite, ds.dist, dist_y)
-                ds_y = mi.DirectionSample3f(
-                    ds.p, ds.n, ds.uv, ds.time, ds.pdf, ds.delta, dir_y, dist_y, ds.emitter
-                )
-                act_own = act & own & mi.has_flag(bsdf_y.flags(), mi.BSDFFlags.Smooth)
-                ray_y = dr.select(is_infinite, y.spawn_ray(dir_y), y.spawn_ray_to(ds.p))
-                visible = ~scene.ray_test(ray_y, act_own)
-                em_own = dr.select(visible, scene.eval_emitter_direction(y, ds_y, act_own), 0)
-                cos_x = dr.abs(dr.dot(ds.n, ds.d))
-                cos_y = dr.abs(dr.dot(ds.n, dir_y))
-                J_own = dr.select(
-                    fixed_point, 1.0, safe_div(cos_y * dr.square(ds.dist), cos_x * dr.square(dist_y))
-                )
-                # J p_light(y). Area-sampled emitters and fixed points: exactly p_light(x), also
-                # when the light turns its back to y (Mitsuba samples such points with nonzero
-                # pdf, although pdf_emitter_direction() reports 0), and free of 0 * inf at
-                # grazing y. Spheres are sampled by cone, which never picks their far side.
-                front = dr.dot(ds.n, dir_y) < 0
-                pn_cone = scene.pdf_emitter_direction(y, ds_y, act_own & cone & front)
-                Jpn_own = dr.select(cone, J_own * pn_cone, pn_x)
-                # Own: BSDF at y_i towards the light point. Recently connected: the base's BSDF
-                # at x_i towards the same light sample, arriving from y_{i-1}.
-                f_v, pb_v = dr.select(own, bsdf_y, bsdf).eval_pdf(
-                    ctx, view, dr.select(own, view.to_local(dir_y), wo_em),
-                    act_own | (act & recent),
-                )
-                pb_v = dr.select(ds.delta, 0, pb_v)
-                f_y = dr.select(own | recent, f_v, f_x)
-                pb_y = dr.select(own | recent, pb_v, pb_x)
-                e_y = dr.select(own, em_own, em_val)
-                J = dr.select(own, J_own, 1.0)
-                Jp_y = dr.select(own, dr.select(act_own, Jpn_own, 0) + J_own * pb_v, pn_x + pb_y)
+                # Recently connected: the base's BSDF at x_i towards the same light sample,
+                # arriving from y_{i-1}. Connected: the base's own values.
+                f_r, pb_r = bsdf.eval_pdf(ctx, view, wo_em, act & recent)
+                pb_r = dr.select(ds.delta, 0, pb_r)
+
+                def nee_own(o=o):
+                    """Own vertex y_i: reconnect it to the base's light point."""
+                    y = o.si
+                    bsdf_y = y.bsdf()
+                    to_light = ds.p - y.p
+                    dist_y = dr.norm(to_light)
+                    dir_y = dr.select(is_infinite, ds.d, to_light / dist_y)
+                    dist_y = dr.select(is_infinite, ds.dist, dist_y)
+                    ds_y = mi.DirectionSample3f(
+                        ds.p, ds.n, ds.uv, ds.time, ds.pdf, ds.delta, dir_y, dist_y, ds.emitter
+                    )
+                    act_own = act & mi.has_flag(bsdf_y.flags(), mi.BSDFFlags.Smooth)
+                    ray_y = dr.select(is_infinite, y.spawn_ray(dir_y), y.spawn_ray_to(ds.p))
+                    visible = ~scene.ray_test(ray_y, act_own)
+                    em = dr.select(visible, scene.eval_emitter_direction(y, ds_y, act_own), 0)
+                    cos_x = dr.abs(dr.dot(ds.n, ds.d))
+                    cos_y = dr.abs(dr.dot(ds.n, dir_y))
+                    J = dr.select(
+                        fixed_point, 1.0,
+                        safe_div(cos_y * dr.square(ds.dist), cos_x * dr.square(dist_y)),
+                    )
+                    # J p_light(y). Area-sampled emitters and fixed points: exactly p_light(x),
+                    # also when the light turns its back to y (Mitsuba samples such points with
+                    # nonzero pdf, although pdf_emitter_direction() reports 0), and free of
+                    # 0 * inf at grazing y. Spheres are sampled by cone, which never picks their
+                    # far side.
+                    front = dr.dot(ds.n, dir_y) < 0
+                    pn_cone = scene.pdf_emitter_direction(y, ds_y, act_own & cone & front)
+                    Jpn = dr.select(cone, J * pn_cone, pn_x)
+                    f, pb = bsdf_y.eval_pdf(ctx, y, y.to_local(dir_y), act_own)
+                    pb = dr.select(ds.delta, 0, pb)
+                    return f, em, J, dr.select(act_own, Jpn, 0) + J * pb
+
+                def nee_follow(o=o):
+                    f = dr.select(recent, f_r, f_x)
+                    return f, em_val, mi.Float(1.0), pn_x + dr.select(recent, pb_r, pb_x)
+
+                f_y, e_y, J, Jp_y = dr.if_stmt((), act & own, nee_own, nee_follow)
                 den = pn_x + pb_x + dr.select(o.alive, o.r * Jp_y, 0)
                 c_shift = dr.select(o.alive, o.q * f_y * e_y * J, 0)
                 o.G += dr.select(active_em, finite((c_shift - nee_main) / den), 0)
@@ -274,105 +282,98 @@ class GDPTIntegrator(GradientIntegratorBase):
             rough_next = ~hit_next | ~mi.has_flag(si_next.bsdf().flags(), mi.BSDFFlags.Delta)
             reflect = mi.has_flag(bs.sampled_type, mi.BSDFFlags.DeltaReflection)
 
+            inv_p = safe_div(1.0, bs.pdf)
+            pb_next = dr.select(delta_x, 1.0, bs.pdf)  # MIS pdf of the segment x_i -> x_{i+1}
             for o, view in zip(offsets, views):
                 act = active_next & o.alive
                 own = o.status == NOT_CONNECTED
                 recent = o.status == RECENTLY_CONNECTED
-                y = o.si
-                bsdf_y = y.bsdf()
-                y_smooth = mi.has_flag(bsdf_y.flags(), mi.BSDFFlags.Smooth)
-                reconnect = own & ~delta_x & rough_next & y_smooth
+                # Recently connected: the base's BSDF at x_i towards the base's sample,
+                # arriving from y_{i-1}.
+                f_r, p_r = bsdf.eval_pdf(ctx, view, bs.wo, act & recent)
 
-                # Reconnection y_i -> x_{i+1} (or environment shift: copy the direction)
-                act_rc = act & reconnect
-                to_next = si_next.p - y.p
-                d_y2 = dr.squared_norm(to_next)
-                dir_rc = dr.select(hit_next, to_next * dr.rsqrt(d_y2), ray_next.d)
-                ray_rc = dr.select(hit_next, y.spawn_ray_to(si_next.p), y.spawn_ray(dir_rc))
-                cos_x = dr.abs(dr.dot(si_next.n, ray_next.d))
-                cos_y = dr.abs(dr.dot(si_next.n, dir_rc))
-                J_rc = dr.select(
-                    hit_next, safe_div(cos_y * dr.square(si_next.t), cos_x * d_y2), 1.0
-                )
-                # One BSDF evaluation: the reconnected y_i towards x_{i+1}, or (recently
-                # connected) the base's x_i towards the base's sample, arriving from y_{i-1}.
-                f_v, p_v = dr.select(own, bsdf_y, bsdf).eval_pdf(
-                    ctx, view, dr.select(own, view.to_local(dir_rc), bs.wo),
-                    act_rc | (act & recent),
-                )
-                f_rec, p_rec = f_v, p_v
-                f_rc, p_rc = f_v, p_v
+                def shift_own(o=o):
+                    """Own vertex y_i: reconnect, follow a delta lobe, or replay the numbers."""
+                    y = o.si
+                    bsdf_y = y.bsdf()
+                    y_smooth = mi.has_flag(bsdf_y.flags(), mi.BSDFFlags.Smooth)
+                    reconnect = ~delta_x & rough_next & y_smooth
 
-                # Delta lobe: sample the offset's lobe of the same kind
-                act_d = act & own & delta_x
-                bs_r, w_r = bsdf_y.sample(ctx_refl, y, u1, u2, act_d & reflect)
-                bs_t, w_t = bsdf_y.sample(ctx_trans, y, u1, u2, act_d & ~reflect)
-                bs_d = dr.select(reflect, bs_r, bs_t)
-                w_d = dr.select(reflect, w_r, w_t)
-                ok_d = (bs_d.pdf > 0) & (dr.max(w_d) > 0)
-                ok_d &= mi.has_flag(bs_d.sampled_type, mi.BSDFFlags.Delta)
+                    # Reconnection y_i -> x_{i+1} (or environment shift: copy the direction)
+                    act_rc = act & reconnect
+                    to_next = si_next.p - y.p
+                    d_y2 = dr.squared_norm(to_next)
+                    dir_rc = dr.select(hit_next, to_next * dr.rsqrt(d_y2), ray_next.d)
+                    ray_rc = dr.select(hit_next, y.spawn_ray_to(si_next.p), y.spawn_ray(dir_rc))
+                    cos_x = dr.abs(dr.dot(si_next.n, ray_next.d))
+                    cos_y = dr.abs(dr.dot(si_next.n, dir_rc))
+                    J_rc = dr.select(
+                        hit_next, safe_div(cos_y * dr.square(si_next.t), cos_x * d_y2), 1.0
+                    )
+                    f_rc, p_rc = bsdf_y.eval_pdf(ctx, y, y.to_local(dir_rc), act_rc)
 
-                # Smooth lobe before a delta vertex: replay the base's random numbers
-                act_s = act & own & ~delta_x & ~reconnect
-                bs_s, w_s = bsdf_y.sample(ctx, y, u1, u2, act_s)
-                ok_s = y_smooth & (bs_s.pdf > 0)
-                ok_s &= ~mi.has_flag(bs_s.sampled_type, mi.BSDFFlags.Delta)
+                    # Delta lobe: sample the offset's lobe of the same kind
+                    act_d = act & delta_x
+                    bs_r, w_r = bsdf_y.sample(ctx_refl, y, u1, u2, act_d & reflect)
+                    bs_t, w_t = bsdf_y.sample(ctx_trans, y, u1, u2, act_d & ~reflect)
+                    bs_d = dr.select(reflect, bs_r, bs_t)
+                    w_d = dr.select(reflect, w_r, w_t)
+                    ok_d = (bs_d.pdf > 0) & (dr.max(w_d) > 0)
+                    ok_d &= mi.has_flag(bs_d.sampled_type, mi.BSDFFlags.Delta)
 
-                wo_y = dr.select(delta_x, bs_d.wo, bs_s.wo)
-                ray_y = y.spawn_ray(y.to_world(wo_y))
-                trace = act & own & ~reconnect
-                # One traversal: the offset's own next vertex, or the reconnection's shadow ray
-                si_y = scene.ray_intersect(dr.select(reconnect, ray_rc, ray_y), trace | act_rc)
-                visible = ~si_y.is_valid()
-                hit_y = si_y.is_valid()
-                rough_y = ~hit_y | ~mi.has_flag(si_y.bsdf().flags(), mi.BSDFFlags.Delta)
-                # Non-invertible: the reverse shift from y would reconnect at this vertex
-                ok_s &= ~rough_y
+                    # Smooth lobe before a delta vertex: replay the base's random numbers
+                    act_s = act & ~delta_x & ~reconnect
+                    bs_s, w_s = bsdf_y.sample(ctx, y, u1, u2, act_s)
+                    ok_s = y_smooth & (bs_s.pdf > 0)
+                    ok_s &= ~mi.has_flag(bs_s.sampled_type, mi.BSDFFlags.Delta)
 
-                inv_p = safe_div(1.0, bs.pdf)
-                q_new = dr.select(
-                    own,
-                    dr.select(
+                    trace = act & ~reconnect
+                    # Shadow test (any hit) for a reconnection; closest hit for a new vertex
+                    visible = ~scene.ray_test(ray_rc, act_rc)
+                    wo_y = dr.select(delta_x, bs_d.wo, bs_s.wo)
+                    si_y = scene.ray_intersect(y.spawn_ray(y.to_world(wo_y)), trace)
+                    hit_y = si_y.is_valid()
+                    rough_y = ~hit_y | ~mi.has_flag(si_y.bsdf().flags(), mi.BSDFFlags.Delta)
+                    # Non-invertible: the reverse shift from y would reconnect at this vertex
+                    ok_s &= ~rough_y
+
+                    q = dr.select(
                         reconnect,
                         o.q * f_rc * (J_rc * inv_p),
                         dr.select(delta_x, o.q * w_d * (bs_d.pdf * inv_p), o.q * w_s),
-                    ),
-                    dr.select(recent, o.q * f_rec * inv_p, o.q * bsdf_weight),
+                    )
+                    r = dr.select(reconnect, o.r * p_rc * J_rc * inv_p, o.r)
+                    ok = dr.select(reconnect, visible & (p_rc > 0), dr.select(delta_x, ok_d, ok_s))
+                    pb = dr.select(reconnect, p_rc, dr.select(delta_x, 1.0, bs_s.pdf))
+                    s_rc = dr.select(reconnect, o.r * inv_p, 0)
+                    status = dr.select(reconnect, mi.UInt32(RECENTLY_CONNECTED), NOT_CONNECTED)
+                    return (q, r, ok, pb, s_rc, s_rc * J_rc, trace & ~hit_y & hit_next,
+                            trace, si_y, status)
+
+                def follow(o=o):
+                    """Recently connected or connected: the offset shares the base's next vertex."""
+                    q = dr.select(recent, o.q * f_r * inv_p, o.q * bsdf_weight)
+                    r = dr.select(recent, o.r * p_r * inv_p, o.r)
+                    pb = dr.select(recent, p_r, pb_next)
+                    zero = dr.zeros(mi.Float, n)
+                    return (q, r, ~recent | (p_r > 0), pb, zero, zero, mi.Bool(False),
+                            mi.Bool(False), dr.zeros(mi.SurfaceInteraction3f, n), mi.UInt32(CONNECTED))
+
+                q, r, ok, o.pb_prev, o.s, o.sJ, o.escaped, trace, si_y, o.status = dr.if_stmt(
+                    (), act & own, shift_own, follow
                 )
-                r_new = dr.select(
-                    own & reconnect,
-                    o.r * p_rc * J_rc * inv_p,
-                    dr.select(recent, o.r * p_rec * inv_p, o.r),
-                )
-                ok = dr.select(
-                    own,
-                    dr.select(reconnect, visible & (p_rc > 0), dr.select(delta_x, ok_d, ok_s)),
-                    ~recent | (p_rec > 0),
-                )
-                pb_new = dr.select(
-                    own,
-                    dr.select(reconnect, p_rc, dr.select(delta_x, 1.0, bs_s.pdf)),
-                    dr.select(recent, p_rec, dr.select(delta_x, 1.0, bs.pdf)),
-                )
-                o.s = dr.select(own & reconnect, o.r * inv_p, 0)
-                o.sJ = dr.select(own & reconnect, o.r * J_rc * inv_p, 0)
-                o.q = finite(q_new)
-                o.r = dr.minimum(finite(r_new), 1e30)
-                o.pb_prev = pb_new
+                o.q = finite(q)
+                o.r = dr.minimum(finite(r), 1e30)
                 o.alive = act & ok
-                o.escaped = trace & ~hit_y & hit_next
-                o.prev = _vertex(dr.select(own, y, si))
+                # Selected here, not in the branches: returning the outer si_next from one branch
+                # of dr.if_stmt corrupted the base path's copy of it (Dr.Jit 1.5).
                 o.si = dr.select(trace, si_y, si_next)
-                o.status = dr.select(
-                    own,
-                    dr.select(reconnect, mi.UInt32(RECENTLY_CONNECTED), NOT_CONNECTED),
-                    mi.UInt32(CONNECTED),
-                )
+                o.prev = _vertex(view)  # y_i (own) or x_i
 
             # ----------------------- Russian roulette -----------------------
             base.beta *= bsdf_weight
             base.eta *= bs.eta
-            beta_max = dr.max(base.beta)
+            beta_max = dr.max(base.beta if beta_scale is None else base.beta * beta_scale)
             rr_active = base.depth >= self.rr_depth
             rr_prob = dr.minimum(beta_max * dr.square(base.eta), 0.95)
             rr_scale = dr.select(rr_active, safe_div(1.0, rr_prob), 1.0)
@@ -385,24 +386,61 @@ class GDPTIntegrator(GradientIntegratorBase):
             base.prev = _vertex(si)
             base.si = si_next
             base.ray_d = ray_next.d
-            base.pb_prev = dr.select(delta_x, 1.0, bs.pdf)
+            base.pb_prev = pb_next
             base.delta_prev = delta_x
             base.depth += 1
             base.active = active_next & (beta_max != 0) & (~rr_active | survive)
             return sampler, base, offsets, feat
 
         # The sampler is loop state: its RNG must advance from one iteration to the next.
-        sampler, base, offsets, feat = dr.while_loop(
-            (sampler, base, offsets, feat), cond, body,
-            labels=("sampler", "base", "offsets", "features"), label="gdpt",
+        if offsets:
+            # Phase 1: the full hybrid shift while some offset still has vertices of its own.
+            def pending(sampler, base, offsets, feat):
+                own = mi.Bool(False)
+                for o in offsets:
+                    own |= o.alive & (o.status != CONNECTED)
+                return base.active & own
+
+            sampler, base, offsets, feat = dr.while_loop(
+                (sampler, base, offsets, feat), pending, body,
+                labels=("sampler", "base", "offsets", "features"), label="gdpt_shift",
+            )
+
+        # Phase 2: every offset is connected (it shares all further vertices with the base) or
+        # failed. A connected offset's throughput q and MIS ratio r then change exactly like the
+        # base's, so each further contribution c of the base adds (q - beta) c / ((1 + r) beta)
+        # to the half-gradient (a failed one: q = r = 0). Trace the tail once as a plain path
+        # with throughput relative to here (no division by beta, whose channels may be 0).
+        head_beta, head_L = base.beta, base.L
+        base.beta = dr.full(mi.Spectrum, 1.0, n)
+        base.L = dr.zeros(mi.Spectrum, n)
+
+        def tail_body(sampler, base, feat):
+            sampler, base, _, feat = body(sampler, base, [], feat, head_beta)
+            return sampler, base, feat
+
+        sampler, base, feat = dr.while_loop(
+            (sampler, base, feat), lambda sampler, base, feat: base.active, tail_body,
+            labels=("sampler", "base", "features"), label="gdpt_tail",
         )
+        tail = base.L
+        gradients = [
+            finite(o.G + (dr.select(o.alive, o.q, 0) - head_beta) * tail
+                   / (1 + dr.select(o.alive, o.r, 0)))
+            for o in offsets
+        ]
         return PathSamples(
-            primal=finite(base.L),
-            gradients=[finite(o.G) for o in offsets],
+            primal=finite(head_L + head_beta * tail),
+            gradients=gradients,
             albedo=feat.albedo if feat is not None else None,
             normal=feat.normal if feat is not None else None,
             depth=feat.depth if feat is not None else None,
         )
+
+
+def _primary_hit(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool) -> mi.SurfaceInteraction3f:
+    """Camera rays are coherent: Embree's coherent traversal is faster for them."""
+    return scene.ray_intersect(ray, mi.RayFlags.All, True, active)
 
 
 def _vertex(si: mi.SurfaceInteraction3f) -> mi.Interaction3f:
