@@ -313,6 +313,23 @@ def _glass(res: tuple[int, int]) -> SceneDict:
     )
 
 
+@_builtin("near-specular")
+def _near_specular(res: tuple[int, int]) -> SceneDict:
+    """Narrow glossy lobes for the half-vector shift at ``shift_threshold`` >= 0.03: a rough
+    glass sphere (roughdielectric, alpha 0.03) over a checkerboard floor and a rough mirror
+    panel (roughconductor, alpha 0.02) on the green wall, area light."""
+    walls = _box_walls()
+    walls["floor"]["bsdf"] = _checker((0.8, 0.8, 0.8), (0.15, 0.15, 0.2), 6)
+    return _scene(
+        _box_camera(res),
+        **walls,
+        ball=_sphere([-0.2, -0.5, 0.1], 0.45,
+                     {"type": "roughdielectric", "int_ior": 1.5, "alpha": 0.03}),
+        panel=_rectangle([0.99, 0.0, -0.3], [-1, 0, 0], [1.2, 1.0],
+                         {"type": "roughconductor", "material": "Al", "alpha": 0.02}),
+    )
+
+
 def _sky_image(height: int, width: int, sun_dir: Vec3, *, sun: float, overcast: float,
                rng: np.random.Generator | None = None) -> np.ndarray:
     """Procedural lat-long sky, ``(height, width, 3)`` float32, +y up, mean radiance ~1.

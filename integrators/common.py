@@ -75,20 +75,24 @@ def update_features(
     ray_d: mi.Vector3f,
     to_camera,
     active: mi.Bool,
+    near_specular: mi.Bool | None = None,
 ) -> None:
     """Record albedo, camera-space normal and path length at the first rough vertex.
 
-    Follows the path through delta-only BSDFs (mirrors, glass), stops at the first vertex whose
-    BSDF has a smooth component. A path that escapes records albedo 0, normal ``-ray.d`` and
+    Follows the path through near-specular vertices (delta-only BSDFs such as mirrors and glass,
+    and where ``near_specular`` is set, e.g. glossy lobes at or below ``gdpt``'s
+    ``shift_threshold``), stops at the first other vertex. A path that escapes records albedo 0, normal ``-ray.d`` and
     depth 0. The albedo is Mitsuba's ``eval_diffuse_reflectance`` clamped to [0, 1]: for glossy
     BSDFs it evaluates the lobe for one direction pair and exceeds 1 by orders of magnitude on
-    narrow lobes, which no denoiser expects of an albedo. The normal is the shading normal flipped to face the arriving ray, in the sensor's
-    camera's view frame: +x image right, +y image up, +z towards the viewer (so normals facing
-    the camera have z > 0).
+    narrow lobes, which no denoiser expects of an albedo. The normal is the shading normal
+    flipped to face the arriving ray, in the sensor's camera's view frame: +x image right, +y
+    image up, +z towards the viewer (so normals facing the camera have z > 0).
     """
     hit = active & feat.open & si.is_valid()
     miss = active & feat.open & ~si.is_valid()
     rough = hit & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+    if near_specular is not None:
+        rough &= ~near_specular
     feat.depth = dr.select(hit, feat.depth + si.t, feat.depth)
 
     n = si.sh_frame.n
@@ -162,8 +166,8 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
     ``gradients`` (bool, true: trace offset paths; false = plain path tracing with features),
     ``features`` (bool, true), ``variance`` (bool, false),
     ``samples_per_pass`` (int, 2^20: samples traced per kernel launch),
-    ``shift_threshold`` (float, 0.001; only the default is supported: delta lobes count as
-    near-specular, every other lobe is reconnectable).
+    ``shift_threshold`` (float, 0.001: microfacet roughness at or below which a glossy vertex
+    counts as near-specular; used by ``gdpt``, ignored by ``gdpt_rr``).
     """
 
     def __init__(self, props: mi.Properties):
@@ -181,12 +185,11 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         self.samples_per_pass = int(props.get("samples_per_pass", DEFAULT_SAMPLES_PER_PASS))
         if self.samples_per_pass < 1:
             raise ValueError(f"{self.plugin_name}: 'samples_per_pass' must be >= 1")
-        threshold = float(props.get("shift_threshold", DEFAULT_SHIFT_THRESHOLD))
-        if threshold != DEFAULT_SHIFT_THRESHOLD:
+        self.shift_threshold = float(props.get("shift_threshold", DEFAULT_SHIFT_THRESHOLD))
+        if not 0.0 <= self.shift_threshold < float("inf"):
             raise ValueError(
-                f"{self.plugin_name}: 'shift_threshold' other than {DEFAULT_SHIFT_THRESHOLD} is not "
-                f"supported yet (got {threshold}): delta lobes are shifted, every rough lobe is "
-                "reconnected, as the reference does at its default for microfacet alpha > 0.001"
+                f"{self.plugin_name}: 'shift_threshold' must be a finite roughness >= 0, got "
+                f"{self.shift_threshold}"
             )
         if props.get("hide_emitters", False):
             raise ValueError(f"{self.plugin_name}: 'hide_emitters' is not supported")
@@ -199,6 +202,9 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
     def sample_paths(self, scene, sensor, sampler, rays, weights, active) -> PathSamples:
         """Trace the base path (``rays[0]``) and, if enabled, the four offsets (``rays[1:]``)."""
         raise NotImplementedError
+
+    def prepare(self, scene: mi.Scene) -> None:
+        """Per-scene set-up before the passes of one ``render()`` call (default: nothing)."""
 
     def channels(self) -> list[tuple[str, int]]:
         """``(buffer name, channel count)`` in the order ``render()`` stores them."""
@@ -242,6 +248,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         if not develop:
             raise ValueError(f"{self.plugin_name}: develop=False is not supported")
         check_scene(scene, self.plugin_name)
+        self.prepare(scene)
         spp = int(spp) if spp else int(sensor.sampler().sample_count())
         width, height = (int(v) for v in film.crop_size())
         n_pix = width * height

@@ -113,6 +113,14 @@ class GDPTIntegrator(GradientIntegratorBase):
 
     plugin_name = "gdpt"
 
+    #: shift_threshold if the scene may have glossy lobes at or below it, else None (no
+    #: per-vertex roughness look-ups); set by prepare().
+    _active_threshold: float | None = None
+
+    def prepare(self, scene: mi.Scene) -> None:
+        near = _may_have_near_specular_glossy(scene, self.shift_threshold)
+        self._active_threshold = self.shift_threshold if near else None
+
     def sample_paths(self, scene, sensor, sampler, rays, weights, active) -> PathSamples:
         n = dr.width(rays[0].d)
         ctx = mi.BSDFContext()
@@ -122,6 +130,13 @@ class GDPTIntegrator(GradientIntegratorBase):
         ctx_trans.type_mask = int(mi.BSDFFlags.DeltaTransmission)
         to_camera = camera_transform(sensor)
         n_off = len(rays) - 1
+        threshold = self._active_threshold
+
+        def near_glossy(si, bsdf, active):
+            """Glossy vertex with roughness <= shift_threshold (half-vector copy, features pass)."""
+            if threshold is None:
+                return mi.Bool(False)
+            return _near_specular_glossy(si, bsdf, threshold, active)
 
         base = BaseState(
             ray_d=mi.Vector3f(rays[0].d),
@@ -159,7 +174,8 @@ class GDPTIntegrator(GradientIntegratorBase):
             si, active = base.si, base.active
             bsdf = si.bsdf()
             if feat is not None:
-                update_features(feat, si, bsdf, base.ray_d, to_camera, active)
+                near = near_glossy(si, bsdf, active & feat.open)
+                update_features(feat, si, bsdf, base.ray_d, to_camera, active, near)
 
             # ----------------------- Emission at x_i ------------------------
             ds = mi.DirectionSample3f(scene, si, base.prev)
@@ -211,11 +227,15 @@ class GDPTIntegrator(GradientIntegratorBase):
             visible_x = ~scene.ray_test(si.spawn_ray_to(ds.p), active_em)
             em_weight = dr.select(visible_x, em_weight, 0)
             wo_em = si.to_local(ds.d)
-            f_x, pb_x = bsdf.eval_pdf(ctx, si, wo_em, active_em)
-            pb_x = dr.select(ds.delta, 0, pb_x)
+            # One virtual call evaluates the light sample and samples the next direction.
+            u1, u2 = sampler.next_1d(), sampler.next_2d()
+            f_x, pb_x, bs, bsdf_weight = bsdf.eval_pdf_sample(ctx, si, wo_em, u1, u2, active_next)
+            f_x = dr.select(active_em, f_x, 0)
+            pb_x = dr.select(active_em & ~ds.delta, pb_x, 0)
             pn_x = ds.pdf
             em_val = em_weight * pn_x  # radiance (intensity / d^2 for point lights) at x_i
-            base.L += dr.select(active_em, base.beta * f_x * em_weight * safe_div(pn_x, pn_x + pb_x), 0)
+            w_light = safe_div(pn_x, pn_x + pb_x)
+            base.L += dr.select(active_em, base.beta * f_x * em_weight * w_light, 0)
             nee_main = base.beta * f_x * em_val
             is_infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
             cone = _is_cone_sampled(ds.emitter)
@@ -230,7 +250,7 @@ class GDPTIntegrator(GradientIntegratorBase):
                 f_r, pb_r = bsdf.eval_pdf(ctx, view, wo_em, act & recent)
                 pb_r = dr.select(ds.delta, 0, pb_r)
 
-                def nee_own(o=o):
+                def nee_own(o=o, act=act):
                     """Own vertex y_i: reconnect it to the base's light point."""
                     y = o.si
                     bsdf_y = y.bsdf()
@@ -245,11 +265,10 @@ class GDPTIntegrator(GradientIntegratorBase):
                     ray_y = dr.select(is_infinite, y.spawn_ray(dir_y), y.spawn_ray_to(ds.p))
                     visible = ~scene.ray_test(ray_y, act_own)
                     em = dr.select(visible, scene.eval_emitter_direction(y, ds_y, act_own), 0)
-                    cos_x = dr.abs(dr.dot(ds.n, ds.d))
-                    cos_y = dr.abs(dr.dot(ds.n, dir_y))
                     J = dr.select(
                         fixed_point, 1.0,
-                        safe_div(cos_y * dr.square(ds.dist), cos_x * dr.square(dist_y)),
+                        _reconnection_jacobian(ds.n, ds.d, dr.square(ds.dist), dir_y,
+                                               dr.square(dist_y)),
                     )
                     # J p_light(y). Area-sampled emitters and fixed points: exactly p_light(x),
                     # also when the light turns its back to y (Mitsuba samples such points with
@@ -263,7 +282,7 @@ class GDPTIntegrator(GradientIntegratorBase):
                     pb = dr.select(ds.delta, 0, pb)
                     return f, em, J, dr.select(act_own, Jpn, 0) + J * pb
 
-                def nee_follow(o=o):
+                def nee_follow(recent=recent, f_r=f_r, pb_r=pb_r):
                     f = dr.select(recent, f_r, f_x)
                     return f, em_val, mi.Float(1.0), pn_x + dr.select(recent, pb_r, pb_x)
 
@@ -273,14 +292,18 @@ class GDPTIntegrator(GradientIntegratorBase):
                 o.G += dr.select(active_em, finite((c_shift - nee_main) / den), 0)
 
             # ------------------------ BSDF sampling -------------------------
-            u1, u2 = sampler.next_1d(), sampler.next_2d()
-            bs, bsdf_weight = bsdf.sample(ctx, si, u1, u2, active_next)
             delta_x = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             ray_next = si.spawn_ray(si.to_world(bs.wo))
             si_next = scene.ray_intersect(ray_next, active_next)
             hit_next = si_next.is_valid()
-            rough_next = ~hit_next | ~mi.has_flag(si_next.bsdf().flags(), mi.BSDFFlags.Delta)
+            bsdf_next = si_next.bsdf()
+            rough_next = ~hit_next | ~(
+                mi.has_flag(bsdf_next.flags(), mi.BSDFFlags.Delta)
+                | near_glossy(si_next, bsdf_next, hit_next & active_next)
+            )
             reflect = mi.has_flag(bs.sampled_type, mi.BSDFFlags.DeltaReflection)
+            # A non-delta sample at a near-specular glossy x_i: offsets copy its half vector.
+            half_x = ~delta_x & near_glossy(si, bsdf, active_next)
 
             inv_p = safe_div(1.0, bs.pdf)
             pb_next = dr.select(delta_x, 1.0, bs.pdf)  # MIS pdf of the segment x_i -> x_{i+1}
@@ -292,12 +315,14 @@ class GDPTIntegrator(GradientIntegratorBase):
                 # arriving from y_{i-1}.
                 f_r, p_r = bsdf.eval_pdf(ctx, view, bs.wo, act & recent)
 
-                def shift_own(o=o):
-                    """Own vertex y_i: reconnect, follow a delta lobe, or replay the numbers."""
+                def shift_own(o=o, act=act):
+                    """Own vertex y_i: reconnect, follow a delta lobe, copy the half vector, or
+                    replay the numbers."""
                     y = o.si
                     bsdf_y = y.bsdf()
                     y_smooth = mi.has_flag(bsdf_y.flags(), mi.BSDFFlags.Smooth)
-                    reconnect = ~delta_x & rough_next & y_smooth
+                    half_y = near_glossy(y, bsdf_y, act & ~delta_x)
+                    reconnect = ~delta_x & ~half_x & rough_next & y_smooth & ~half_y
 
                     # Reconnection y_i -> x_{i+1} (or environment shift: copy the direction)
                     act_rc = act & reconnect
@@ -305,10 +330,11 @@ class GDPTIntegrator(GradientIntegratorBase):
                     d_y2 = dr.squared_norm(to_next)
                     dir_rc = dr.select(hit_next, to_next * dr.rsqrt(d_y2), ray_next.d)
                     ray_rc = dr.select(hit_next, y.spawn_ray_to(si_next.p), y.spawn_ray(dir_rc))
-                    cos_x = dr.abs(dr.dot(si_next.n, ray_next.d))
-                    cos_y = dr.abs(dr.dot(si_next.n, dir_rc))
                     J_rc = dr.select(
-                        hit_next, safe_div(cos_y * dr.square(si_next.t), cos_x * d_y2), 1.0
+                        hit_next,
+                        _reconnection_jacobian(si_next.n, ray_next.d, dr.square(si_next.t),
+                                               dir_rc, d_y2),
+                        1.0,
                     )
                     f_rc, p_rc = bsdf_y.eval_pdf(ctx, y, y.to_local(dir_rc), act_rc)
 
@@ -321,8 +347,15 @@ class GDPTIntegrator(GradientIntegratorBase):
                     ok_d = (bs_d.pdf > 0) & (dr.max(w_d) > 0)
                     ok_d &= mi.has_flag(bs_d.sampled_type, mi.BSDFFlags.Delta)
 
-                    # Smooth lobe before a delta vertex: replay the base's random numbers
-                    act_s = act & ~delta_x & ~reconnect
+                    # Near-specular glossy x_i and y_i: copy the base's half vector
+                    act_h = act & half_x
+                    wo_h, J_h, ok_h = _half_vector_shift(si.wi, bs.wo, bs.eta, y.wi)
+                    ok_h &= half_y & ((bs.eta == 1) | (bsdf_y == bsdf))  # refraction: same IOR
+                    f_h, p_h = bsdf_y.eval_pdf(ctx, y, wo_h, act_h & ok_h)
+                    ok_h &= p_h > 0
+
+                    # Rough x_i before a near-specular x_{i+1}: replay the base's random numbers
+                    act_s = act & ~delta_x & ~half_x & ~reconnect
                     bs_s, w_s = bsdf_y.sample(ctx, y, u1, u2, act_s)
                     ok_s = y_smooth & (bs_s.pdf > 0)
                     ok_s &= ~mi.has_flag(bs_s.sampled_type, mi.BSDFFlags.Delta)
@@ -330,34 +363,46 @@ class GDPTIntegrator(GradientIntegratorBase):
                     trace = act & ~reconnect
                     # Shadow test (any hit) for a reconnection; closest hit for a new vertex
                     visible = ~scene.ray_test(ray_rc, act_rc)
-                    wo_y = dr.select(delta_x, bs_d.wo, bs_s.wo)
+                    wo_y = dr.select(delta_x, bs_d.wo, dr.select(half_x, wo_h, bs_s.wo))
                     si_y = scene.ray_intersect(y.spawn_ray(y.to_world(wo_y)), trace)
                     hit_y = si_y.is_valid()
-                    rough_y = ~hit_y | ~mi.has_flag(si_y.bsdf().flags(), mi.BSDFFlags.Delta)
+                    bsdf_ny = si_y.bsdf()
+                    rough_y = ~hit_y | ~(
+                        mi.has_flag(bsdf_ny.flags(), mi.BSDFFlags.Delta)
+                        | near_glossy(si_y, bsdf_ny, hit_y & act_s)
+                    )
                     # Non-invertible: the reverse shift from y would reconnect at this vertex
                     ok_s &= ~rough_y
 
+                    # Reconnection and half-vector copy: f J / p_x and p_y J / p_x. Delta lobes
+                    # (J = 1) and replay (J = p_x / p_y in solid angle) simplify to sample weights.
+                    mapped = reconnect | half_x
+                    f_m = dr.select(half_x, f_h, f_rc)
+                    J_m = dr.select(half_x, J_h, J_rc)
+                    p_m = dr.select(half_x, p_h, p_rc)
                     q = dr.select(
-                        reconnect,
-                        o.q * f_rc * (J_rc * inv_p),
+                        mapped,
+                        o.q * f_m * (J_m * inv_p),
                         dr.select(delta_x, o.q * w_d * (bs_d.pdf * inv_p), o.q * w_s),
                     )
-                    r = dr.select(reconnect, o.r * p_rc * J_rc * inv_p, o.r)
-                    ok = dr.select(reconnect, visible & (p_rc > 0), dr.select(delta_x, ok_d, ok_s))
-                    pb = dr.select(reconnect, p_rc, dr.select(delta_x, 1.0, bs_s.pdf))
+                    r = dr.select(mapped, o.r * p_m * J_m * inv_p, o.r)
+                    ok = dr.select(reconnect, visible & (p_rc > 0), ok_s)
+                    ok = dr.select(half_x, ok_h, dr.select(delta_x, ok_d, ok))
+                    pb = dr.select(mapped, p_m, dr.select(delta_x, 1.0, bs_s.pdf))
                     s_rc = dr.select(reconnect, o.r * inv_p, 0)
                     status = dr.select(reconnect, mi.UInt32(RECENTLY_CONNECTED), NOT_CONNECTED)
                     return (q, r, ok, pb, s_rc, s_rc * J_rc, trace & ~hit_y & hit_next,
                             trace, si_y, status)
 
-                def follow(o=o):
+                def follow(o=o, recent=recent, f_r=f_r, p_r=p_r):
                     """Recently connected or connected: the offset shares the base's next vertex."""
                     q = dr.select(recent, o.q * f_r * inv_p, o.q * bsdf_weight)
                     r = dr.select(recent, o.r * p_r * inv_p, o.r)
                     pb = dr.select(recent, p_r, pb_next)
                     zero = dr.zeros(mi.Float, n)
                     return (q, r, ~recent | (p_r > 0), pb, zero, zero, mi.Bool(False),
-                            mi.Bool(False), dr.zeros(mi.SurfaceInteraction3f, n), mi.UInt32(CONNECTED))
+                            mi.Bool(False), dr.zeros(mi.SurfaceInteraction3f, n),
+                            mi.UInt32(CONNECTED))
 
                 q, r, ok, o.pb_prev, o.s, o.sJ, o.escaped, trace, si_y, o.status = dr.if_stmt(
                     (), act & own, shift_own, follow
@@ -436,6 +481,90 @@ class GDPTIntegrator(GradientIntegratorBase):
             normal=feat.normal if feat is not None else None,
             depth=feat.depth if feat is not None else None,
         )
+
+
+def _roughness(bsdf: mi.BSDFPtr, si: mi.SurfaceInteraction3f, active: mi.Bool) -> mi.Float:
+    """Microfacet alpha of a glossy BSDF (the mean of alpha_u and alpha_v when anisotropic;
+    roughness^2 for ``principled``); 0 where the BSDF exposes none of these attributes."""
+    alpha = bsdf.eval_attribute_1("alpha", si, active)
+    alpha_uv = 0.5 * (
+        bsdf.eval_attribute_1("alpha_u", si, active) + bsdf.eval_attribute_1("alpha_v", si, active)
+    )
+    roughness = bsdf.eval_attribute_1("roughness", si, active)
+    return dr.maximum(dr.maximum(alpha, alpha_uv), dr.square(roughness))
+
+
+def _near_specular_glossy(
+    si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, threshold: float, active: mi.Bool
+) -> mi.Bool:
+    """Glossy BSDF whose roughness is in (0, threshold]. A glossy BSDF exposing no roughness
+    attribute reads 0 and stays reconnectable (the safe choice: reconnection is valid at any
+    non-delta vertex, only noisier on narrow lobes)."""
+    glossy = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Glossy)
+    alpha = _roughness(bsdf, si, glossy)
+    return glossy & (alpha > 0) & (alpha <= threshold)
+
+
+def _may_have_near_specular_glossy(scene: mi.Scene, threshold: float) -> bool:
+    """Whether some glossy BSDF of ``scene`` may have roughness in (0, threshold]: uniform
+    roughness parameters are compared, textured ones count as maybe (read on the host, without
+    launching kernels)."""
+    for bsdf in {shape.bsdf() for shape in scene.shapes()}:
+        if not mi.has_flag(bsdf.flags(), mi.BSDFFlags.Glossy):
+            continue
+        params = mi.traverse(bsdf)
+        for key in params.keys():
+            name, _, kind = key.rpartition(".")
+            name = name.rpartition(".")[2] if kind in ("value", "data") else kind
+            if name not in ("alpha", "alpha_u", "alpha_v", "roughness"):
+                continue
+            if kind == "data":
+                return True
+            value = float(dr.ravel(params[key])[0]) if dr.width(params[key]) else 0.0
+            alpha = value * value if name == "roughness" else value
+            if 0 < alpha <= threshold:
+                return True
+    return False
+
+
+def _reconnection_jacobian(n: mi.Normal3f, d_x: mi.Vector3f, dist2_x: mi.Float,
+                           d_y: mi.Vector3f, dist2_y: mi.Float) -> mi.Float:
+    """|d w_y / d w_x| of a reconnection to the vertex z with normal ``n``: the base arrives
+    along the unit direction ``d_x`` over squared distance ``dist2_x``, the offset along ``d_y``
+    over ``dist2_y``. The ratio of the solid-angle-to-area factors, |n.d_y| d_x^2 / (|n.d_x| d_y^2),
+    0 where it is not finite."""
+    return safe_div(dr.abs(dr.dot(n, d_y)) * dist2_x, dr.abs(dr.dot(n, d_x)) * dist2_y)
+
+
+def _half_vector_shift(wi_x: mi.Vector3f, wo_x: mi.Vector3f, eta_x: mi.Float,
+                       wi_y: mi.Vector3f) -> tuple[mi.Vector3f, mi.Float, mi.Bool]:
+    """Copy the base's half vector to the offset (Kettunen et al. 2015, Jacobians of §1.7).
+
+    ``wi_x, wo_x``: the base's local directions at x_i, ``eta_x``: its sample's relative IOR
+    (``bs.eta``, 1 for reflection), ``wi_y``: the offset's local incident direction. Returns the
+    offset's local outgoing direction, the Jacobian |d wo_y / d wo_x| and a validity mask
+    (refraction: eta != 1, both on the same side, no total internal reflection of the offset).
+    """
+    reflect = mi.Frame3f.cos_theta(wi_x) * mi.Frame3f.cos_theta(wo_x) > 0
+    eta = dr.select(reflect, 1.0, eta_x)
+    # Mitsuba's generalised half vector wi + eta wo, turned into the upper hemisphere
+    h = dr.normalize(wi_x + eta * wo_x)
+    h = dr.mulsign(h, mi.Frame3f.cos_theta(h))
+    cos_xi, cos_xo, cos_yi = dr.dot(wi_x, h), dr.dot(wo_x, h), dr.dot(wi_y, h)
+    # The offset refracts through the same interface: fresnel() takes the interior / exterior
+    # IOR and orients itself by the sign of cos_yi, which must match the base's side.
+    eta_int = dr.select(mi.Frame3f.cos_theta(wi_x) > 0, eta, dr.rcp(eta))
+    F, cos_t, _, eta_ti = mi.fresnel(cos_yi, eta_int)
+    wo_y = dr.select(reflect, mi.reflect(wi_y, h), mi.refract(wi_y, h, cos_t, eta_ti))
+    cos_yo = dr.dot(wo_y, h)
+    J_reflect = safe_div(dr.abs(cos_yo), dr.abs(cos_xo))
+    J_refract = safe_div(dr.square(cos_yi + eta * cos_yo) * dr.abs(cos_xo),
+                         dr.square(cos_xi + eta * cos_xo) * dr.abs(cos_yo))
+    same_side = (cos_xi * cos_yi > 0) & (
+        mi.Frame3f.cos_theta(wi_x) * mi.Frame3f.cos_theta(wi_y) > 0
+    )
+    ok = reflect | ((eta != 1) & same_side & (F < 1))
+    return wo_y, dr.select(reflect, J_reflect, J_refract), ok & dr.isfinite(J_reflect + J_refract)
 
 
 def _primary_hit(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool) -> mi.SurfaceInteraction3f:

@@ -51,7 +51,7 @@ def test02_non_box_filter_is_refused(variant):
         ('<boolean name="hide_emitters" value="true"/>', "hide_emitters"),
         ('<integer name="rr_depth" value="0"/>', "rr_depth"),
         ('<integer name="max_depth" value="-3"/>', "max_depth"),
-        ('<float name="shift_threshold" value="0.1"/>', "shift_threshold"),
+        ('<float name="shift_threshold" value="-0.1"/>', "shift_threshold"),
     ],
 )
 def test03_invalid_properties(variant, extra, message):
@@ -60,6 +60,41 @@ def test03_invalid_properties(variant, extra, message):
     xml = _xml("gdpt", extra=extra).replace('<integer name="max_depth" value="3"/>', "", 1)
     with pytest.raises(Exception, match=message):
         mi.load_string(xml)
+
+
+def test03b_shift_threshold_selects_the_half_vector_shift(variant):
+    """A threshold above the scene's lobe roughness changes the gradients (the half-vector branch
+    runs), never the primal (the base path does not depend on the shift)."""
+    import gdpt
+    from gdpt.scenes import builtin_scene
+
+    scene = builtin_scene("near-specular", resolution=(12, 12))
+    low, high = (
+        gdpt.render(scene, spp=16, seed=4, max_depth=4, features=False, shift_threshold=t)
+        for t in (0.001, 0.05)
+    )
+    # equal up to float32 rounding: where the offsets reconnect moves the split of the path into
+    # the two loop phases, and with it the order of the sums
+    np.testing.assert_allclose(low.primal.numpy(), high.primal.numpy(), rtol=1e-5, atol=1e-7)
+    assert np.abs(low.dx.numpy() - high.dx.numpy()).max() > 1e-3
+    assert np.isfinite(high.dx.numpy()).all() and np.isfinite(high.dy.numpy()).all()
+
+
+def test03c_features_pass_near_specular_glossy_vertices(variant):
+    """Features follow the path through lobes at or below shift_threshold (the rough glass
+    sphere and mirror): farther first rough vertex, in primal-only mode too."""
+    import gdpt
+    from gdpt.scenes import builtin_scene
+
+    scene = builtin_scene("near-specular", resolution=(12, 12))
+    for gradients in (True, False):
+        low, high = (
+            gdpt.render(scene, spp=8, seed=4, max_depth=4, gradients=gradients,
+                        shift_threshold=t)
+            for t in (0.001, 0.05)
+        )
+        deeper = high.depth.numpy() > low.depth.numpy() + 0.1
+        assert deeper.mean() > 0.1, f"gradients={gradients}: {deeper.mean():.2f} of pixels"
 
 
 def test04_compute_only_what_is_requested(variant):

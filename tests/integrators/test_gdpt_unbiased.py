@@ -50,6 +50,7 @@ SLOW = [
     ("thin-dielectric", 4),
     ("tir-glass", 6),
     ("principled", 4),
+    ("near-specular", 5),
 ]
 
 
@@ -64,8 +65,9 @@ def _reference(scene, max_depth):
     return np.mean(images, axis=0)
 
 
-def _check(scene, max_depth, integrator):
-    """Assert agreement of ``integrator`` on ``scene`` (a builtin name or a loaded scene)."""
+def _check(scene, max_depth, integrator, **props):
+    """Assert agreement of ``integrator`` (with extra properties ``props``) on ``scene`` (a
+    builtin name or a loaded scene)."""
     import gdpt
     from gdpt.render import load_scene
     from gdpt.scenes import builtin_scene
@@ -77,7 +79,7 @@ def _check(scene, max_depth, integrator):
     runs = [
         gdpt.render(
             scene, spp=SPP, seed=11 + i, integrator=integrator, max_depth=max_depth,
-            variance=True, features=False,
+            variance=True, features=False, **props,
         )
         for i in range(RUNS)
     ]
@@ -116,6 +118,13 @@ def test01_unbiased(variant, scene_name, max_depth, integrator):
 @pytest.mark.parametrize(("scene_name", "max_depth"), SLOW)
 def test02_unbiased_more_scenes(variant, scene_name, max_depth, integrator):
     _check(scene_name, max_depth, integrator)
+
+
+@pytest.mark.parametrize("threshold", [0.05, pytest.param(0.025, marks=pytest.mark.slow)])
+def test04_unbiased_half_vector_shift(variant, threshold):
+    """shift_threshold above the scene's roughness (0.03 glass, 0.02 mirror at 0.05; only the
+    mirror at 0.025): those vertices take the half-vector copy (reflection and refraction)."""
+    _check("near-specular", 5, "gdpt", shift_threshold=threshold)
 
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "scenes"
