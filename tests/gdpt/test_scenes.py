@@ -25,7 +25,9 @@ GENERATOR_TYPES = {
     "area", "point", "constant", "envmap",
     "perspective", "thinlens",
 }
-ALLOWED_TYPES = GENERATOR_TYPES | {"scene", "hdrfilm", "box", "independent", "rgb", "principled"}
+ALLOWED_TYPES = GENERATOR_TYPES | {
+    "scene", "hdrfilm", "box", "independent", "rgb", "principled", "roughdielectric"
+}
 
 
 def _types(node, found: set[str] | None = None) -> set[str]:
