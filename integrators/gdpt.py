@@ -85,16 +85,24 @@ class GDPTIntegrator(GradientIntegratorBase):
      * - samples_per_pass
        - |int|
        - Samples traced per kernel launch. (Default: 2^20)
+     * - shift_threshold
+       - |float|
+       - Microfacet roughness (alpha) at or below which a glossy vertex is near-specular: the
+         offsets copy the base's half vector there instead of reconnecting. (Default: 0.001)
 
     Traces a base path and four offset paths (pixel shifts right, down, left, up) in lockstep.
+    A vertex is near-specular when the base sampled a delta lobe there, its BSDF has only delta
+    lobes, or it is glossy with roughness <= ``shift_threshold``; otherwise it is rough.
     Offsets follow the base through delta vertices by sampling the same lobe (reflection or
-    transmission), replay the base's random numbers through smooth vertices whose successor is
-    a delta vertex, and reconnect to the base at the first pair of consecutive non-delta
-    vertices (the reconnection Jacobian is the ratio of solid-angle-to-area factors). Next-event
+    transmission), copy the base's half vector through near-specular glossy vertices (reflection
+    and refraction, with the half-vector Jacobians), replay the base's random numbers through
+    rough vertices whose successor is near-specular, and reconnect to the base at the first pair
+    of consecutive rough vertices (the reconnection Jacobian is the ratio of
+    solid-angle-to-area factors). Next-event
     estimation on an offset reconnects to the base's light point (so sphere and point lights
     are exact). The two shift directions of every pixel pair are combined with the balance
     heuristic over base/offset BSDF and light sampling, computed in a ratio form. Failed shifts
-    give the base full weight. A vertex is "rough" when its BSDF has no delta lobe.
+    give the base full weight.
 
     Cost: the loop runs in two phases. While some offset still has vertices of its own it runs
     the full shift (per-offset work for own vertices sits in ``dr.if_stmt`` blocks, which skip
