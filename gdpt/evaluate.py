@@ -859,7 +859,8 @@ def _scene_done(entry: dict[str, Any], methods: list[str], cfg: EvaluateConfig) 
         return False
     for m in methods:
         info = entry["methods"].get(m, {})
-        if info.get("status") == "skipped":
+        # skipped because unavailable (package, model): done; skipped after an error: retried
+        if info.get("status") == "skipped" and EVAL_METHODS[m].check() is not None:
             continue
         if any(_budget_key(b) not in info.get("cells", {}) for b in cfg.budgets):
             return False

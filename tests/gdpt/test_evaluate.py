@@ -167,6 +167,26 @@ def test_bad_input_is_reported_and_resume_skips_done_cells(variant, tmp_path, mo
         evaluate(["builtin:cbox-demo"], out, _tiny_cfg(resolution=16), progress=False)
 
 
+def test_method_that_failed_is_retried_on_resume(variant, tmp_path, monkeypatch):
+    """A method skipped after an error (not for being unavailable) runs again on resume."""
+    cfg = _tiny_cfg(methods=("pt",))
+    out = tmp_path / "report"
+    working = EVAL_METHODS["pt"]
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("transient failure")
+
+    monkeypatch.setitem(EVAL_METHODS, "pt", dataclasses.replace(working, run=broken))
+    first = evaluate(["builtin:cbox-demo"], out, cfg, progress=False, report=False)
+    info = first["scenes"]["cbox-demo"]["methods"]["pt"]
+    assert info["status"] == "skipped" and "transient failure" in info["note"]
+
+    monkeypatch.setitem(EVAL_METHODS, "pt", working)
+    again = evaluate(["builtin:cbox-demo"], out, cfg, progress=False, report=False)
+    info = again["scenes"]["cbox-demo"]["methods"]["pt"]
+    assert info["status"] == "ok" and set(info["cells"]) == {"0.1", "0.2"}
+
+
 def test_references_only_then_cells_reuse_them(variant, tmp_path, monkeypatch, capsys):
     cache = tmp_path / "refs"
     status = main(["evaluate", "--scenes", "random:3", str(tmp_path / "missing.xml"),
