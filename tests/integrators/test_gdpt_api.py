@@ -165,6 +165,21 @@ def test07_hard_cases_stay_finite(variant, name, integrator):
     assert float(b.primal.sum()) > 0
 
 
+@pytest.mark.parametrize("name", ["near-specular", "principled", "plastic", "tiny-bright-light",
+                                  "grazing"])
+def test07b_half_vector_shift_everywhere_stays_finite(variant, name):
+    """shift_threshold 1 sends every glossy vertex through the half-vector copy."""
+    import gdpt
+    from gdpt.scenes import builtin_scene
+
+    b = gdpt.render(
+        builtin_scene(name, resolution=(16, 16)), spp=16, max_depth=64, variance=True,
+        shift_threshold=1.0,
+    )
+    assert b.nonfinite_counts() == {n: 0 for n in b.present()}, name
+    assert float(b.primal.sum()) > 0
+
+
 def test08_passes_split_the_work(variant):
     """Rendering in several passes gives a statistically equivalent image."""
     import gdpt
