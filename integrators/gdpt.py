@@ -195,13 +195,12 @@ class GDPTIntegrator(GradientIntegratorBase):
             c_main_num = base.beta * Le_x
 
             # The offset's current vertex: its own y_i (NOT_CONNECTED), or the base's x_i seen
-            # from the offset's previous vertex (RECENTLY_CONNECTED: same point, other wi).
-            # Merging both into one interaction halves the virtual calls below.
+            # from the offset's previous vertex (RECENTLY_CONNECTED: o.si holds x_i, only wi
+            # differs; CONNECTED: unused). Merging both halves the virtual calls below.
             views = []
             for o in offsets:
-                own = o.status == NOT_CONNECTED
                 recent = o.status == RECENTLY_CONNECTED
-                view = dr.select(own, o.si, si)
+                view = dr.copy(o.si)
                 turn = recent & si.is_valid()
                 view.wi = dr.select(turn, si.to_local(dr.normalize(o.prev.p - si.p)), view.wi)
                 views.append(view)
