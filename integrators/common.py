@@ -81,12 +81,12 @@ def update_features(
 
     Follows the path through near-specular vertices (delta-only BSDFs such as mirrors and glass,
     and where ``near_specular`` is set, e.g. glossy lobes at or below ``gdpt``'s
-    ``shift_threshold``), stops at the first other vertex. A path that escapes records albedo 0, normal ``-ray.d`` and
-    depth 0. The albedo is Mitsuba's ``eval_diffuse_reflectance`` clamped to [0, 1]: for glossy
-    BSDFs it evaluates the lobe for one direction pair and exceeds 1 by orders of magnitude on
-    narrow lobes, which no denoiser expects of an albedo. The normal is the shading normal
-    flipped to face the arriving ray, in the sensor's camera's view frame: +x image right, +y
-    image up, +z towards the viewer (so normals facing the camera have z > 0).
+    ``shift_threshold``), stops at the first other vertex. A path that escapes records albedo 0,
+    normal ``-ray.d`` and depth 0. The albedo is Mitsuba's ``eval_diffuse_reflectance`` clamped
+    to [0, 1]: for glossy BSDFs it evaluates the lobe for one direction pair and exceeds 1 by
+    orders of magnitude on narrow lobes, which no denoiser expects of an albedo. The normal is the
+    shading normal flipped to face the arriving ray, in the sensor's camera's view frame: +x
+    image right, +y image up, +z towards the viewer (so normals facing the camera have z > 0).
     """
     hit = active & feat.open & si.is_valid()
     miss = active & feat.open & ~si.is_valid()
@@ -361,7 +361,8 @@ class _Accumulator:
 
         def var_of_mean(sq_name, lum_mean):
             # Unbiased sample variance of the luminance, divided by n: variance of the mean.
-            var = (self.sums[sq_name][0] / n - mi.Float64(dr.square(lum_mean))) * (n / max(n - 1, 1))
+            mean_sq = self.sums[sq_name][0] / n
+            var = (mean_sq - mi.Float64(dr.square(lum_mean))) * (n / max(n - 1, 1))
             return mi.Float(dr.maximum(var, 0) / n)
 
         out = {"primal": mean["primal"]}

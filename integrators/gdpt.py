@@ -205,7 +205,7 @@ class GDPTIntegrator(GradientIntegratorBase):
                 view.wi = dr.select(turn, si.to_local(dr.normalize(o.prev.p - si.p)), view.wi)
                 views.append(view)
 
-            for o, view in zip(offsets, views):
+            for o, view in zip(offsets, views, strict=True):
                 own = o.status == NOT_CONNECTED
                 recent = o.status == RECENTLY_CONNECTED
                 act = active & (own | recent) & o.alive
@@ -248,7 +248,7 @@ class GDPTIntegrator(GradientIntegratorBase):
             cone = _is_cone_sampled(ds.emitter)
             fixed_point = is_infinite | ds.delta  # light "vertex" shared exactly: J = 1
 
-            for o, view in zip(offsets, views):
+            for o, view in zip(offsets, views, strict=True):
                 own = o.status == NOT_CONNECTED
                 recent = o.status == RECENTLY_CONNECTED
                 act = active_em & o.alive
@@ -314,7 +314,7 @@ class GDPTIntegrator(GradientIntegratorBase):
 
             inv_p = safe_div(1.0, bs.pdf)
             pb_next = dr.select(delta_x, 1.0, bs.pdf)  # MIS pdf of the segment x_i -> x_{i+1}
-            for o, view in zip(offsets, views):
+            for o, view in zip(offsets, views, strict=True):
                 act = active_next & o.alive
                 own = o.status == NOT_CONNECTED
                 recent = o.status == RECENTLY_CONNECTED
@@ -589,4 +589,4 @@ def _is_cone_sampled(emitter: mi.EmitterPtr) -> mi.Bool:
     return emitter.get_shape().shape_type() == int(mi.ShapeType.Sphere)
 
 
-mi.register_integrator("gdpt", lambda props: GDPTIntegrator(props))
+mi.register_integrator("gdpt", GDPTIntegrator)

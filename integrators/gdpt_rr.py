@@ -68,7 +68,7 @@ class GDPTReplayIntegrator(GradientIntegratorBase):
                 active=mi.Bool(active),
                 L=dr.zeros(mi.Spectrum, n),
             )
-            for ray, weight in zip(rays, weights)
+            for ray, weight in zip(rays, weights, strict=True)
         ]
         feat = FeatureState.zeros(n) if self.features else None
         depth = mi.UInt32(0)
@@ -132,4 +132,4 @@ def _any_active(paths: list[PathState]) -> mi.Bool:
     return active
 
 
-mi.register_integrator("gdpt_rr", lambda props: GDPTReplayIntegrator(props))
+mi.register_integrator("gdpt_rr", GDPTReplayIntegrator)
