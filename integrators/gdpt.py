@@ -589,4 +589,5 @@ def _is_cone_sampled(emitter: mi.EmitterPtr) -> mi.Bool:
     return emitter.get_shape().shape_type() == int(mi.ShapeType.Sphere)
 
 
-mi.register_integrator("gdpt", GDPTIntegrator)
+# Mitsuba's documented registration pattern: a constructor lambda
+mi.register_integrator("gdpt", lambda props: GDPTIntegrator(props))  # noqa: PLW0108

@@ -132,4 +132,5 @@ def _any_active(paths: list[PathState]) -> mi.Bool:
     return active
 
 
-mi.register_integrator("gdpt_rr", GDPTReplayIntegrator)
+# Mitsuba's documented registration pattern: a constructor lambda
+mi.register_integrator("gdpt_rr", lambda props: GDPTReplayIntegrator(props))  # noqa: PLW0108
