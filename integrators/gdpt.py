@@ -98,9 +98,8 @@ class GDPTIntegrator(GradientIntegratorBase):
     and refraction, with the half-vector Jacobians), replay the base's random numbers through
     rough vertices whose successor is near-specular, and reconnect to the base at the first pair
     of consecutive rough vertices (the reconnection Jacobian is the ratio of
-    solid-angle-to-area factors). Next-event
-    estimation on an offset reconnects to the base's light point (so sphere and point lights
-    are exact). The two shift directions of every pixel pair are combined with the balance
+    solid-angle-to-area factors). Next-event estimation on an offset reconnects to the base's
+    light point (so sphere and point lights are exact). The two shift directions of every pixel pair are combined with the balance
     heuristic over base/offset BSDF and light sampling, computed in a ratio form. Failed shifts
     give the base full weight.
 
@@ -545,7 +544,8 @@ def _reconnection_jacobian(n: mi.Normal3f, d_x: mi.Vector3f, dist2_x: mi.Float,
 
 def _half_vector_shift(wi_x: mi.Vector3f, wo_x: mi.Vector3f, eta_x: mi.Float,
                        wi_y: mi.Vector3f) -> tuple[mi.Vector3f, mi.Float, mi.Bool]:
-    """Copy the base's half vector to the offset (Kettunen et al. 2015, Jacobians of §1.7).
+    """Copy the base's half vector to the offset (Kettunen et al. 2015; the refraction
+    Jacobian follows from Walter et al. 2007's d omega_h / d omega_o).
 
     ``wi_x, wo_x``: the base's local directions at x_i, ``eta_x``: its sample's relative IOR
     (``bs.eta``, 1 for reflection), ``wi_y``: the offset's local incident direction. Returns the
@@ -571,7 +571,7 @@ def _half_vector_shift(wi_x: mi.Vector3f, wo_x: mi.Vector3f, eta_x: mi.Float,
         mi.Frame3f.cos_theta(wi_x) * mi.Frame3f.cos_theta(wi_y) > 0
     )
     ok = reflect | ((eta != 1) & same_side & (F < 1))
-    return wo_y, dr.select(reflect, J_reflect, J_refract), ok & dr.isfinite(J_reflect + J_refract)
+    return wo_y, dr.select(reflect, J_reflect, J_refract), ok
 
 
 def _primary_hit(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool) -> mi.SurfaceInteraction3f:
