@@ -54,7 +54,7 @@ def main() -> None:
 
     import gdpt
     import mitsuba as mi
-    from gdpt.render import load_scene
+    from gdpt.scene_io import load_scene
 
     variant = gdpt.set_variant()
     rows = []

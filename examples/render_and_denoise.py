@@ -12,8 +12,8 @@ import argparse
 from pathlib import Path
 
 import gdpt
-from gdpt.images import save_png
-from gdpt.render import load_scene
+from gdpt.io.images import save_png
+from gdpt.scene_io import load_scene
 from gdpt.scenes import builtin_scene
 
 

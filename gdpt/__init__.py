@@ -1,17 +1,22 @@
 """gdpt: gradient-domain path tracing for Mitsuba 3, with Poisson and neural reconstruction.
 
 Importing :mod:`gdpt` is light and has no side effects: it imports neither Mitsuba, Dr.Jit nor
-torch, sets no variant and registers no plugin. The public names below are loaded on first use::
+torch, sets no variant and registers no plugin. The public functions below are loaded on first
+use; submodules keep their own names (no function shadows a module)::
 
     import gdpt
 
     gdpt.set_variant()                      # cuda_ad_rgb if available, else llvm_ad_rgb
     buffers = gdpt.render("scene.xml", spp=64)   # or gdpt.load_buffers("render.exr")
-    image = gdpt.reconstruct(buffers, method="l1", alpha=0.2)
+    image = gdpt.render_and_denoise("scene.xml", spp=64, method="l1").image
 
-``gdpt.reconstruct`` is both the subpackage of reconstruction algorithms (Poisson solvers,
-networks) and, called, the dispatcher :func:`gdpt.reconstruction.reconstruct`; likewise
-``gdpt.render`` is the module and, called, :func:`gdpt.render.render` (see ``gdpt._modules``).
+Reconstruction of existing buffers is :func:`gdpt.denoise.reconstruct` (``gdpt.reconstruct`` is
+the subpackage of reconstruction algorithms: Poisson solvers, networks, losses).
+
+The pipeline, one module per stage: :mod:`gdpt.scene_io` (load a scene) ->
+:mod:`gdpt.rendering` (integrator -> :class:`~gdpt.buffers.GradientBuffers`) ->
+:mod:`gdpt.denoise` (reconstruction methods) -> :mod:`gdpt.study` (equal-time evaluation);
+:mod:`gdpt.training` trains the networks, :mod:`gdpt.io` reads and writes files.
 """
 
 from __future__ import annotations
@@ -24,51 +29,41 @@ from gdpt.version import __version__
 #: Public name -> module that defines it (imported on first attribute access).
 _LAZY: dict[str, str] = {
     "GradientBuffers": "gdpt.buffers",
-    "load_buffers": "gdpt.exr",
-    "save_buffers": "gdpt.exr",
+    "load_buffers": "gdpt.io.exr",
+    "save_buffers": "gdpt.io.exr",
+    "load_scene": "gdpt.scene_io",
     "set_variant": "gdpt.backend",
-    "render": "gdpt.render",
-    "render_and_denoise": "gdpt.render",
+    "render": "gdpt.rendering",
+    "render_and_denoise": "gdpt.rendering",
 }
-#: Submodules reachable as attributes right after ``import gdpt``.
-_SUBMODULES = ("backend", "buffers", "cli", "exr", "images", "reconstruction")
 
-__all__ = ["__version__", *_LAZY]
+__all__ = [
+    "GradientBuffers",
+    "__version__",
+    "load_buffers",
+    "load_scene",
+    "render",
+    "render_and_denoise",
+    "save_buffers",
+    "set_variant",
+]
 
 if TYPE_CHECKING:
     from gdpt.backend import set_variant
     from gdpt.buffers import GradientBuffers
-    from gdpt.exr import load_buffers, save_buffers
-    from gdpt.render import render, render_and_denoise
-
-
-def _dispatch_reconstruct(*args: Any, **kwargs: Any) -> Any:
-    from gdpt.reconstruction import reconstruct
-
-    return reconstruct(*args, **kwargs)
-
-
-def _bind_reconstruct() -> None:
-    import gdpt.reconstruct  # light: the subpackage's __init__ imports nothing
-    from gdpt._modules import make_callable
-
-    make_callable("gdpt.reconstruct", _dispatch_reconstruct)
-
-
-_bind_reconstruct()
+    from gdpt.io.exr import load_buffers, save_buffers
+    from gdpt.rendering import render, render_and_denoise
+    from gdpt.scene_io import load_scene
 
 
 def __getattr__(name: str) -> Any:
-    """Import public names and submodules lazily (PEP 562)."""
-    if name in _LAZY:
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-    elif name in _SUBMODULES:
-        value = importlib.import_module(f"{__name__}.{name}")
-    else:
+    """Import the public functions lazily (PEP 562); submodules import as usual."""
+    if name not in _LAZY:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(_LAZY[name]), name)
     globals()[name] = value
     return value
 
 
 def __dir__() -> list[str]:
-    return sorted({*globals(), *_LAZY, *_SUBMODULES})
+    return sorted({*globals(), *_LAZY})

@@ -139,6 +139,23 @@ def set_variant(name: str | None = None) -> str:
     return name
 
 
+def ensure_variant() -> str:
+    """Keep the active Mitsuba variant (set the default one if none) with the plugins registered.
+
+    Every function that loads or renders a scene calls this first; an explicit
+    :func:`set_variant` before it wins.
+
+    Returns:
+        The active variant name.
+    """
+    import mitsuba as mi
+
+    if mi.variant() is None:
+        return set_variant()
+    _register_plugins()
+    return mi.variant()
+
+
 def torch_device() -> torch.device:
     """The torch device that holds the data of the active Mitsuba variant.
 

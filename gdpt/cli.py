@@ -22,7 +22,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from gdpt.reconstruction import METHODS
+from gdpt.denoise import METHODS
 from gdpt.version import __version__
 
 
@@ -66,7 +66,7 @@ def _add_info_arguments(parser: argparse.ArgumentParser) -> None:
 def _run_info(args: argparse.Namespace) -> int:
     import torch
 
-    from gdpt.exr import channel_names, load_buffers
+    from gdpt.io.exr import channel_names, load_buffers
 
     buffers = load_buffers(args.file)
     mode = "gradient-domain (dx, dy)" if buffers.has_gradients else "primal-only"
@@ -105,9 +105,9 @@ def _add_reconstruct_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_reconstruct(args: argparse.Namespace) -> int:
-    from gdpt.exr import check_writable, load_buffers, save_image
-    from gdpt.images import preview_path, save_png
-    from gdpt.reconstruction import reconstruct
+    from gdpt.denoise import reconstruct
+    from gdpt.io.exr import check_writable, load_buffers, save_image
+    from gdpt.io.images import preview_path, save_png
 
     if args.output.suffix.lower() != ".exr":
         raise UsageError(f"output must be an .exr file, got '{args.output}'")
@@ -138,7 +138,7 @@ def _run_reconstruct(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------- render
 def _add_render_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("scene", help="Mitsuba XML file, or builtin:NAME (see gdpt.scenes)")
+    parser.add_argument("scene", help="Mitsuba XML file, builtin:NAME or random:SEED[:VIEW] (see gdpt.scene_io)")
     parser.add_argument("-o", "--output", type=Path, required=True, help="output buffers EXR")
     parser.add_argument("--spp", type=int, default=64, help="samples per pixel (default: 64)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
@@ -151,19 +151,13 @@ def _add_render_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_render(args: argparse.Namespace) -> int:
-    from gdpt.exr import check_writable, save_buffers
-    from gdpt.images import preview_path, save_png
-    from gdpt.render import load_scene, render
+    from gdpt.io.exr import check_writable, save_buffers
+    from gdpt.io.images import preview_path, save_png
+    from gdpt.rendering import render
+    from gdpt.scene_io import load_scene
 
     check_writable(args.output, force=args.force)
-    if args.scene.startswith("builtin:"):
-        from gdpt.backend import set_variant
-        from gdpt.scenes import builtin_scene
-
-        set_variant()
-        scene = load_scene(builtin_scene(args.scene.split(":", 1)[1]))
-    else:
-        scene = load_scene(args.scene)
+    scene = load_scene(args.scene)
     buffers = render(
         scene, spp=args.spp, seed=args.seed, integrator=args.integrator, progress=True,
         max_depth=args.max_depth, gradients=not args.no_gradients, variance=args.variance,
@@ -187,7 +181,7 @@ def _add_demo_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from gdpt.demo import DemoConfig, run_demo
+    from gdpt.study.demo import DemoConfig, run_demo
 
     run_demo(DemoConfig(out=args.out, budget=args.budget, resolution=args.resolution,
                         reference_spp=args.reference_spp, force=args.force))
@@ -224,10 +218,11 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     import dataclasses
     import shlex
 
-    from gdpt.eval_report import best_methods
-    from gdpt.evaluate import PRESETS, evaluate, render_references
-    from gdpt.methods import EVAL_METHODS
     from gdpt.metrics import METRICS
+    from gdpt.study.config import PRESETS
+    from gdpt.study.evaluate import evaluate, render_references
+    from gdpt.study.methods import EVAL_METHODS
+    from gdpt.study.report import best_methods
 
     for option, names, valid in (("--methods", args.methods, EVAL_METHODS),
                                  ("--metrics", args.metrics, METRICS)):
@@ -278,7 +273,7 @@ def _add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_dataset(args: argparse.Namespace) -> int:
-    from gdpt.dataset import DatasetConfig, build_dataset
+    from gdpt.training.dataset import DatasetConfig, build_dataset
 
     config = DatasetConfig(
         scenes=args.scenes, views=args.views, resolution=args.resolution, spp_min=args.spp_min,
@@ -319,7 +314,7 @@ def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from gdpt.train import TrainConfig, train
+    from gdpt.training.train import TrainConfig, train
 
     config = TrainConfig(
         model=args.config, data=args.data, out=args.out, val_data=args.val_data,
@@ -348,7 +343,12 @@ def _add_model_report_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_model_report(args: argparse.Namespace) -> int:
-    from gdpt.model_report import compare_models, comparison_markdown, plot_training, ship_model
+    from gdpt.training.model_report import (
+        compare_models,
+        comparison_markdown,
+        plot_training,
+        ship_model,
+    )
 
     runs = {}
     for item in args.runs:

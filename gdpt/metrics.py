@@ -4,7 +4,7 @@ Every metric has the signature ``metric(image_test, image_ref, *, option=...) ->
 ``(H, W, C)`` float images (torch tensors on any device, or numpy arrays) of *linear HDR*
 radiance; the test image comes first. Options are keyword-only. Shapes are validated first.
 
-Metrics are registered by name with :func:`register_metric`; :func:`compute_metrics` evaluates a
+Metrics are registered by name in :data:`METRICS` (``@METRICS.register(name)``); :func:`compute_metrics` evaluates a
 list of them and reports metrics whose dependencies are missing (``flip_evaluator`` not
 installed, no E-LPIPS weight file) as skipped, with the reason, instead of failing.
 
@@ -40,6 +40,7 @@ from gdpt.reconstruct.losses import (
     reinhard,
     srgb_encode,
 )
+from gdpt.reconstruct.registry import Registry
 
 __all__ = [
     "METRICS",
@@ -49,10 +50,8 @@ __all__ = [
     "elpips",
     "flip_hdr",
     "flip_ldr",
-    "get_metric",
     "mse",
     "one_minus_ssim",
-    "register_metric",
     "relmse",
     "smape",
 ]
@@ -60,51 +59,12 @@ __all__ = [
 Image = torch.Tensor | np.ndarray
 Metric = Callable[..., float]
 
-#: Registered metrics, name -> function.
-METRICS: dict[str, Metric] = {}
+#: Registered metrics, name -> function (``METRICS.register(name)`` decorates a new one).
+METRICS: Registry[Metric] = Registry("metric")
 
 
 class MetricUnavailable(RuntimeError):
     """Raised by a metric that cannot run here (missing package or weights)."""
-
-
-def register_metric(name: str) -> Callable[[Metric], Metric]:
-    """Decorator registering ``metric(image_test, image_ref, *, ...) -> float`` under ``name``.
-
-    Args:
-        name: registry key; must be new.
-
-    Returns:
-        The decorator; it returns the function unchanged.
-
-    Raises:
-        ValueError: ``name`` is already registered.
-    """
-
-    def decorator(fn: Metric) -> Metric:
-        if name in METRICS:
-            raise ValueError(f"metric {name!r} is already registered")
-        METRICS[name] = fn
-        return fn
-
-    return decorator
-
-
-def get_metric(name: str) -> Metric:
-    """Look a metric up by name.
-
-    Args:
-        name: registry key, e.g. ``"relmse"``.
-
-    Returns:
-        The metric function.
-
-    Raises:
-        KeyError: unknown name; the message lists the registered names.
-    """
-    if name not in METRICS:
-        raise KeyError(f"unknown metric {name!r}; valid names: {sorted(METRICS)}")
-    return METRICS[name]
 
 
 def _pair(
@@ -141,7 +101,7 @@ def _display(image: torch.Tensor) -> torch.Tensor:
     return srgb_encode(reinhard(image, channel_dim=-1).clamp(0.0, 1.0))
 
 
-@register_metric("mse")
+@METRICS.register("mse")
 def mse(image_test: Image, image_ref: Image) -> float:
     """Mean squared error ``mean((p - r)^2)`` over pixels and channels.
 
@@ -156,7 +116,7 @@ def mse(image_test: Image, image_ref: Image) -> float:
     return float((test - ref).square().mean())
 
 
-@register_metric("relmse")
+@METRICS.register("relmse")
 def relmse(image_test: Image, image_ref: Image, *, eps: float = 1e-3) -> float:
     """Relative MSE with the NGPT convention (greyscale reference in the denominator).
 
@@ -176,7 +136,7 @@ def relmse(image_test: Image, image_ref: Image, *, eps: float = 1e-3) -> float:
     return float(((test - ref).square() / denominator).mean())
 
 
-@register_metric("smape")
+@METRICS.register("smape")
 def smape(image_test: Image, image_ref: Image, *, eps: float = 1e-2) -> float:
     """Symmetric MAPE ``mean(|p - r| / (|p| + |r| + eps))`` (OIDN convention, eps = 1e-2).
 
@@ -192,7 +152,7 @@ def smape(image_test: Image, image_ref: Image, *, eps: float = 1e-2) -> float:
     return float(((test - ref).abs() / (test.abs() + ref.abs() + eps)).mean())
 
 
-@register_metric("one_minus_ssim")
+@METRICS.register("one_minus_ssim")
 def one_minus_ssim(image_test: Image, image_ref: Image) -> float:
     """``1 - SSIM`` on display-referred images, per RGB channel, averaged.
 
@@ -246,7 +206,7 @@ def _to_numpy(image: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(image.detach().cpu().numpy(), dtype=np.float32)
 
 
-@register_metric("flip_hdr")
+@METRICS.register("flip_hdr")
 def flip_hdr(
     image_test: Image, image_ref: Image, *, ppd: float = FLIP_DEFAULT_PPD, tonemapper: str = "aces"
 ) -> float:
@@ -284,7 +244,7 @@ def flip_hdr(
     return float(mean)
 
 
-@register_metric("flip_ldr")
+@METRICS.register("flip_ldr")
 def flip_ldr(image_test: Image, image_ref: Image, *, ppd: float = FLIP_DEFAULT_PPD) -> float:
     """Mean LDR-FLIP error from ``flip_evaluator`` on Reinhard-tonemapped sRGB images.
 
@@ -319,7 +279,7 @@ def _cached_elpips(path: str, mtime_ns: int) -> ELPIPS:
     return load_elpips_weights(path)
 
 
-@register_metric("elpips")
+@METRICS.register("elpips")
 def elpips(
     image_test: Image,
     image_ref: Image,
@@ -400,7 +360,7 @@ def compute_metrics(
         ValueError, TypeError: invalid images (checked before any metric runs).
     """
     names = list(METRICS if names is None else names)
-    metrics = {name: get_metric(name) for name in names}
+    metrics = {name: METRICS[name] for name in names}
     options = dict(options or {})
     if unknown := set(options) - set(names):
         raise KeyError(f"options given for metrics not requested: {sorted(unknown)}")

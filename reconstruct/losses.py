@@ -33,6 +33,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .registry import Registry
+
 __all__ = [
     "Dropout",
     "ELPIPS",
@@ -1111,14 +1113,13 @@ def _elpips_loss(
 
 #: Loss name -> factory; every factory returns a module ``(pred, target) -> scalar`` on linear
 #: HDR ``(N, 3, H, W)`` tensors.
-LOSSES: dict[str, Callable[..., nn.Module]] = {
-    "flip": lambda **kw: NGPTLoss(FLIPLoss("ldr", **kw)),
-    "flip_hdr": lambda **kw: NGPTLoss(FLIPLoss("hdr", **kw)),
-    "flip_log": lambda **kw: NGPTLoss(FLIPLoss("ldr", **kw), delta=0.1),
-    "flip_rel": lambda **kw: NGPTLoss(FLIPLoss("ldr", **kw), rho=1.0),
-    "elpips": _elpips_loss,
-    "l1": lambda **kw: NGPTLoss(None, beta=1.0, gamma=0.01, **kw),
-}
+LOSSES: Registry[Callable[..., nn.Module]] = Registry("loss")
+LOSSES.register("flip", lambda **kw: NGPTLoss(FLIPLoss("ldr", **kw)))
+LOSSES.register("flip_hdr", lambda **kw: NGPTLoss(FLIPLoss("hdr", **kw)))
+LOSSES.register("flip_log", lambda **kw: NGPTLoss(FLIPLoss("ldr", **kw), delta=0.1))
+LOSSES.register("flip_rel", lambda **kw: NGPTLoss(FLIPLoss("ldr", **kw), rho=1.0))
+LOSSES.register("elpips", _elpips_loss)
+LOSSES.register("l1", lambda **kw: NGPTLoss(None, beta=1.0, gamma=0.01, **kw))
 
 
 def get_loss(name: str, **kwargs: object) -> nn.Module:
@@ -1148,6 +1149,4 @@ def get_loss(name: str, **kwargs: object) -> nn.Module:
         KeyError: unknown name (the message lists the valid names).
         ELPIPSWeightsError: ``"elpips"`` without a weight file.
     """
-    if name not in LOSSES:
-        raise KeyError(f"unknown loss {name!r}; valid names: {sorted(LOSSES)}")
     return LOSSES[name](**kwargs)

@@ -6,7 +6,7 @@ A checkpoint is two files next to each other::
     model.json          the model card: {"format", "config_name", "config", "features",
                         "parameter_count", ...free-form training information...}
 
-The free-form part of the card is whatever the trainer passes to :func:`save_checkpoint`; the
+The free-form part of the card is whatever the trainer passes to :func:`encode_checkpoint`; the
 expected keys are ``"training"`` (data description), ``"steps"`` and ``"validation"``
 (metric name -> value). :func:`load_checkpoint` rebuilds the network from the card's config and
 fails with a readable message (not a shape traceback) when the card disagrees with the code's
@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file, save
 
 from .dense_unet import CONFIGS, DenseUNet, ModelConfig, parameter_count
 from .transforms import (
@@ -69,25 +69,27 @@ def default_features(in_channels: int) -> tuple[str, ...]:
     raise ValueError(f"no standard feature set has {in_channels} channels; pass features=")
 
 
-def _paths(path: str | Path) -> tuple[Path, Path]:
+def checkpoint_paths(path: str | Path) -> tuple[Path, Path]:
     path = Path(path)
     return path.with_suffix(".safetensors"), path.with_suffix(".json")
 
 
-def save_checkpoint(model: DenseUNet, path: str | Path, card: Mapping[str, Any] | None = None,
-                    *, features: Sequence[str] | None = None) -> tuple[Path, Path]:
-    """Write ``model`` as ``<path>.safetensors`` plus the model card ``<path>.json``.
+def encode_checkpoint(model: DenseUNet, card: Mapping[str, Any] | None = None,
+                      *, features: Sequence[str] | None = None) -> tuple[bytes, str]:
+    """The two files of a checkpoint: safetensors weights and the JSON model card.
+
+    Writing them is the caller's job (:func:`gdpt.training.checkpoint.save_checkpoint` writes
+    them atomically); :func:`load_checkpoint` reads them back.
 
     Args:
         model: the network (any device; weights are stored as CPU float32).
-        path: checkpoint path; the suffix is replaced by ``.safetensors`` / ``.json``.
         card: JSON-serialisable training information (``"training"``, ``"steps"``,
             ``"validation"``, ...); must not use the reserved keys ``format``, ``config_name``,
             ``config``, ``features``, ``parameter_count``.
         features: input buffer names in network order (default: from ``in_channels``).
 
     Returns:
-        ``(weights_path, card_path)``.
+        ``(weights, card_text)``: the ``.safetensors`` bytes and the ``.json`` text.
 
     Raises:
         ValueError: reserved keys in ``card``, or a feature list that does not match the model.
@@ -96,7 +98,7 @@ def save_checkpoint(model: DenseUNet, path: str | Path, card: Mapping[str, Any] 
     card = dict(card or {})
     clash = sorted(set(card) & set(_RESERVED))
     if clash:
-        raise ValueError(f"card keys {clash} are reserved (written by save_checkpoint)")
+        raise ValueError(f"card keys {clash} are reserved (written by encode_checkpoint)")
     features = tuple(features or default_features(model.config.in_channels))
     if sum(FEATURE_CHANNELS[f] for f in features) != model.config.in_channels:
         raise ValueError(f"features {features} do not add up to {model.config.in_channels} "
@@ -110,14 +112,10 @@ def save_checkpoint(model: DenseUNet, path: str | Path, card: Mapping[str, Any] 
         **card,
     }
     text = json.dumps(full, indent=2)
-    weights_path, card_path = _paths(path)
-    weights_path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().to("cpu", torch.float32).contiguous()
              for k, v in model.state_dict().items()}
-    save_file(state, str(weights_path), metadata={"format": CARD_FORMAT,
-                                                  "config_name": str(model.name)})
-    card_path.write_text(text + "\n")
-    return weights_path, card_path
+    weights = save(state, metadata={"format": CARD_FORMAT, "config_name": str(model.name)})
+    return weights, text + "\n"
 
 
 def _config_diff(a: ModelConfig, b: ModelConfig) -> list[str]:
@@ -127,7 +125,7 @@ def _config_diff(a: ModelConfig, b: ModelConfig) -> list[str]:
 
 def load_checkpoint(path: str | Path, *, device: torch.device | str = "cpu"
                     ) -> tuple[DenseUNet, dict[str, Any]]:
-    """Rebuild a network saved by :func:`save_checkpoint`.
+    """Rebuild a network saved by :func:`encode_checkpoint`.
 
     Args:
         path: the ``.safetensors`` or ``.json`` path (either; the other is found next to it).
@@ -142,7 +140,7 @@ def load_checkpoint(path: str | Path, *, device: torch.device | str = "cpu"
             registered config of the same name, or weights whose names/shapes do not match
             the card's config.
     """
-    weights_path, card_path = _paths(path)
+    weights_path, card_path = checkpoint_paths(path)
     for p in (weights_path, card_path):
         if not p.is_file():
             raise FileNotFoundError(f"checkpoint file {p} not found (need .safetensors + .json)")

@@ -1323,13 +1323,13 @@ _MethodFn = Callable[
 ]
 
 #: Reconstruction methods by name, for :func:`reconstruct`:
-#: ``"l2"`` exact DCT L2; ``"l2_cg"`` L2 by DCT-preconditioned CG (cross-check);
-#: ``"l1"`` reference L1D IRLS; ``"l1_fast"`` accelerated IRLS (preset ``"fast"``).
+#: ``"l2"`` exact DCT L2; ``"l2-cg"`` L2 by DCT-preconditioned CG (cross-check);
+#: ``"l1"`` reference L1D IRLS; ``"l1-fast"`` accelerated IRLS (preset ``"fast"``).
 METHODS: dict[str, _MethodFn] = {
     "l2": _m_l2,
-    "l2_cg": _m_cg,
+    "l2-cg": _m_cg,
     "l1": _m_l1,
-    "l1_fast": _m_l1_fast,
+    "l1-fast": _m_l1_fast,
 }
 
 
@@ -1371,8 +1371,8 @@ def reconstruct(
         primal: ``(..., H, W, C)`` (or ``(H, W)``) primal estimate; float tensor, any device.
         dx: Horizontal forward differences, same shape/device (last column ignored).
         dy: Vertical forward differences, same shape/device (last row ignored).
-        method: ``"l1"`` (default; reference L1D schedule), ``"l1_fast"``, ``"l2"`` or
-            ``"l2_cg"``.
+        method: ``"l1"`` (default; reference L1D schedule), ``"l1-fast"``, ``"l2"`` or
+            ``"l2-cg"``.
         alpha: Primal weight, > 0.
         progress: Optional ``progress(done, total)`` callback.
         return_info: Also return a :class:`SolveInfo`.

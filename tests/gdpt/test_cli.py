@@ -10,10 +10,10 @@ import OpenEXR
 import pytest
 import torch
 
-from gdpt import reconstruction
+from gdpt import denoise
 from gdpt.buffers import CHANNELS, GradientBuffers
 from gdpt.cli import COMMANDS, main
-from gdpt.exr import load_image, save_buffers
+from gdpt.io.exr import load_image, save_buffers
 
 
 def make_buffers(h: int = 12, w: int = 10, *, gradients: bool = True) -> GradientBuffers:
@@ -35,7 +35,9 @@ def render(tmp_path):
 def fake_l2(monkeypatch):
     """Make ``--method l2`` a cheap stand-in (primal * 2) so CLI plumbing is tested alone."""
     monkeypatch.setitem(
-        reconstruction.METHODS, "l2", lambda buffers, *, alpha, **_: buffers.primal * 2
+        denoise.METHODS,
+        "l2",
+        denoise.Method(lambda buffers, *, alpha, **_: buffers.primal * 2, True, False, "x2"),
     )
 
 

@@ -1,4 +1,4 @@
-"""gdpt.dataset: deterministic plans, resumable rendering, manifest safety, corrupt shards, Ray."""
+"""gdpt.training.dataset: deterministic plans, resumable rendering, manifest safety, corrupt shards, Ray."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 import torch
 
-import gdpt.dataset as dataset_module
+import gdpt.training.dataset as dataset_module
 from gdpt.cli import main
-from gdpt.dataset import (
+from gdpt.training.dataset import (
     MANIFEST_FILE,
     CropDataset,
     DatasetConfig,
@@ -22,7 +22,7 @@ from gdpt.dataset import (
     plan_crop,
     read_manifest,
 )
-from gdpt.exr import load_buffers
+from gdpt.io.exr import load_buffers
 
 #: Manifest fields that depend on timing (and thus on file headers), not on the content.
 TIMING_FIELDS = ("render_seconds", "bytes")

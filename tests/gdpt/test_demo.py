@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from gdpt.demo import DemoConfig, run_demo
+from gdpt.study.demo import DemoConfig, run_demo
 
 
 def _tiny(out, **kw) -> DemoConfig:

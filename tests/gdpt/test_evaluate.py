@@ -1,4 +1,4 @@
-"""gdpt.evaluate: equal-time calibration, scene loading, the report files, resume, bad input."""
+"""gdpt.study.evaluate: equal-time calibration, scene loading, the report files, resume, bad input."""
 
 from __future__ import annotations
 
@@ -10,20 +10,13 @@ from pathlib import Path
 
 import pytest
 
-from gdpt import reconstruction
+from gdpt import denoise
 from gdpt.cli import main
-from gdpt.evaluate import (
-    EvaluateConfig,
-    SceneSpec,
-    TimeModel,
-    calibrate,
-    evaluate,
-    load_eval_scene,
-    render_references,
-    resolve_scenes,
-    run_at_budget,
-)
-from gdpt.methods import EVAL_METHODS
+from gdpt.study.calibration import TimeModel, calibrate, run_at_budget
+from gdpt.study.config import EvaluateConfig
+from gdpt.study.evaluate import evaluate, render_references
+from gdpt.study.scenes import SceneSpec, load_eval_scene, resolve_scenes
+from gdpt.study.methods import EVAL_METHODS
 
 SHARED_SCENES = Path(__file__).resolve().parents[3] / "shared" / "scenes"
 
@@ -137,7 +130,7 @@ def test_bad_input_is_reported_and_resume_skips_done_cells(variant, tmp_path, mo
     broken.parent.mkdir()
     broken.write_text(GAUSSIAN_XML.format(bsdf="no_such_bsdf"))
     monkeypatch.setitem(sys.modules, "pyoidn", None)  # "not installed"
-    monkeypatch.delitem(reconstruction.METHODS, "ngpt", raising=False)
+    monkeypatch.delitem(denoise.METHODS, "ngpt", raising=False)
     scenes = ["builtin:cbox-demo", str(tmp_path / "missing.xml"), str(broken.parent)]
     cfg = _tiny_cfg(methods=("pt", "pt+oidn", "gdpt+ngpt"))
     out = tmp_path / "report"

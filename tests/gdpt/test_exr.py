@@ -1,4 +1,4 @@
-"""gdpt.exr: multi-layer EXR round trips, error messages, atomic and non-clobbering writes."""
+"""gdpt.io.exr: multi-layer EXR round trips, error messages, atomic and non-clobbering writes."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gdpt import exr
+from gdpt.io import exr
 from gdpt.buffers import CHANNELS, GradientBuffers
-from gdpt.exr import channel_names, load_buffers, load_image, save_buffers, save_image
+from gdpt.io.exr import channel_names, load_buffers, load_image, save_buffers, save_image
 
 OPTIONAL = [n for n in CHANNELS if n not in ("primal", "dx", "dy")]
 

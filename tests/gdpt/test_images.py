@@ -1,4 +1,4 @@
-"""gdpt.images: sRGB tone mapping, PNG previews and the labelled montage."""
+"""gdpt.io.images: sRGB tone mapping, PNG previews and the labelled montage."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 from PIL import Image
 
-from gdpt.images import preview_path, save_png, side_by_side, to_srgb8
+from gdpt.io.images import preview_path, save_png, side_by_side, to_srgb8
 
 
 def test01_srgb_encoding_of_known_values():

@@ -1,4 +1,4 @@
-"""gdpt.model_report: training plot, held-out comparison bookkeeping, shipping, CLI errors."""
+"""gdpt.training.model_report: training plot, held-out comparison bookkeeping, shipping, CLI errors."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ from pathlib import Path
 import pytest
 from gdpt.reconstruct.ngpt import NGPTReconstructor
 
-from gdpt import model_report
+from gdpt.training import model_report
 from gdpt.cli import main
-from gdpt.dataset import DatasetConfig, build_dataset, read_manifest
-from gdpt.exr import load_buffers
+from gdpt.training.dataset import DatasetConfig, build_dataset, read_manifest
+from gdpt.io.exr import load_buffers
 from gdpt.metrics import relmse
-from gdpt.train import TrainConfig, train
+from gdpt.training.train import TrainConfig, train
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""gdpt.reconstruction: the method dispatcher (the solvers are tested in tests/reconstruct)."""
+"""gdpt.denoise: the method dispatcher (the solvers are tested in tests/reconstruct)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 
 import gdpt.reconstruct
 from gdpt.buffers import GradientBuffers
-from gdpt.reconstruction import METHODS, reconstruct
+from gdpt.denoise import METHODS, reconstruct
 
 
 def make_buffers(gradients: bool = True) -> GradientBuffers:
@@ -47,5 +47,5 @@ def test02_primal_only_is_a_clear_error(fake_poisson):
 
 
 def test03_unknown_method_lists_valid_ones():
-    with pytest.raises(ValueError, match="valid methods: " + ", ".join(METHODS)):
+    with pytest.raises(ValueError, match="valid names: " + ", ".join(METHODS)):
         reconstruct(make_buffers(), "bilateral")

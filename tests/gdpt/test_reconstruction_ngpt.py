@@ -1,4 +1,4 @@
-"""``gdpt.reconstruct(buffers, method="ngpt")``: checkpoint lookup, inference, errors."""
+"""``reconstruct(buffers, method="ngpt")``: checkpoint lookup, inference, errors."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import pytest
 import torch
 
 import gdpt
+from gdpt.denoise import reconstruct
 from gdpt.buffers import GradientBuffers
 
 
@@ -21,7 +22,7 @@ def _buffers(h=13, w=17, gradients=True):
 @pytest.fixture
 def checkpoint(tmp_path):
     from gdpt.reconstruct.dense_unet import build_model
-    from gdpt.reconstruct.ngpt import save_checkpoint
+    from gdpt.training.checkpoint import save_checkpoint
 
     torch.manual_seed(0)
     path = tmp_path / "tiny.safetensors"
@@ -30,22 +31,22 @@ def checkpoint(tmp_path):
 
 
 def test01_ngpt_with_explicit_checkpoint(checkpoint):
-    image = gdpt.reconstruct(_buffers(), method="ngpt", model=checkpoint)
+    image = reconstruct(_buffers(), method="ngpt", model=checkpoint)
     assert image.shape == (13, 17, 3) and image.dtype == torch.float32
     assert torch.isfinite(image).all() and (image >= 0).all()  # radiance: clamped at 0
 
 
 def test02_checkpoint_from_environment(checkpoint, monkeypatch):
     monkeypatch.setenv("GDPT_NGPT_MODEL", str(checkpoint))
-    assert gdpt.reconstruct(_buffers(), method="ngpt").shape == (13, 17, 3)
+    assert reconstruct(_buffers(), method="ngpt").shape == (13, 17, 3)
 
 
 def test03_missing_checkpoint_says_what_to_provide(tmp_path, monkeypatch):
     monkeypatch.delenv("GDPT_NGPT_MODEL", raising=False)
     with pytest.raises(FileNotFoundError, match="model=PATH"):
-        gdpt.reconstruct(_buffers(), method="ngpt", model=tmp_path / "none.safetensors")
+        reconstruct(_buffers(), method="ngpt", model=tmp_path / "none.safetensors")
 
 
 def test04_missing_gradients_named(checkpoint):
     with pytest.raises((KeyError, ValueError), match="dx"):
-        gdpt.reconstruct(_buffers(gradients=False), method="ngpt", model=checkpoint)
+        reconstruct(_buffers(gradients=False), method="ngpt", model=checkpoint)

@@ -14,8 +14,8 @@ import torch
 
 import gdpt
 from gdpt.metrics import relmse
-from gdpt.model_report import MAX_SHIPPED_MIB
-from gdpt.reconstruction import MODEL_DIR
+from gdpt.training.model_report import MAX_SHIPPED_MIB
+from gdpt.denoise import MODEL_DIR, reconstruct
 from gdpt.scenes import builtin_scene
 
 SHIPPED = {"ngpt": True, "ngpt-nograd": False}  # name -> reads gradients
@@ -46,13 +46,13 @@ def _default_reconstruction(name, scene, monkeypatch):
     """8-spp buffers of ``scene`` and their reconstruction by ``method=name`` without model=."""
     monkeypatch.delenv("GDPT_NGPT_MODEL", raising=False)
     buffers = gdpt.render(scene, spp=8, seed=1, gradients=SHIPPED[name])
-    return buffers, gdpt.reconstruct(buffers, method=name)
+    return buffers, reconstruct(buffers, method=name)
 
 
 @pytest.mark.parametrize("name", SHIPPED)
 def test_shipped_model_is_the_default_and_finite(name, cbox, monkeypatch):
     buffers, image = _default_reconstruction(name, cbox[0], monkeypatch)
-    explicit = gdpt.reconstruct(buffers, method=name, model=MODEL_DIR / f"{name}.safetensors")
+    explicit = reconstruct(buffers, method=name, model=MODEL_DIR / f"{name}.safetensors")
     assert torch.equal(image, explicit)
     assert torch.isfinite(image).all() and (image >= 0).all()
 

@@ -1,4 +1,4 @@
-"""gdpt.train: gradient-correct augmentations, schedule, learning, exact resume, DDP, run dirs."""
+"""gdpt.training.train: gradient-correct augmentations, schedule, learning, exact resume, DDP, run dirs."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ import pytest
 import torch
 
 from gdpt.cli import main
-from gdpt.dataset import CropDataset, DatasetConfig, build_dataset
+from gdpt.training.dataset import CropDataset, DatasetConfig, build_dataset
 from gdpt.reconstruct.dense_unet import build_model
 from gdpt.reconstruct.losses import get_loss
-from gdpt.train import (
+from gdpt.training.train import (
     AugmentParams,
     ConfigMismatchError,
     TrainConfig,

@@ -191,8 +191,7 @@ def test_registry_weights_and_errors() -> None:
     assert torch.allclose(flip_log(pred, target), expected + 0.1 * L.l1_log(pred, target))
     flip_rel = L.get_loss("flip_rel")
     assert torch.allclose(flip_rel(pred, target), expected + L.l1_relative(pred, target))
-    with pytest.raises(KeyError, match=r"valid names: \['elpips', 'flip', 'flip_hdr', "
-                       r"'flip_log', 'flip_rel', 'l1'\]"):
+    with pytest.raises(KeyError, match="valid names: flip, flip_hdr, flip_log, flip_rel, elpips, l1"):
         L.get_loss("lpips")
 
 

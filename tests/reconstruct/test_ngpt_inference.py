@@ -11,6 +11,7 @@ import torch
 from gdpt.reconstruct import ngpt
 from gdpt.reconstruct.dense_unet import DenseUNet, ModelConfig, build_model
 from gdpt.reconstruct.ngpt import CheckpointMismatchError, NGPTReconstructor
+from gdpt.training.checkpoint import save_checkpoint
 
 #: A small dense config (radius 28 px) so that tiles are cut well inside the test images.
 TINY = ModelConfig(growth_rates=(8, 12, 12), unit_counts=(2, 1, 1),
@@ -88,7 +89,7 @@ def test04_checkpoint_round_trip(tmp_path):
     model = _model("nograd")
     card = {"training": {"scenes": ["cbox"], "spp": [2, 1024]}, "steps": 12,
             "validation": {"relmse": 0.125}}
-    weights, card_path = ngpt.save_checkpoint(model, tmp_path / "ckpt" / "model.pt", card)
+    weights, card_path = save_checkpoint(model, tmp_path / "ckpt" / "model.pt", card)
     assert weights.suffix == ".safetensors" and card_path.suffix == ".json"
     stored = json.loads(card_path.read_text())
     assert stored["config_name"] == "nograd" and stored["steps"] == 12
@@ -100,13 +101,13 @@ def test04_checkpoint_round_trip(tmp_path):
     del bufs["dx"], bufs["dy"]
     torch.testing.assert_close(rec(bufs), NGPTReconstructor(model)(bufs))
     with pytest.raises(ValueError, match="reserved"):
-        ngpt.save_checkpoint(model, tmp_path / "x", {"config": 1})
+        save_checkpoint(model, tmp_path / "x", {"config": 1})
 
 
 def test05_checkpoint_mismatch_errors(tmp_path):
     model = _model(TINY)
     model.name = "fast"  # pretend a registered name with a different config
-    _, card_path = ngpt.save_checkpoint(model, tmp_path / "m")
+    _, card_path = save_checkpoint(model, tmp_path / "m")
     with pytest.raises(CheckpointMismatchError, match="differs from the code's 'fast'.*growth"):
         ngpt.load_checkpoint(card_path)
     card = json.loads(card_path.read_text())

@@ -120,11 +120,11 @@ def compare_models(
     """
     from tqdm.auto import tqdm
 
-    from gdpt.dataset import CropDataset
-    from gdpt.methods import oidn_check, oidn_denoise
     from gdpt.metrics import flip_ldr, relmse
     from gdpt.reconstruct.ngpt import NGPTReconstructor
     from gdpt.reconstruct.poisson import reconstruct as poisson
+    from gdpt.study.methods import oidn_check, oidn_denoise
+    from gdpt.training.dataset import CropDataset
 
     held = lambda s: s % holdout_every == holdout_every - 1  # noqa: E731
     sets = {kind: CropDataset(data, kind=kind, scenes=held) for kind in ("gdpt", "pt")}
@@ -228,8 +228,9 @@ def ship_model(run: str | Path, name: str, *, comparison: Mapping[str, Any] | No
     Raises:
         FileNotFoundError: the run has no final model.
     """
-    from gdpt.reconstruct.ngpt import load_checkpoint, save_checkpoint
-    from gdpt.reconstruction import MODEL_DIR
+    from gdpt.denoise import MODEL_DIR
+    from gdpt.reconstruct.ngpt import load_checkpoint
+    from gdpt.training.checkpoint import save_checkpoint
 
     run = Path(run)
     model, card = load_checkpoint(run / "model.safetensors")

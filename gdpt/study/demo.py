@@ -1,6 +1,6 @@
 """The ``make demo`` job: every method on the built-in ``cbox-demo`` scene at one equal time.
 
-The demo is a one-scene, one-budget run of the equal-time study (:func:`gdpt.evaluate.evaluate`):
+The demo is a one-scene, one-budget run of the equal-time study (:func:`gdpt.study.evaluate.evaluate`):
 G-PT reconstructed by the shipped NGPT network, L1 and L2 screened Poisson; path tracing alone,
 with Intel Open Image Denoise, and with the no-gradient NGPT ablation. Each method's sample
 count is calibrated by timing so that sampling + reconstruction takes ``budget`` seconds on this
@@ -30,7 +30,7 @@ class DemoConfig:
         budget: seconds of sampling + reconstruction per image.
         reference_spp: samples per pixel of the path-traced reference.
         max_depth: longest path.
-        methods: names from :data:`gdpt.methods.EVAL_METHODS`.
+        methods: names from :data:`gdpt.study.methods.EVAL_METHODS`.
         seed: base seed of the study.
         force: overwrite the outputs of an earlier demo.
     """
@@ -52,9 +52,10 @@ def run_demo(cfg: DemoConfig, *, progress: bool = True) -> dict[str, Any]:
     Raises:
         FileExistsError: ``cfg.out`` holds an earlier demo and ``cfg.force`` is false.
     """
-    from gdpt.evaluate import EvaluateConfig, evaluate
-    from gdpt.exr import load_image
-    from gdpt.images import side_by_side
+    from gdpt.io.exr import load_image
+    from gdpt.io.images import side_by_side
+    from gdpt.study.config import EvaluateConfig
+    from gdpt.study.evaluate import evaluate
 
     out = Path(cfg.out)
     results_path = out / "results.json"

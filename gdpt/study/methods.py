@@ -17,9 +17,11 @@ Registered methods:
 * ``pt+ngpt-nograd``: path tracing (features, no gradients) + the NGPT ablation network.
 
 A method that cannot run here (package not installed, no shipped model) says so through its
-``check`` function and is skipped with that note. To add a method (NFOR, KPCN, ...), decorate a
-function ``f(scene, *, spp, seed) -> MethodResult`` with :func:`register_method`; the harness
-needs no change.
+``check`` function and is skipped with that note. A reconstruction registered in
+:data:`gdpt.denoise.METHODS` appears here on its own (as ``gdpt+NAME``, or ``pt+NAME`` when it
+reads no gradients); another method (a different sampler) is
+``EVAL_METHODS.register(name, EvalMethod(name, description, f))`` with
+``f(scene, *, spp, seed) -> MethodResult``; the harness needs no change.
 
 Timing: :attr:`MethodResult.seconds` is the wall time from the start of sampling to the final
 image on the host, minus the time Dr.Jit spent compiling kernels during the call (read from
@@ -37,17 +39,19 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
+from gdpt.denoise import METHODS as DENOISERS
+from gdpt.denoise import Method, reconstruct
+from gdpt.reconstruct.registry import Registry
+
 if TYPE_CHECKING:
     from gdpt.buffers import GradientBuffers
-    from gdpt.evaluate import EvalScene
+    from gdpt.study.scenes import EvalScene
 
 __all__ = [
     "EVAL_METHODS",
     "EvalMethod",
     "MethodResult",
     "MethodUnavailable",
-    "get_method",
-    "register_method",
 ]
 
 
@@ -97,44 +101,7 @@ class EvalMethod:
 
 
 #: Registered methods, name -> :class:`EvalMethod`, in registration order.
-EVAL_METHODS: dict[str, EvalMethod] = {}
-
-
-def register_method(
-    name: str, description: str, *, check: Callable[[], str | None] | None = None
-) -> Callable[[RunFunction], RunFunction]:
-    """Decorator registering ``f(scene, *, spp, seed) -> MethodResult`` under ``name``.
-
-    Args:
-        name: registry key; must be new.
-        description: one line for the report.
-        check: availability test returning ``None`` or the reason the method cannot run.
-
-    Returns:
-        The decorator; it returns the function unchanged.
-
-    Raises:
-        ValueError: ``name`` is already registered.
-    """
-
-    def decorator(fn: RunFunction) -> RunFunction:
-        if name in EVAL_METHODS:
-            raise ValueError(f"method {name!r} is already registered")
-        EVAL_METHODS[name] = EvalMethod(name, description, fn, check or (lambda: None))
-        return fn
-
-    return decorator
-
-
-def get_method(name: str) -> EvalMethod:
-    """Look a method up by name.
-
-    Raises:
-        KeyError: unknown name; the message lists the registered names.
-    """
-    if name not in EVAL_METHODS:
-        raise KeyError(f"unknown method {name!r}; valid names: {', '.join(EVAL_METHODS)}")
-    return EVAL_METHODS[name]
+EVAL_METHODS: Registry[EvalMethod] = Registry("method")
 
 
 # ------------------------------------------------------------------------------------ timing
@@ -156,7 +123,7 @@ def _timed_run(
     **props: Any,
 ) -> MethodResult:
     """Render with ``gdpt`` (``props``), reconstruct, and time both parts."""
-    from gdpt.render import render
+    from gdpt.rendering import render
 
     _drain_compile_seconds()
     start = time.perf_counter()
@@ -177,7 +144,6 @@ def _timed_run(
 
 
 # ---------------------------------------------------------------------------------- methods
-@register_method("pt", "path tracing, primal only (gdpt integrator, gradients=False)")
 def path_tracing(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     """Plain path tracing: the primal of ``gdpt`` with ``gradients=False``.
 
@@ -218,11 +184,6 @@ def _oidn(buffers: GradientBuffers) -> torch.Tensor:
     return oidn_denoise(buffers.primal, buffers.albedo, buffers.normal)
 
 
-@register_method(
-    "pt+oidn",
-    "path tracing + Intel Open Image Denoise (pyoidn; albedo + normal, HDR, quality high)",
-    check=oidn_check,
-)
 def path_tracing_oidn(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     """Path tracing with albedo and normal features, denoised by OIDN (``RT`` filter).
 
@@ -242,95 +203,41 @@ def path_tracing_oidn(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     return _timed_run(scene, spp, seed, _oidn, gradients=False, features=True)
 
 
-def _poisson(method: str) -> Callable[[GradientBuffers], torch.Tensor]:
-    from gdpt.reconstruction import reconstruct
+EVAL_METHODS.register(
+    "pt",
+    EvalMethod("pt", "path tracing, primal only (gdpt integrator, gradients=False)", path_tracing),
+)
+EVAL_METHODS.register(
+    "pt+oidn",
+    EvalMethod(
+        "pt+oidn",
+        "path tracing + Intel Open Image Denoise (pyoidn; albedo + normal, HDR, quality high)",
+        path_tracing_oidn,
+        oidn_check,
+    ),
+)
 
-    return lambda buffers: reconstruct(buffers, method=method)
 
-
-def _register_poisson(name: str, solver: str, description: str) -> None:
-    """Register ``name``: G-PT buffers (no features) reconstructed with ``solver`` (a method of
-    :func:`gdpt.reconstruction.reconstruct`)."""
+def _register_denoiser(name: str, method: Method) -> None:
+    """Register ``gdpt+NAME`` (or ``pt+NAME`` for a method without gradients): the buffers
+    ``method`` reads, reconstructed by :func:`gdpt.denoise.reconstruct` with ``NAME``."""
+    sampler = "gdpt" if method.gradients else "pt"
 
     def run(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
-        return _timed_run(scene, spp, seed, _poisson(solver), gradients=True, features=False)
+        if reason := method.check():
+            raise MethodUnavailable(reason)
+        return _timed_run(
+            scene, spp, seed, partial(reconstruct, method=name), **method.needs
+        )
 
-    run.__name__ = run.__qualname__ = name.replace("+", "_").replace("-", "_")
-    run.__doc__ = f"G-PT buffers reconstructed with screened Poisson ``{solver}``."
-    register_method(name, description)(run)
-
-
-_register_poisson("gdpt+l2", "l2", "gradient-domain path tracing + screened Poisson, L2 (alpha 0.2)")
-_register_poisson(
-    "gdpt+l1", "l1",
-    "gradient-domain path tracing + screened Poisson, L1 (alpha 0.2, reference IRLS schedule)",
-)
-_register_poisson(
-    "gdpt+l1-fast", "l1-fast",
-    "gradient-domain path tracing + screened Poisson, L1 (alpha 0.2, DCT-preconditioned IRLS "
-    "preset 'fast': same final energy, about 3x faster)",
-)
+    label = "gradient-domain path tracing" if method.gradients else "path tracing"
+    run.__name__ = run.__qualname__ = f"{sampler}_{name}".replace("-", "_")
+    run.__doc__ = f"{label} buffers reconstructed with :data:`gdpt.denoise.METHODS` ``{name}``."
+    EVAL_METHODS.register(
+        f"{sampler}+{name}", EvalMethod(f"{sampler}+{name}", f"{label} + {method.description}",
+                                        run, method.check)
+    )
 
 
-def _ngpt_check(name: str) -> str | None:
-    """``None`` when the NGPT model ``name`` (``ngpt``/``ngpt-nograd``) can be found, else why."""
-    from gdpt.reconstruction import model_path
-
-    try:
-        model_path(name)
-    except FileNotFoundError as err:
-        return str(err)
-    return None
-
-
-def _ngpt(name: str) -> Callable[[GradientBuffers], torch.Tensor]:
-    from gdpt.reconstruction import reconstruct
-
-    return lambda buffers: reconstruct(buffers, method=name)
-
-
-@register_method(
-    "gdpt+ngpt", "gradient-domain path tracing + the shipped NGPT network",
-    check=partial(_ngpt_check, "ngpt"),
-)
-def gdpt_ngpt(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
-    """G-PT buffers with features, reconstructed by the NGPT network (``method='ngpt'``).
-
-    Args:
-        scene: the scene.
-        spp: samples per pixel.
-        seed: random seed.
-
-    Returns:
-        The image and its timing.
-
-    Raises:
-        MethodUnavailable: the model is not shipped and not given.
-    """
-    if reason := _ngpt_check("ngpt"):
-        raise MethodUnavailable(reason)
-    return _timed_run(scene, spp, seed, _ngpt("ngpt"), gradients=True, features=True)
-
-
-@register_method(
-    "pt+ngpt-nograd",
-    "path tracing + the NGPT ablation network trained without gradients",
-    check=partial(_ngpt_check, "ngpt-nograd"),
-)
-def pt_ngpt_nograd(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
-    """Primal-only buffers with features, reconstructed by the no-gradient NGPT model.
-
-    Args:
-        scene: the scene.
-        spp: samples per pixel.
-        seed: random seed.
-
-    Returns:
-        The image and its timing.
-
-    Raises:
-        MethodUnavailable: the model is not shipped and not given.
-    """
-    if reason := _ngpt_check("ngpt-nograd"):
-        raise MethodUnavailable(reason)
-    return _timed_run(scene, spp, seed, _ngpt("ngpt-nograd"), gradients=False, features=True)
+for _name, _method in DENOISERS.items():
+    _register_denoiser(_name, _method)

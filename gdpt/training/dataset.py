@@ -16,7 +16,7 @@ Everything (scene seed, sample counts, render seeds) is a pure function of ``(se
 view)`` (:func:`plan_crop`), so a dataset can be extended with more scenes or views later and
 re-rendered identically.
 
-On-disk layout (one EXR per crop element, written by :func:`gdpt.exr.save_buffers`)::
+On-disk layout (one EXR per crop element, written by :func:`gdpt.io.exr.save_buffers`)::
 
     DIR/dataset.json                  {"format", "config"}: the content-defining settings
     DIR/manifest.jsonl                one JSON line per finished crop (see below)
@@ -42,7 +42,7 @@ uses ``cpu_count // workers`` Dr.Jit threads), or Ray tasks (one per crop) when 
 given; results are written by the workers to ``DIR`` (shared storage on a cluster) and the
 manifest is appended by the driver only.
 
-:class:`CropDataset` reads a dataset for training (torch ``Dataset``): only ``gdpt.exr`` and
+:class:`CropDataset` reads a dataset for training (torch ``Dataset``): only ``gdpt.io.exr`` and
 torch are needed, not Mitsuba.
 """
 
@@ -61,10 +61,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 from torch.utils.data import Dataset
 
-from gdpt.exr import load_buffers
+from gdpt.io.atomic import atomic_write
+from gdpt.io.exr import load_buffers
 
 if TYPE_CHECKING:
     from gdpt.buffers import GradientBuffers
@@ -220,15 +220,6 @@ def plan_crop(config: DatasetConfig, scene: int, view: int) -> CropPlan:
 
 
 # ------------------------------------------------------------------------------------ rendering
-def _fsync(path: Path) -> None:
-    """Flush a file's (or a directory's entries') data to disk."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _scene_config(content: dict[str, Any]) -> RandomSceneConfig:
     from gdpt.scenes import RandomSceneConfig
 
@@ -256,9 +247,10 @@ def render_crop(plan: CropPlan, root: str | os.PathLike[str], content: dict[str,
     from gdpt.backend import set_variant
 
     set_variant(variant)
-    from gdpt.exr import save_buffers
-    from gdpt.reconstruction import reconstruct
-    from gdpt.render import load_scene, render
+    from gdpt.denoise import reconstruct
+    from gdpt.io.exr import save_buffers
+    from gdpt.rendering import render
+    from gdpt.scene_io import load_scene
     from gdpt.scenes import random_scene
 
     root = Path(root)
@@ -274,8 +266,7 @@ def render_crop(plan: CropPlan, root: str | os.PathLike[str], content: dict[str,
     def store(name: str, buffers: GradientBuffers, **extra: Any) -> None:
         metadata = {**buffers.metadata, "crop": plan.crop_id, "element": name, **extra}
         path = save_buffers(crop_dir / f"{name}.exr", buffers.replace(metadata=metadata),
-                            force=True)
-        _fsync(path)
+                            force=True)  # fsync'ed by the atomic write
         files[name] = path.relative_to(root).as_posix()
         sizes[name] = path.stat().st_size
         seconds[name] = round(float(buffers.metadata["render_seconds"]), 4)
@@ -294,7 +285,6 @@ def render_crop(plan: CropPlan, root: str | os.PathLike[str], content: dict[str,
     solve = time.perf_counter() - start
     store("target", target.replace(primal=image.float().contiguous()),
           primal="l1_poisson", alpha=float(content["alpha"]), solve_seconds=round(solve, 4))
-    _fsync(crop_dir)
     seconds["total"] = round(sum(seconds.values()) + solve, 4)
     return {
         "crop": plan.crop_id,
@@ -371,13 +361,8 @@ def read_manifest(root: str | os.PathLike[str]) -> tuple[list[dict[str, Any]], l
 
 def _rewrite_manifest(root: Path, records: list[dict[str, Any]]) -> None:
     """Atomically replace the manifest by ``records`` (drops torn and duplicate lines)."""
-    path = root / MANIFEST_FILE
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w") as f:
-        f.writelines(json.dumps(record, sort_keys=True) + "\n" for record in records)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    text = "".join(json.dumps(record, sort_keys=True) + "\n" for record in records)
+    atomic_write(root / MANIFEST_FILE, text)
 
 
 def _check_config(root: Path, content: dict[str, Any]) -> None:
@@ -394,9 +379,7 @@ def _check_config(root: Path, content: dict[str, Any]) -> None:
                 "use another --out directory or the same settings"
             )
         return
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps({"format": DATASET_FORMAT, "config": content}, indent=2) + "\n")
-    os.replace(tmp, path)
+    atomic_write(path, json.dumps({"format": DATASET_FORMAT, "config": content}, indent=2) + "\n")
 
 
 def _init_worker(variant: str | None, threads: int) -> None:

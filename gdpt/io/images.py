@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
-from gdpt.exr import check_writable
+from gdpt.io.exr import check_writable
 
 PathLike = str | os.PathLike[str]
 ImageLike = torch.Tensor | np.ndarray

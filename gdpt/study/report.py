@@ -300,8 +300,8 @@ def _crops(results: dict[str, Any], scene: str, entry: dict[str, Any], out: Path
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
 
-    from gdpt.exr import load_image
-    from gdpt.images import to_srgb8
+    from gdpt.io.exr import load_image
+    from gdpt.io.images import to_srgb8
 
     ref_path = out / "images" / scene / "reference.exr"
     budget = _budgets(results)[-1]
@@ -348,7 +348,7 @@ def write_report(results: dict[str, Any], out: str | os.PathLike[str]) -> list[P
     """Write ``results.md``, the plots, the crops and ``index.html`` into ``out``.
 
     Args:
-        results: the content of ``results.json`` (as returned by :func:`gdpt.evaluate.evaluate`).
+        results: the content of ``results.json`` (as returned by :func:`gdpt.study.evaluate.evaluate`).
         out: the report folder (holding ``results.json`` and ``images/``).
 
     Returns:

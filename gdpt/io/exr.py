@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -28,8 +27,9 @@ import numpy as np
 import OpenEXR
 import torch
 
-from gdpt.version import __version__
 from gdpt.buffers import CHANNELS, REQUIRED, GradientBuffers
+from gdpt.io.atomic import atomic_path
+from gdpt.version import __version__
 
 #: Version of the on-disk layout described in this module; bumped on incompatible changes.
 FORMAT_VERSION = 1
@@ -84,7 +84,7 @@ def save_buffers(
     channels: dict[str, np.ndarray] = {}
     for name, tensor in buffers.items():
         channels.update(_split_channels(channel_names(name), tensor, half))
-    return _atomic_write(Path(path), header, channels, force)
+    return _write_exr(Path(path), header, channels, force)
 
 
 def save_image(
@@ -115,7 +115,7 @@ def save_image(
         raise ValueError(f"image must have shape (H, W, 3), got {tuple(array.shape)}")
     header = _gdpt_header(metadata or {})
     channels = _split_channels(_RGB, torch.from_numpy(array), half=False)
-    return _atomic_write(Path(path), header, channels, force)
+    return _write_exr(Path(path), header, channels, force)
 
 
 def _gdpt_header(metadata: dict[str, Any]) -> dict[str, Any]:
@@ -150,20 +150,14 @@ def _split_channels(
         return {n: np.ascontiguousarray(array[:, :, i], dtype=dtype) for i, n in enumerate(names)}
 
 
-def _atomic_write(
+def _write_exr(
     path: Path, header: dict[str, Any], channels: dict[str, np.ndarray], force: bool
 ) -> Path:
-    """Write an EXR to a temporary file next to ``path`` and move it into place."""
+    """Write an EXR atomically (:func:`gdpt.io.atomic.atomic_path`)."""
     check_writable(path, force=force)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        OpenEXR.File(header, channels).write(tmp_name)
+    with atomic_path(path) as tmp:
+        OpenEXR.File(header, channels).write(str(tmp))
         check_writable(path, force=force)  # another process may have created it meanwhile
-        os.replace(tmp_name, path)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
     return path
 
 

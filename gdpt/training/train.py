@@ -1,4 +1,4 @@
-"""Training the NGPT reconstruction network (Kettunen et al. 2019) on a :mod:`gdpt.dataset`.
+"""Training the NGPT reconstruction network (Kettunen et al. 2019) on a :mod:`gdpt.training.dataset`.
 
 The recipe follows the reference implementation (``gdpt-notes.md`` sections 3.1, 3.3, 3.4):
 
@@ -59,14 +59,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from gdpt.dataset import CropDataset, DatasetWarning
+from gdpt.io.atomic import atomic_path, atomic_write
 from gdpt.reconstruct.dense_unet import DenseUNet, build_model
 from gdpt.reconstruct.losses import FLIPLoss, get_loss
 from gdpt.reconstruct.ngpt import (
     NGPTReconstructor,
     default_features,
     load_checkpoint,
-    save_checkpoint,
 )
 from gdpt.reconstruct.transforms import (
     AUGMENTATIONS,
@@ -76,6 +75,8 @@ from gdpt.reconstruct.transforms import (
     stack_input,
     transform_buffers,
 )
+from gdpt.training.checkpoint import save_checkpoint
+from gdpt.training.dataset import CropDataset, DatasetWarning
 
 #: Buffers scaled by the colour multiplier and permuted by the channel permutation.
 COLOUR_BUFFERS = ("primal", "dx", "dy", "albedo", "target")
@@ -100,7 +101,7 @@ class TrainConfig:
     Attributes:
         model: registered model configuration (``gdpt.reconstruct.dense_unet.CONFIGS``); models
             with 16 input channels read the ``gdpt`` inputs, 10-channel ones the path-traced.
-        data: training dataset directory (:mod:`gdpt.dataset`).
+        data: training dataset directory (:mod:`gdpt.training.dataset`).
         out: run directory.
         val_data: validation dataset directory; ``None`` holds out every ``holdout_every``-th
             scene of ``data`` (scene index ``% holdout_every == holdout_every - 1``).
@@ -327,7 +328,7 @@ def prepare_sample(item: Mapping[str, Any], params: AugmentParams, features: tup
     """Network input and target of one dataset element.
 
     Args:
-        item: a :class:`~gdpt.dataset.CropDataset` element (``inputs``, ``target``).
+        item: a :class:`~gdpt.training.dataset.CropDataset` element (``inputs``, ``target``).
         params: its augmentation draw.
         features: network input buffers, in order.
         pad: base padding.
@@ -447,7 +448,7 @@ def load_validation(dataset: CropDataset, count: int, device: torch.device
     crop and level (for a path-traced dataset: the equal-time G-PT input). Unreadable elements
     are skipped with a warning.
     """
-    from gdpt.exr import load_buffers
+    from gdpt.io.exr import load_buffers
     from gdpt.reconstruct.poisson import reconstruct
 
     flip = FLIPLoss("ldr")
@@ -487,9 +488,7 @@ def validate(model: DenseUNet, elements: list[_ValElement], features: tuple[str,
 
 # ------------------------------------------------------------------------------------- run dir
 def _write_json(path: Path, data: Any) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, path)
+    atomic_write(path, json.dumps(data, indent=2) + "\n")
 
 
 def _append_jsonl(path: Path, record: Mapping[str, Any]) -> None:
@@ -502,9 +501,7 @@ def _truncate_jsonl(path: Path, step: int) -> None:
     if path.is_file():
         lines = [line for line in path.read_text().splitlines()
                  if line.strip() and json.loads(line)["step"] <= step]
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text("".join(line + "\n" for line in lines))
-        os.replace(tmp, path)
+        atomic_write(path, "".join(line + "\n" for line in lines))
 
 
 def check_resume(stored: TrainConfig, requested: TrainConfig) -> TrainConfig:
@@ -560,9 +557,8 @@ def _save(run: Path, model: DenseUNet, optimizer: torch.optim.Optimizer, step: i
     save_checkpoint(model, base, card)
     state = {"step": step, "elapsed": elapsed, "world_size": world,
              "optimizer": optimizer.state_dict()}
-    tmp = base.with_suffix(".pt.tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, base.with_suffix(".pt"))
+    with atomic_path(base.with_suffix(".pt")) as tmp:
+        torch.save(state, tmp)
     states = sorted((run / "checkpoints").glob(f"{_CKPT_PREFIX}*.pt"))
     for old in states[:-config.keep_checkpoints]:
         for suffix in (".pt", ".safetensors", ".json"):

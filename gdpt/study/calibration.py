@@ -1,0 +1,169 @@
+"""Sample counts that meet a time budget: a measured linear time model per method and scene
+(:class:`TimeModel`, :func:`calibrate`) and one timed cell (:func:`run_at_budget`)."""
+
+from __future__ import annotations
+
+import math
+import statistics
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from gdpt.study.methods import EvalMethod, MethodResult
+from gdpt.study.scenes import EvalScene
+
+
+# ------------------------------------------------------------------------------- calibration
+@dataclass
+class TimeModel:
+    """Linear cost model ``seconds(spp) = fixed + per_spp * spp`` of one method on one scene.
+
+    Attributes:
+        fixed: seconds independent of the sample count (reconstruction, launch overheads).
+        per_spp: seconds per sample per pixel.
+        measurements: the ``(spp, seconds)`` timings the model is fitted to (least squares).
+    """
+
+    fixed: float
+    per_spp: float
+    measurements: list[tuple[int, float]] = field(default_factory=list)
+
+    @classmethod
+    def fit(cls, measurements: list[tuple[int, float]]) -> TimeModel:
+        """Least-squares line through ``(spp, seconds)`` timings (at least one).
+
+        A non-positive slope (timing noise) falls back to the line through the origin and the
+        largest measurement; a negative intercept to the least-squares line through the origin.
+        """
+        spp = torch.tensor([m[0] for m in measurements], dtype=torch.float64)
+        sec = torch.tensor([m[1] for m in measurements], dtype=torch.float64)
+        slope = fixed = 0.0
+        if len(set(spp.tolist())) > 1:
+            ds = spp - spp.mean()
+            slope = float((ds * (sec - sec.mean())).sum() / ds.square().sum())
+            fixed = float(sec.mean()) - slope * float(spp.mean())
+        if slope <= 0:
+            largest = int(spp.argmax())
+            slope, fixed = float(sec[largest] / spp[largest]), 0.0
+        elif fixed < 0:
+            slope, fixed = float((spp * sec).sum() / spp.square().sum()), 0.0
+        return cls(fixed=fixed, per_spp=max(slope, 1e-9), measurements=list(measurements))
+
+    def spp_for(self, budget: float) -> int:
+        """The sample count whose predicted time is closest to ``budget`` (at least 1).
+
+        Extrapolation is capped at 16 times the through-origin estimate from the largest
+        measurement, so that a noisy fit cannot ask for an absurd sample count.
+        """
+        spp = round((budget - self.fixed) / self.per_spp)
+        if self.measurements:
+            s_max, t_max = max(self.measurements)
+            spp = min(spp, math.ceil(16 * s_max * budget / max(t_max, 1e-9)))
+        return max(1, spp)
+
+    def update(self, spp: int, seconds: float) -> None:
+        """Add a timing and refit."""
+        refit = TimeModel.fit([*self.measurements, (spp, seconds)])
+        self.fixed, self.per_spp, self.measurements = refit.fixed, refit.per_spp, refit.measurements
+
+
+def _run(method: EvalMethod, scene: EvalScene, spp: int, seed: int) -> MethodResult:
+    return method.run(scene, spp=spp, seed=seed)
+
+
+def calibrate(
+    method: EvalMethod, scene: EvalScene, *, budget: float, seed: int, repeats: int = 3,
+    probe_fraction: float = 0.5, max_probe_spp: int = 1 << 16,
+) -> TimeModel:
+    """Fit a :class:`TimeModel` by timing ``method`` on ``scene``.
+
+    Warms up at 1 and 2 spp (untimed: the kernels compile), takes the median of ``repeats``
+    1-spp runs, then raises the sample count geometrically (x2 to x8, aiming at the target)
+    until a run takes at least ``probe_fraction * budget`` (and at least two probes ran); the
+    least-squares line through these timings is the model.
+
+    Args:
+        method: the method.
+        scene: the scene.
+        budget: the smallest budget the model will be used for (seconds).
+        seed: seed of the calibration renders (their images are discarded).
+        repeats: number of 1-spp timings whose median is used.
+        probe_fraction: the probing stops at this fraction of ``budget``.
+        max_probe_spp: the probing stops at this sample count.
+
+    Returns:
+        The fitted model.
+
+    Raises:
+        MethodUnavailable: the method cannot run here.
+    """
+    _run(method, scene, 1, seed)
+    _run(method, scene, 2, seed)
+    t = statistics.median(_run(method, scene, 1, seed + i).seconds for i in range(repeats))
+    measurements = [(1, t)]
+    spp, target = 1, probe_fraction * budget
+    while (t < target or len(measurements) < 3) and spp < max_probe_spp:
+        spp = min(max_probe_spp, spp * min(8, max(2, round(target / max(t, 1e-6)))))
+        t = _run(method, scene, spp, seed + spp).seconds
+        measurements.append((spp, t))
+    return TimeModel.fit(measurements)
+
+
+def run_at_budget(
+    method: EvalMethod, scene: EvalScene, model: TimeModel, *, budget: float, seed: int,
+    tolerance: float = 0.2, max_rounds: int = 3,
+) -> tuple[MethodResult, dict[str, Any]]:
+    """Render ``method`` with the sample count that fills ``budget``, checking the time.
+
+    Renders at ``model.spp_for(budget)``; while the achieved time misses the budget by more
+    than ``tolerance`` (relative) and rounds remain, the per-spp cost is re-estimated from the
+    achieved time (:meth:`TimeModel.update`) and the cell rendered again. The run closest to
+    the budget is returned; the model keeps the last estimate.
+
+    Args:
+        method: the method.
+        scene: the scene.
+        model: its calibrated cost model.
+        budget: seconds.
+        seed: seed of the first attempt (attempt ``k`` uses ``seed + k``).
+        tolerance: accepted relative deviation.
+        max_rounds: renders at most.
+
+    Returns:
+        The chosen run and a record: ``spp``, ``seconds``, ``relative_error``, ``attempts``
+        (``[{"spp", "seconds", "seed", "compile_seconds"}]``), ``within_tolerance``,
+        ``over_budget_at_1spp``.
+    """
+    attempts: list[dict[str, Any]] = []
+    best: tuple[float, MethodResult, int, int] | None = None
+    spp = model.spp_for(budget)
+    for k in range(max_rounds):
+        result = _run(method, scene, spp, seed + k)
+        attempts.append({"spp": spp, "seconds": result.seconds, "seed": seed + k,
+                         "compile_seconds": result.compile_seconds})
+        error = abs(result.seconds - budget) / budget
+        if best is None or error < best[0]:
+            best = (error, result, spp, seed + k)
+        if error <= tolerance:
+            break
+        model.update(spp, result.seconds)
+        new_spp = model.spp_for(budget)
+        if new_spp == spp:
+            break
+        spp = new_spp
+    assert best is not None
+    error, result, spp, seed_used = best
+    record = {
+        "spp": spp,
+        "seed": seed_used,
+        "seconds": result.seconds,
+        "render_seconds": result.render_seconds,
+        "reconstruct_seconds": result.reconstruct_seconds,
+        "compile_seconds": result.compile_seconds,
+        "relative_error": (result.seconds - budget) / budget,
+        "within_tolerance": error <= tolerance,
+        "over_budget_at_1spp": spp == 1 and result.seconds > budget * (1 + tolerance),
+        "attempts": attempts,
+    }
+    return result, record

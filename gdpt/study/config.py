@@ -1,0 +1,89 @@
+"""Configuration of the equal-time study: :class:`EvaluateConfig` and its :data:`PRESETS`."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+#: Pixel filter the gradient-domain integrators need.
+
+#: Max depth used when neither the config nor the scene sets one.
+DEFAULT_MAX_DEPTH = 6
+
+
+@dataclass
+class EvaluateConfig:
+    """Options of :func:`evaluate`."""
+
+    budgets: tuple[float, ...] = (4.0, 16.0, 64.0)
+    """Wall-clock budgets in seconds (sampling + reconstruction) per image."""
+    resolution: int = 320
+    """Pixels on the long side of the film (the aspect ratio of the scene is kept)."""
+    reference_spp: int = 8192
+    """Samples per pixel of the path-traced reference."""
+    reference_chunk_spp: int = 256
+    """The reference is rendered and checkpointed in chunks of this many spp."""
+    max_depth: int | None = None
+    """Longest path; ``None`` uses the scene's integrator ``max_depth`` (else 6)."""
+    metrics: tuple[str, ...] = (
+        "relmse", "mse", "smape", "one_minus_ssim", "flip_hdr", "flip_ldr", "elpips"
+    )
+    """Names from :data:`gdpt.metrics.METRICS`; the first one ranks methods and is plotted."""
+    metric_options: dict[str, dict[str, Any]] = field(
+        default_factory=lambda: {"elpips": {"samples": 50}}
+    )
+    """Per-metric keyword options (only for metrics in ``metrics``)."""
+    methods: tuple[str, ...] = ()
+    """Names from :data:`gdpt.study.methods.EVAL_METHODS`; empty means all registered."""
+    seed: int = 0
+    """Base seed; every cell and the reference derive distinct seeds from it."""
+    tolerance: float = 0.2
+    """Relative deviation of the achieved time from the budget that triggers a re-render."""
+    max_rounds: int = 3
+    """Renders per cell at most (the first plus corrections)."""
+    probe_fraction: float = 0.5
+    """The calibration probe aims at this fraction of the smallest budget."""
+    reference_dir: Path | None = None
+    """Reference cache; ``None`` means ``<out>/references`` (share it between runs)."""
+    profile: str = "custom"
+    """Name of the preset this config came from (recorded only)."""
+
+    def __post_init__(self) -> None:
+        self.budgets = tuple(sorted(float(b) for b in self.budgets))
+        self.metrics = tuple(self.metrics)
+        self.methods = tuple(self.methods)
+        if not self.budgets or min(self.budgets) <= 0:
+            raise ValueError(f"budgets must be positive seconds, got {self.budgets}")
+        if self.resolution < 8:
+            raise ValueError(f"resolution must be >= 8 pixels, got {self.resolution}")
+        if self.reference_spp < 1 or self.reference_chunk_spp < 1:
+            raise ValueError("reference_spp and reference_chunk_spp must be >= 1")
+        if not self.metrics:
+            raise ValueError("at least one metric is needed")
+        # options of metrics not requested are dropped (e.g. elpips when --metrics omits it)
+        self.metric_options = {k: v for k, v in self.metric_options.items() if k in self.metrics}
+        if not 0 < self.tolerance < 1 or self.max_rounds < 1:
+            raise ValueError("tolerance must be in (0, 1) and max_rounds >= 1")
+
+    def to_json(self) -> dict[str, Any]:
+        """The config as a JSON-serialisable dict."""
+        out = dataclasses.asdict(self)
+        out["reference_dir"] = None if self.reference_dir is None else str(self.reference_dir)
+        return json.loads(json.dumps(out))  # tuples -> lists, as read back from results.json
+
+
+#: Named configurations. ``quick`` finishes in minutes on 2 CPU cores; ``full`` is for long runs.
+PRESETS: dict[str, EvaluateConfig] = {
+    "quick": EvaluateConfig(
+        budgets=(0.5, 1.0, 2.0),
+        resolution=128,
+        reference_spp=16384,
+        metrics=("relmse", "smape", "one_minus_ssim", "flip_ldr"),
+        metric_options={},
+        profile="quick",
+    ),
+    "full": EvaluateConfig(profile="full"),
+}

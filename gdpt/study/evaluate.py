@@ -1,0 +1,327 @@
+"""Equal-time evaluation: error against measured wall time, per scene, method and budget.
+
+For each scene and time budget, every method of :data:`gdpt.study.methods.EVAL_METHODS` gets the
+sample count whose *measured* render + reconstruction time matches the budget on this machine,
+in this run (calibrated by timing, never assumed), and its image is compared with a high-spp
+reference by the metrics of :mod:`gdpt.metrics`::
+
+    from gdpt.study.config import PRESETS
+    from gdpt.study.evaluate import evaluate
+
+    results = evaluate(["../shared/scenes/cornell-box"], "out/eval", PRESETS["quick"])
+
+Protocol, per scene:
+
+1. Load the scene at ``resolution`` pixels on the long side. Mitsuba XML scenes whose film uses
+   a non-box pixel filter get ``<rfilter type="box"/>`` (the gradient-domain integrators need
+   it); the override is recorded in the results and the report, and the reference uses the
+   same film, so every method is compared on the same image formation.
+2. Render the reference once: path tracing (``gdpt`` primal only) at ``reference_spp``, in
+   chunks whose running mean is saved, so an interrupted reference resumes; the finished file
+   is cached with its spp, seed and resolution in its name and metadata.
+3. Per method: warm up (1 and 2 spp, untimed, compiles the kernels), then fit
+   ``t(spp) = a + b * spp`` from a median of 1-spp runs and geometrically growing probe runs
+   (:func:`calibrate`), solve for each budget, render and check the achieved time; if it is off
+   by more than ``tolerance`` the model is corrected and the cell rendered again
+   (``max_rounds`` times at most). Achieved times, every attempt and kernel compilation
+   (excluded from the times) are recorded.
+4. Metrics of every cell; ``results.json`` is rewritten after each cell, so an interrupted run
+   resumes without recomputing finished cells.
+
+Failures are data: a scene that fails to load or render, or a method that cannot run (package
+missing, no shipped model), is recorded with the reason and the study continues.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from gdpt.study.calibration import calibrate, run_at_budget
+from gdpt.study.config import PRESETS, EvaluateConfig
+from gdpt.study.methods import EVAL_METHODS, EvalMethod, MethodUnavailable
+from gdpt.study.references import reference_seed, render_reference
+from gdpt.study.results import (
+    CONVENTIONS,
+    budget_key,
+    cell_seed,
+    finite,
+    load_results,
+    machine_info,
+    versions,
+    write_json,
+)
+from gdpt.study.scenes import EvalScene, SceneSpec, load_eval_scene, resolve_scenes
+
+
+def _method_list(cfg: EvaluateConfig) -> list[str]:
+    names = list(cfg.methods or EVAL_METHODS)
+    for name in names:
+        if name not in EVAL_METHODS:
+            raise ValueError(f"unknown method {name!r}; valid: {', '.join(EVAL_METHODS)}")
+    return names
+
+
+def _as_specs(scenes: Sequence[str | os.PathLike[str] | SceneSpec]) -> list[SceneSpec]:
+    specs: list[SceneSpec] = []
+    for item in scenes:
+        specs += [item] if isinstance(item, SceneSpec) else resolve_scenes([item])
+    return specs
+
+
+def _study_reference(scene: EvalScene, spec: SceneSpec, cfg: EvaluateConfig, cache: Path,
+                     bar: Any) -> tuple[torch.Tensor, dict[str, Any]]:
+    """:func:`render_reference` with the study's settings (shared by every entry point)."""
+    return render_reference(
+        scene, cache, spp=cfg.reference_spp, chunk_spp=cfg.reference_chunk_spp,
+        seed=reference_seed(cfg.seed), source=spec.source, progress=bar,
+    )
+
+
+def evaluate(
+    scenes: Sequence[str | os.PathLike[str] | SceneSpec],
+    out_dir: str | os.PathLike[str],
+    cfg: EvaluateConfig | None = None,
+    *,
+    progress: bool = True,
+    report: bool = True,
+    command: str | None = None,
+) -> dict[str, Any]:
+    """Run the equal-time study and write its report into ``out_dir``.
+
+    Args:
+        scenes: scene arguments (see :func:`resolve_scenes`) or specs.
+        out_dir: report folder; an existing ``results.json`` there is resumed.
+        cfg: options; default :data:`PRESETS` ``["full"]``.
+        progress: show a progress bar over all cells of the study.
+        report: write ``results.md``, plots, crops and ``index.html`` at the end.
+        command: the command line that started the run (recorded in the results).
+
+    Returns:
+        The content of ``results.json``.
+
+    Raises:
+        ValueError: unknown methods or metrics, or ``out_dir`` holds an incompatible study.
+    """
+    import drjit as dr
+    from tqdm.auto import tqdm
+
+    from gdpt.backend import ensure_variant
+    from gdpt.metrics import METRICS
+
+    cfg = cfg or PRESETS["full"]
+    METRICS.check(cfg.metrics)
+    methods = _method_list(cfg)
+    specs = _as_specs(scenes)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "images").mkdir(exist_ok=True)
+    results_path = out / "results.json"
+    results = load_results(results_path, cfg)
+
+    ensure_variant()
+    results.update(
+        config=cfg.to_json(), machine=machine_info(), versions=versions(),
+        conventions=CONVENTIONS,
+        methods={m: _method_info(EVAL_METHODS[m]) for m in methods},
+        protocol=(
+            "per scene and budget, each method's spp is calibrated by timing on this machine "
+            "in this run (t = a + b*spp fitted to 1-spp medians and growing probes, then "
+            f"verified and re-rendered if off by more than {cfg.tolerance:.0%}); reference: "
+            f"path tracing at {cfg.reference_spp} spp on the same box-filtered film"
+        ),
+    )
+    results["runs"].append({"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                            "command": command, "scenes": [s.source for s in specs]})
+    cache = Path(cfg.reference_dir) if cfg.reference_dir else out / "references"
+
+    total = len(specs) * len(methods) * len(cfg.budgets)
+    bar = tqdm(total=total, unit="cell", desc="evaluate", disable=not progress,
+               dynamic_ncols=True)
+    history_flag = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        for spec in specs:
+            _evaluate_scene(spec, methods, cfg, results, results_path, cache, out, bar)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, history_flag)
+        bar.close()
+        results["runs"][-1]["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        if hasattr(os, "getloadavg"):
+            results["machine"]["loadavg_at_end"] = list(os.getloadavg())
+        write_json(results_path, results)
+    if report:
+        from gdpt.study.report import write_report
+
+        write_report(results, out)
+    return results
+
+
+def render_references(
+    scenes: Sequence[str | os.PathLike[str] | SceneSpec],
+    cache_dir: str | os.PathLike[str],
+    cfg: EvaluateConfig | None = None,
+    *,
+    progress: bool = True,
+) -> dict[str, str]:
+    """Render (or finish) the cached references of a study without timing anything.
+
+    References take most of a study's compute but no timing, so they can be rendered while the
+    machine is busy; the timed cells (:func:`evaluate` with ``reference_dir=cache_dir``) then
+    run later on an idle machine and find them cached.
+
+    Args:
+        scenes: as for :func:`evaluate`.
+        cache_dir: reference cache folder (:func:`render_reference`).
+        cfg: options (``resolution``, ``max_depth``, ``reference_spp``, ``reference_chunk_spp``,
+            ``seed``); default :data:`PRESETS` ``["full"]``.
+        progress: show a progress bar over the scenes.
+
+    Returns:
+        Scene name -> path of its reference EXR, or ``"failed: <error>"`` for a scene that does
+        not load or render (the others still run).
+    """
+    from tqdm.auto import tqdm
+
+    cfg = cfg or PRESETS["full"]
+    specs = _as_specs(scenes)
+    done: dict[str, str] = {}
+    bar = tqdm(specs, unit="scene", desc="references", disable=not progress, dynamic_ncols=True)
+    for spec in bar:
+        try:
+            scene = load_eval_scene(spec, resolution=cfg.resolution, max_depth=cfg.max_depth)
+            _, meta = _study_reference(scene, spec, cfg, Path(cache_dir), bar)
+            done[spec.name] = meta["path"]
+        except Exception as err:  # reported, the other scenes still run
+            done[spec.name] = f"failed: {type(err).__name__}: {err}"
+    return done
+
+
+def _method_info(method: EvalMethod) -> dict[str, Any]:
+    reason = method.check()
+    return {"description": method.description, "available": reason is None, "note": reason}
+
+
+def _scene_done(entry: dict[str, Any], methods: list[str], cfg: EvaluateConfig) -> bool:
+    if entry.get("status") != "ok":
+        return False
+    for m in methods:
+        info = entry["methods"].get(m, {})
+        # skipped because unavailable (package, model): done; skipped after an error: retried
+        if info.get("status") == "skipped" and EVAL_METHODS[m].check() is not None:
+            continue
+        if any(budget_key(b) not in info.get("cells", {}) for b in cfg.budgets):
+            return False
+    return True
+
+
+def _evaluate_scene(
+    spec: SceneSpec, methods: list[str], cfg: EvaluateConfig, results: dict[str, Any],
+    results_path: Path, cache: Path, out: Path, bar: Any,
+) -> None:
+    """Reference, calibration and cells of one scene (results updated and saved in place)."""
+    entry = results["scenes"].setdefault(spec.name, {"source": spec.source, "methods": {}})
+    entry.setdefault("methods", {})
+    if _scene_done(entry, methods, cfg):
+        bar.update(len(methods) * len(cfg.budgets))
+        return
+    stage = "load"
+    try:
+        bar.set_postfix_str(f"{spec.name}: loading")
+        scene = load_eval_scene(spec, resolution=cfg.resolution, max_depth=cfg.max_depth)
+        entry.update(resolution=list(scene.resolution), max_depth=scene.max_depth,
+                     notes=scene.notes, film_filter=scene.film_filter)
+        stage = "reference"
+        reference, ref_meta = _study_reference(scene, spec, cfg, cache, bar)
+    except Exception as err:  # a broken scene is a result, not the end of the study
+        entry.update(status="failed", stage=stage, error=f"{type(err).__name__}: {err}")
+        entry.pop("reference", None)
+        write_json(results_path, results)
+        bar.update(len(methods) * len(cfg.budgets))
+        return
+    entry.update(status="ok", reference=ref_meta)
+    entry.pop("error", None)
+    entry.pop("stage", None)
+    write_json(results_path, results)
+    image_dir = out / "images" / spec.name
+    image_dir.mkdir(parents=True, exist_ok=True)
+    from gdpt.io.exr import save_image
+    from gdpt.io.images import save_png
+
+    save_image(image_dir / "reference.exr", reference, metadata=ref_meta, force=True)
+    save_png(image_dir / "reference.png", reference, force=True)
+    for name in methods:
+        _evaluate_method(EVAL_METHODS[name], scene, reference, cfg, entry, results,
+                         results_path, image_dir, bar)
+
+
+def _evaluate_method(
+    method: EvalMethod, scene: EvalScene, reference: torch.Tensor, cfg: EvaluateConfig,
+    entry: dict[str, Any], results: dict[str, Any], results_path: Path, image_dir: Path,
+    bar: Any,
+) -> None:
+    """Calibrate one method on one scene and fill its missing budget cells."""
+    from gdpt.io.exr import save_image
+    from gdpt.io.images import save_png
+    from gdpt.metrics import compute_metrics
+
+    info = entry["methods"].setdefault(method.name, {"cells": {}})
+    info.setdefault("cells", {})
+    todo = [b for b in cfg.budgets if budget_key(b) not in info["cells"]]
+    bar.update(len(cfg.budgets) - len(todo))
+    if not todo:
+        return
+    bar.set_postfix_str(f"{scene.name}/{method.name}: calibrating")
+    reason = method.check()
+    model = None
+    if reason is None:
+        try:
+            seed = cell_seed(cfg.seed, scene.name, method.name, "calibration")
+            model = calibrate(method, scene, budget=min(todo), seed=seed,
+                              probe_fraction=cfg.probe_fraction)
+        except MethodUnavailable as err:
+            reason = str(err)
+        except Exception as err:  # e.g. a model that fails to load, an unsupported plugin
+            reason = f"could not run: {type(err).__name__}: {' '.join(str(err).split())}"
+    if model is None:
+        info.update(status="skipped", note=reason)
+        write_json(results_path, results)
+        bar.update(len(todo))
+        return
+    info.update(status="ok", note=None, calibration=dataclasses.asdict(model))
+    for budget in todo:
+        key = budget_key(budget)
+        bar.set_postfix_str(f"{scene.name}/{method.name}: {key} s")
+        seed = cell_seed(cfg.seed, scene.name, method.name, key)
+        try:
+            result, record = run_at_budget(method, scene, model, budget=budget, seed=seed,
+                                           tolerance=cfg.tolerance, max_rounds=cfg.max_rounds)
+        except Exception as err:  # e.g. out of memory at a large spp: report, retry on resume
+            info.setdefault("errors", {})[key] = f"{type(err).__name__}: {err}"
+            write_json(results_path, results)
+            bar.update(1)
+            continue
+        info.get("errors", {}).pop(key, None)
+        metrics = compute_metrics(result.image, reference, cfg.metrics,
+                                  options=cfg.metric_options)
+        record.update(
+            budget=budget,
+            metrics={k: finite(v) for k, v in metrics.values.items()},
+            skipped_metrics=metrics.skipped,
+            nonfinite_pixels=int((~torch.isfinite(result.image)).any(-1).sum()),
+            image=f"images/{scene.name}/{method.name}-{key}s.exr",
+        )
+        save_image(image_dir / f"{method.name}-{key}s.exr", result.image,
+                   metadata={"method": method.name, "spp": record["spp"], "budget": budget,
+                             "seed": record["seed"]}, force=True)
+        save_png(image_dir / f"{method.name}-{key}s.png", result.image, force=True)
+        info["cells"][key] = record
+        info["calibration"] = dataclasses.asdict(model)
+        write_json(results_path, results)
+        bar.update(1)

@@ -1,0 +1,114 @@
+"""The ``results.json`` schema: format tag, machine and version records, conventions, seeds,
+resumable loading and the atomic write."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import sys
+import zlib
+from importlib import metadata as importlib_metadata
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from gdpt.io.atomic import atomic_write
+from gdpt.study.config import EvaluateConfig
+
+RESULTS_FORMAT = "gdpt-evaluate/1"
+
+
+#: Config fields that must match for a run directory to be resumed.
+_RESUME_KEYS = ("resolution", "reference_spp", "seed", "max_depth", "metrics", "metric_options")
+
+
+# ---------------------------------------------------------------------------------- the study
+def machine_info() -> dict[str, Any]:
+    """CPU model, core counts, memory, OS, load average (a shared machine skews timings)."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    memory = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal"):
+                memory = round(int(line.split()[1]) / 2**20, 1)
+    except OSError:
+        pass
+    affinity = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+    return {
+        "cpu": cpu,
+        "logical_cores": os.cpu_count(),
+        "usable_cores": affinity,
+        "memory_gib": memory,
+        "platform": platform.platform(),
+        "python": sys.version.split()[0],
+        "torch_threads": torch.get_num_threads(),
+        "loadavg_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+    }
+
+
+def versions() -> dict[str, str | None]:
+    """Versions of gdpt and the packages that influence the numbers."""
+    out: dict[str, str | None] = {}
+    for dist in ("gdpt", "mitsuba", "drjit", "torch", "numpy", "pyoidn", "flip-evaluator"):
+        try:
+            out[dist] = importlib_metadata.version(dist)
+        except importlib_metadata.PackageNotFoundError:
+            out[dist] = None
+    return out
+
+
+#: Metric conventions stated in the results (see :mod:`gdpt.metrics`).
+CONVENTIONS = {
+    "relmse": "mean (p - r)^2 / (1e-3 + mean_c(r)^2): NGPT convention, greyscale reference",
+    "mse": "mean (p - r)^2 over pixels and channels, linear HDR",
+    "smape": "mean |p - r| / (|p| + |r| + 1e-2): OIDN convention",
+    "one_minus_ssim": "1 - SSIM (11x11 Gaussian, sigma 1.5) on sRGB(clamp(Reinhard(x)))",
+    "flip_hdr": "mean HDR-FLIP (flip-evaluator, ACES, ppd 67.02)",
+    "flip_ldr": "mean LDR-FLIP (flip-evaluator) on sRGB(clamp(Reinhard(x)))",
+    "elpips": "E-LPIPS (weights from GDPT_ELPIPS_WEIGHTS) on sRGB(clamp(Reinhard(x)))",
+    "seconds": "wall time of sampling + reconstruction, kernel compilation excluded",
+}
+
+
+def cell_seed(base: int, *parts: str) -> int:
+    return (base * 1_000_003 + zlib.crc32("/".join(parts).encode())) % 2**31
+
+
+def budget_key(budget: float) -> str:
+    return f"{budget:g}"
+
+
+def finite(value: float) -> float | None:
+    return value if math.isfinite(value) else None
+
+
+def write_json(path: Path, data: dict[str, Any]) -> None:
+    """Write ``data`` atomically (a crash leaves the previous file intact)."""
+    atomic_write(path, json.dumps(data, indent=1))
+
+
+def load_results(path: Path, cfg: EvaluateConfig) -> dict[str, Any]:
+    """The previous ``results.json`` if compatible with ``cfg``, else a new skeleton."""
+    if path.is_file():
+        old = json.loads(path.read_text())
+        if old.get("format") != RESULTS_FORMAT:
+            raise ValueError(f"{path} is not a gdpt evaluation ({old.get('format')!r})")
+        new = cfg.to_json()
+        diff = [k for k in _RESUME_KEYS if old["config"].get(k) != new.get(k)]
+        if diff:
+            raise ValueError(
+                f"{path} was made with different settings ({', '.join(diff)}); use another "
+                "--out folder or delete it"
+            )
+        return old
+    return {"format": RESULTS_FORMAT, "scenes": {}, "runs": []}
