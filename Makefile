@@ -6,7 +6,7 @@ PY     := $(VENV)/bin/python
 TORCH_SPEC ?= torch==2.13.0
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup test test-all demo bench clean
+.PHONY: setup lint test test-all demo bench clean
 
 $(STAMP): pyproject.toml Makefile tools/ensure_llvm.sh
 	@tools/ensure_llvm.sh >/dev/null
@@ -18,14 +18,18 @@ $(STAMP): pyproject.toml Makefile tools/ensure_llvm.sh
 
 setup: $(STAMP)
 
-test: $(STAMP)
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+test: $(STAMP) lint
 	$(PY) -m pytest -m "not slow" -q
 
 test-all: $(STAMP)
 	$(PY) -m pytest -q
 
 demo: $(STAMP)
-	$(PY) -m gdpt.cli demo --out out/demo --force
+	$(PY) -m gdpt demo --out out/demo --force
 
 bench: $(STAMP)
 	$(PY) benchmarks/poisson.py

@@ -34,7 +34,6 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-
 from gdpt.reconstruct.dense_unet import CONFIGS, build_model, parameter_count
 from gdpt.reconstruct.ngpt import NGPTReconstructor
 
@@ -66,32 +65,44 @@ def conv_peak_task() -> tuple[Callable[[], object], float]:
 def synthetic_buffers(height: int, width: int) -> dict[str, torch.Tensor]:
     """A smooth HDR image with noise, its forward differences and plausible features."""
     gen = torch.Generator().manual_seed(0)
-    yy, xx = torch.meshgrid(torch.linspace(0, 6, height), torch.linspace(0, 10, width),
-                            indexing="ij")
+    yy, xx = torch.meshgrid(
+        torch.linspace(0, 6, height), torch.linspace(0, 10, width), indexing="ij"
+    )
     base = (2 + torch.sin(xx) * torch.cos(yy)).unsqueeze(-1) * torch.tensor([1.0, 0.8, 0.6])
     primal = (base * torch.rand(height, width, 3, generator=gen) * 2).contiguous()
     dx, dy = torch.zeros_like(base), torch.zeros_like(base)
     dx[:, :-1] = base[:, 1:] - base[:, :-1]
     dy[:-1] = base[1:] - base[:-1]
     normal = F.normalize(torch.rand(height, width, 3, generator=gen) * 2 - 1, dim=-1)
-    return {"primal": primal, "dx": dx, "dy": dy,
-            "albedo": torch.rand(height, width, 3, generator=gen), "normal": normal,
-            "depth": 1 + yy.unsqueeze(-1).contiguous()}
+    return {
+        "primal": primal,
+        "dx": dx,
+        "dy": dy,
+        "albedo": torch.rand(height, width, 3, generator=gen),
+        "normal": normal,
+        "depth": 1 + yy.unsqueeze(-1).contiguous(),
+    }
 
 
 def oidn_task(buffers: dict[str, torch.Tensor]) -> Callable[[], object]:
     """``pyoidn.denoise`` (HDR, albedo + normal, quality high) on the synthetic buffers."""
     import pyoidn
 
-    color, albedo, normal = (buffers[k].numpy().astype(np.float32)
-                             for k in ("primal", "albedo", "normal"))
+    color, albedo, normal = (
+        buffers[k].numpy().astype(np.float32) for k in ("primal", "albedo", "normal")
+    )
     return lambda: pyoidn.denoise(color, albedo=albedo, normal=normal, hdr=True, quality="high")
 
 
 def _git_commit() -> str:
     try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                             cwd=Path(__file__).parent, check=False)
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=Path(__file__).parent,
+            check=False,
+        )
         return out.stdout.strip() or "unknown"
     except OSError:
         return "unknown"
@@ -135,8 +146,7 @@ def main() -> None:
         rec = NGPTReconstructor(model, tile_size=args.tile_size or None)
         ph = h + 2 * rec.margin + (-(h + 2 * rec.margin) % rec.alignment)
         pw = w + 2 * rec.margin + (-(w + 2 * rec.margin) % rec.alignment)
-        executed = sum(model.flops(y1 - y0, x1 - x0)
-                       for _, (y0, y1, x0, x1) in rec.tiles(ph, pw))
+        executed = sum(model.flops(y1 - y0, x1 - x0) for _, (y0, y1, x0, x1) in rec.tiles(ph, pw))
         info[name] = (parameter_count(model), model.flops(h, w), executed)
         tasks[name] = lambda rec=rec: rec(buffers)
     # Warm up everything, then time in interleaved rounds so that a change in the load of the
@@ -146,8 +156,10 @@ def main() -> None:
     rounds: list[dict[str, float]] = []
     for r in range(args.repeats):
         rounds.append({name: _time(fn) for name, fn in tasks.items()})
-        print(f"  round {r + 1}: " + ", ".join(f"{k} {v:.2f} s" for k, v in rounds[-1].items()),
-              flush=True)
+        print(
+            f"  round {r + 1}: " + ", ".join(f"{k} {v:.2f} s" for k, v in rounds[-1].items()),
+            flush=True,
+        )
 
     def med(fn: Callable[[dict[str, float]], float]) -> float:
         return statistics.median(fn(rd) for rd in rounds)
@@ -157,29 +169,41 @@ def main() -> None:
     rows = []
     for name in args.configs:
         params, image_flops, executed = info[name]
-        rows.append({
-            "config": name, "parameters": params,
-            "gflop_image": image_flops / 1e9, "gflop_executed": executed / 1e9,
-            "seconds": med(lambda rd, n=name: rd[n]),
-            "times": [rd[name] for rd in rounds],
-            "gflops_achieved": med(lambda rd, n=name, e=executed: e / rd[n] / 1e9),
-            "fraction_of_peak": med(
-                lambda rd, n=name, e=executed: e / rd[n] / (peak_flops / rd["peak"])),
-            "ratio_to_oidn": None if oidn is None else med(
-                lambda rd, n=name: rd[n] / rd["oidn"]),
-        })
+        rows.append(
+            {
+                "config": name,
+                "parameters": params,
+                "gflop_image": image_flops / 1e9,
+                "gflop_executed": executed / 1e9,
+                "seconds": med(lambda rd, n=name: rd[n]),
+                "times": [rd[name] for rd in rounds],
+                "gflops_achieved": med(lambda rd, n=name, e=executed: e / rd[n] / 1e9),
+                "fraction_of_peak": med(
+                    lambda rd, n=name, e=executed: e / rd[n] / (peak_flops / rd["peak"])
+                ),
+                "ratio_to_oidn": None
+                if oidn is None
+                else med(lambda rd, n=name: rd[n] / rd["oidn"]),
+            }
+        )
 
-    print(f"\nNGPT inference at {w}x{h}, {torch.get_num_threads()} threads, "
-          f"tiles: {args.tile_size or 'none'}; conv peak {peak:.0f} GFLOP/s; "
-          f"OIDN high: {'-' if oidn is None else f'{oidn:.2f} s'}\n")
-    print("| config | params (M) | GFLOP (image) | GFLOP (executed) | time (s) | GFLOP/s "
-          "| % of conv peak | time / OIDN |")
+    print(
+        f"\nNGPT inference at {w}x{h}, {torch.get_num_threads()} threads, "
+        f"tiles: {args.tile_size or 'none'}; conv peak {peak:.0f} GFLOP/s; "
+        f"OIDN high: {'-' if oidn is None else f'{oidn:.2f} s'}\n"
+    )
+    print(
+        "| config | params (M) | GFLOP (image) | GFLOP (executed) | time (s) | GFLOP/s "
+        "| % of conv peak | time / OIDN |"
+    )
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         ratio = "-" if r["ratio_to_oidn"] is None else f"{r['ratio_to_oidn']:.2f}"
-        print(f"| {r['config']} | {r['parameters'] / 1e6:.2f} | {r['gflop_image']:.0f} "
-              f"| {r['gflop_executed']:.0f} | {r['seconds']:.2f} | {r['gflops_achieved']:.0f} "
-              f"| {100 * r['fraction_of_peak']:.0f} | {ratio} |")
+        print(
+            f"| {r['config']} | {r['parameters'] / 1e6:.2f} | {r['gflop_image']:.0f} "
+            f"| {r['gflop_executed']:.0f} | {r['seconds']:.2f} | {r['gflops_achieved']:.0f} "
+            f"| {100 * r['fraction_of_peak']:.0f} | {ratio} |"
+        )
     if oidn is not None:
         print(f"| OIDN 'high' (pyoidn) | - | - | - | {oidn:.2f} | - | - | 1.00 |")
 
@@ -188,14 +212,23 @@ def main() -> None:
             "benchmark": "ngpt_inference",
             "metadata": {
                 "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
-                "commit": _git_commit(), "torch": torch.__version__,
-                "python": platform.python_version(), "cpu": _cpu_model(),
-                "threads": torch.get_num_threads(), "load_average_before": load_before,
-                "load_average_after": os.getloadavg(), "height": h, "width": w,
-                "repeats": args.repeats, "tile_size": args.tile_size or None,
+                "commit": _git_commit(),
+                "torch": torch.__version__,
+                "python": platform.python_version(),
+                "cpu": _cpu_model(),
+                "threads": torch.get_num_threads(),
+                "load_average_before": load_before,
+                "load_average_after": os.getloadavg(),
+                "height": h,
+                "width": w,
+                "repeats": args.repeats,
+                "tile_size": args.tile_size or None,
             },
-            "conv_peak_gflops": peak, "conv_peak_shape": list(_CONV_SHAPE),
-            "oidn_seconds": oidn, "rounds": rounds, "results": rows,
+            "conv_peak_gflops": peak,
+            "conv_peak_shape": list(_CONV_SHAPE),
+            "oidn_seconds": oidn,
+            "rounds": rounds,
+            "results": rows,
         }
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=2) + "\n")

@@ -26,7 +26,6 @@ from typing import Any
 
 import numpy as np
 import torch
-
 from gdpt.reconstruct import poisson
 
 

@@ -52,8 +52,9 @@ def main() -> None:
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
 
-    import gdpt
     import mitsuba as mi
+
+    import gdpt
     from gdpt.scene_io import load_scene
 
     variant = gdpt.set_variant()
@@ -68,7 +69,9 @@ def main() -> None:
             label: mi.load_dict({**props, "max_depth": args.max_depth})
             for label, props in INTEGRATORS.items()
         }
-        first = {label: _time_render(scene, i, args.spp, seed=0) for label, i in integrators.items()}
+        first = {
+            label: _time_render(scene, i, args.spp, seed=0) for label, i in integrators.items()
+        }
         runs = {label: [] for label in integrators}
         for r in range(args.repeats):
             for label, integrator in integrators.items():
@@ -87,18 +90,25 @@ def main() -> None:
             }
         rows.append({"scene": name, "pixels": pixels, "times": times})
 
-    print(f"\n{variant}, {args.resolution} px long side, {args.spp} spp, max_depth "
-          f"{args.max_depth}, {args.repeats} interleaved rounds (compile time excluded)\n")
+    print(
+        f"\n{variant}, {args.resolution} px long side, {args.spp} spp, max_depth "
+        f"{args.max_depth}, {args.repeats} interleaved rounds (compile time excluded)\n"
+    )
     print("| scene | integrator | ns / sample | ratio to path (IQR) | compile [s] |")
     print("|---|---|---:|---:|---:|")
     for row in rows:
         for label, t in row["times"].items():
             q1, q3 = t["ratio_iqr"]
-            print(f"| {row['scene']} | {label} | {t['ns_per_sample']:.0f} | "
-                  f"{t['ratio_to_path']:.2f} ({q1:.2f}-{q3:.2f}) | {t['compile_seconds']:.1f} |")
+            print(
+                f"| {row['scene']} | {label} | {t['ns_per_sample']:.0f} | "
+                f"{t['ratio_to_path']:.2f} ({q1:.2f}-{q3:.2f}) | {t['compile_seconds']:.1f} |"
+            )
     if args.json:
-        meta = {"variant": variant, "machine": platform.processor() or platform.machine(),
-                "args": {k: str(v) for k, v in vars(args).items()}}
+        meta = {
+            "variant": variant,
+            "machine": platform.processor() or platform.machine(),
+            "args": {k: str(v) for k, v in vars(args).items()},
+        }
         args.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
 
 

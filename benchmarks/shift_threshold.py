@@ -53,8 +53,14 @@ def main() -> None:
 
     def run(threshold: float, seed: int):
         start = time.perf_counter()
-        b = gdpt.render(scene, spp=args.spp, seed=seed, max_depth=args.max_depth,
-                        features=False, shift_threshold=threshold)
+        b = gdpt.render(
+            scene,
+            spp=args.spp,
+            seed=seed,
+            max_depth=args.max_depth,
+            features=False,
+            shift_threshold=threshold,
+        )
         dr.sync_thread()
         return time.perf_counter() - start, b
 
@@ -76,17 +82,22 @@ def main() -> None:
     for t, s in stats.items():
         rows.append({"threshold": t, **{k: statistics.median(v) for k, v in s.items()}})
     base = rows[0]
-    print(f"\n{args.scene}, {args.resolution} px, {args.spp} spp, max_depth {args.max_depth}, "
-          f"median of {args.repeats} seeds; reference: path {args.reference_spp} spp\n")
+    print(
+        f"\n{args.scene}, {args.resolution} px, {args.spp} spp, max_depth {args.max_depth}, "
+        f"median of {args.repeats} seeds; reference: path {args.reference_spp} spp\n"
+    )
     print("| shift_threshold | gradient MSE | ratio | L1 relMSE | ratio | render s | ratio |")
     print("|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['threshold']:g} | {r['mse_grad']:.3e} | {r['mse_grad'] / base['mse_grad']:.2f} "
-              f"| {r['relmse_l1']:.3e} | {r['relmse_l1'] / base['relmse_l1']:.2f} "
-              f"| {r['seconds']:.3f} | {r['seconds'] / base['seconds']:.2f} |")
+        print(
+            f"| {r['threshold']:g} | {r['mse_grad']:.3e} | {r['mse_grad'] / base['mse_grad']:.2f} "
+            f"| {r['relmse_l1']:.3e} | {r['relmse_l1'] / base['relmse_l1']:.2f} "
+            f"| {r['seconds']:.3f} | {r['seconds'] / base['seconds']:.2f} |"
+        )
     if args.json:
-        args.json.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
-                                         "rows": rows}, indent=2))
+        args.json.write_text(
+            json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "rows": rows}, indent=2)
+        )
     if args.png:
         import matplotlib
 
@@ -96,8 +107,12 @@ def main() -> None:
         ts = [r["threshold"] for r in rows]
         fig, ax = plt.subplots(figsize=(5, 3.2))
         ax.plot(ts, [r["mse_grad"] / base["mse_grad"] for r in rows], "o-", label="gradient MSE")
-        ax.plot(ts, [r["relmse_l1"] / base["relmse_l1"] for r in rows], "s-",
-                label="L1 reconstruction relMSE")
+        ax.plot(
+            ts,
+            [r["relmse_l1"] / base["relmse_l1"] for r in rows],
+            "s-",
+            label="L1 reconstruction relMSE",
+        )
         ax.set_xscale("log")
         ax.set_xlabel("shift_threshold")
         ax.set_ylabel(f"relative to {base['threshold']:g}")

@@ -193,7 +193,7 @@ def _on_variant_change(old: str | None, new: str | None) -> None:
 
 def _install_variant_callback(mi: ModuleType) -> None:
     """Install :func:`_on_variant_change` as a Mitsuba variant callback (once per process)."""
-    global _callback_installed
+    global _callback_installed  # noqa: PLW0603 (one flag per process)
     if not _callback_installed:
         mi.detail.add_variant_callback(_on_variant_change)
         _callback_installed = True

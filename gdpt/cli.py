@@ -138,7 +138,9 @@ def _run_reconstruct(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------- render
 def _add_render_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("scene", help="Mitsuba XML file, builtin:NAME or random:SEED[:VIEW] (see gdpt.scene_io)")
+    parser.add_argument(
+        "scene", help="Mitsuba XML file, builtin:NAME or random:SEED[:VIEW] (see gdpt.scene_io)"
+    )
     parser.add_argument("-o", "--output", type=Path, required=True, help="output buffers EXR")
     parser.add_argument("--spp", type=int, default=64, help="samples per pixel (default: 64)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
@@ -159,8 +161,14 @@ def _run_render(args: argparse.Namespace) -> int:
     check_writable(args.output, force=args.force)
     scene = load_scene(args.scene)
     buffers = render(
-        scene, spp=args.spp, seed=args.seed, integrator=args.integrator, progress=True,
-        max_depth=args.max_depth, gradients=not args.no_gradients, variance=args.variance,
+        scene,
+        spp=args.spp,
+        seed=args.seed,
+        integrator=args.integrator,
+        progress=True,
+        max_depth=args.max_depth,
+        gradients=not args.no_gradients,
+        variance=args.variance,
     )
     args.output.parent.mkdir(parents=True, exist_ok=True)
     save_buffers(args.output, buffers, half=args.half, force=args.force)
@@ -172,45 +180,68 @@ def _run_render(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------------------- demo
 def _add_demo_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
-    parser.add_argument("--budget", type=float, default=2.0,
-                        help="seconds of sampling + reconstruction per image (default: 2)")
+    parser.add_argument(
+        "--budget",
+        type=float,
+        default=2.0,
+        help="seconds of sampling + reconstruction per image (default: 2)",
+    )
     parser.add_argument("--resolution", type=int, default=192, help="image width and height")
-    parser.add_argument("--reference-spp", type=int, default=4096,
-                        help="path-traced reference spp (default: 4096)")
+    parser.add_argument(
+        "--reference-spp", type=int, default=4096, help="path-traced reference spp (default: 4096)"
+    )
     parser.add_argument("--force", action="store_true", help="overwrite an earlier demo's outputs")
 
 
 def _run_demo(args: argparse.Namespace) -> int:
     from gdpt.study.demo import DemoConfig, run_demo
 
-    run_demo(DemoConfig(out=args.out, budget=args.budget, resolution=args.resolution,
-                        reference_spp=args.reference_spp, force=args.force))
+    run_demo(
+        DemoConfig(
+            out=args.out,
+            budget=args.budget,
+            resolution=args.resolution,
+            reference_spp=args.reference_spp,
+            force=args.force,
+        )
+    )
     return 0
 
 
 # ------------------------------------------------------------------------------------ evaluate
 def _add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--scenes", nargs="+", required=True, metavar="SCENE",
+        "--scenes",
+        nargs="+",
+        required=True,
+        metavar="SCENE",
         help="scene folders/XML files, a folder of <name>/scene.xml, builtin:NAME or "
         "random:SEED[:VIEW]; comma-separated lists work too",
     )
     parser.add_argument("--out", type=Path, required=True, help="report folder (resumed)")
-    parser.add_argument("--quick", action="store_true",
-                        help="quick profile: small budgets and resolution, minutes on 2 cores")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="quick profile: small budgets and resolution, minutes on 2 cores",
+    )
     parser.add_argument("--budgets", type=float, nargs="+", help="time budgets in seconds")
     parser.add_argument("--resolution", type=int, help="pixels on the long side")
     parser.add_argument("--methods", nargs="+", help="methods to compare (default: all)")
     parser.add_argument("--metrics", nargs="+", help="metrics; the first one ranks methods")
     parser.add_argument("--reference-spp", type=int, help="samples per pixel of the reference")
-    parser.add_argument("--max-depth", type=int,
-                        help="longest path (default: the scene's own setting, else 6)")
+    parser.add_argument(
+        "--max-depth", type=int, help="longest path (default: the scene's own setting, else 6)"
+    )
     parser.add_argument("--seed", type=int, help="base seed")
-    parser.add_argument("--references", type=Path,
-                        help="reference cache folder (default: OUT/references)")
-    parser.add_argument("--references-only", action="store_true",
-                        help="only render the cached references (no timing: safe on a busy "
-                        "machine); run again without it on an idle machine for the cells")
+    parser.add_argument(
+        "--references", type=Path, help="reference cache folder (default: OUT/references)"
+    )
+    parser.add_argument(
+        "--references-only",
+        action="store_true",
+        help="only render the cached references (no timing: safe on a busy "
+        "machine); run again without it on an idle machine for the cells",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -224,14 +255,21 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     from gdpt.study.methods import EVAL_METHODS
     from gdpt.study.report import best_methods
 
-    for option, names, valid in (("--methods", args.methods, EVAL_METHODS),
-                                 ("--metrics", args.metrics, METRICS)):
+    for option, names, valid in (
+        ("--methods", args.methods, EVAL_METHODS),
+        ("--metrics", args.metrics, METRICS),
+    ):
         if unknown := [n for n in names or () if n not in valid]:
             raise UsageError(f"{option}: unknown {', '.join(unknown)}; valid: {', '.join(valid)}")
     changes = {
-        "budgets": args.budgets, "resolution": args.resolution, "methods": args.methods,
-        "metrics": args.metrics, "reference_spp": args.reference_spp,
-        "max_depth": args.max_depth, "seed": args.seed, "reference_dir": args.references,
+        "budgets": args.budgets,
+        "resolution": args.resolution,
+        "methods": args.methods,
+        "metrics": args.metrics,
+        "reference_spp": args.reference_spp,
+        "max_depth": args.max_depth,
+        "seed": args.seed,
+        "reference_dir": args.references,
     }
     cfg = PRESETS["quick" if args.quick else "full"]
     cfg = dataclasses.replace(cfg, **{k: v for k, v in changes.items() if v is not None})
@@ -242,8 +280,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
             print(f"{scene}: {path}")
         return 1 if any(p.startswith("failed:") for p in status.values()) else 0
     command = shlex.join(["gdpt", *sys.argv[1:]]) if sys.argv[1:2] == ["evaluate"] else None
-    results = evaluate(args.scenes, args.out, cfg, progress=not args.no_progress,
-                       command=command)
+    results = evaluate(args.scenes, args.out, cfg, progress=not args.no_progress, command=command)
     for scene, row in best_methods(results).items():
         best = ", ".join(f"{k} s: {v[0] if v else 'n/a'}" for k, v in row.items())
         print(f"{scene}: {best}")
@@ -265,10 +302,19 @@ def _add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--target-spp", type=int, default=4096, help="target spp (default: 4096)")
     parser.add_argument("--max-depth", type=int, default=6, help="longest path (default: 6)")
     parser.add_argument("--seed", type=int, default=0, help="dataset seed (default: 0)")
-    parser.add_argument("--workers", type=int, default=1, help="local worker processes, or the "
-                        "CPUs of a '--ray local' instance (default: 1)")
-    parser.add_argument("--ray", metavar="ADDRESS", default=None, help="render with Ray tasks: "
-                        "'local' starts a private instance, else a cluster address ('auto', ...)")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="local worker processes, or the CPUs of a '--ray local' instance (default: 1)",
+    )
+    parser.add_argument(
+        "--ray",
+        metavar="ADDRESS",
+        default=None,
+        help="render with Ray tasks: "
+        "'local' starts a private instance, else a cluster address ('auto', ...)",
+    )
     parser.add_argument("--variant", default=None, help="Mitsuba variant (default: automatic)")
 
 
@@ -276,34 +322,54 @@ def _run_dataset(args: argparse.Namespace) -> int:
     from gdpt.training.dataset import DatasetConfig, build_dataset
 
     config = DatasetConfig(
-        scenes=args.scenes, views=args.views, resolution=args.resolution, spp_min=args.spp_min,
-        spp_max=args.spp_max, target_spp=args.target_spp, max_depth=args.max_depth,
+        scenes=args.scenes,
+        views=args.views,
+        resolution=args.resolution,
+        spp_min=args.spp_min,
+        spp_max=args.spp_max,
+        target_spp=args.target_spp,
+        max_depth=args.max_depth,
         seed=args.seed,
     )
-    summary = build_dataset(config, args.out, workers=args.workers, ray_address=args.ray,
-                            variant=args.variant)
-    print(f"{args.out}: rendered {summary.rendered} crops, {summary.skipped} already done, "
-          f"{summary.seconds:.0f} s ({summary.crops_per_minute:.2f} crops/min)")
+    summary = build_dataset(
+        config, args.out, workers=args.workers, ray_address=args.ray, variant=args.variant
+    )
+    print(
+        f"{args.out}: rendered {summary.rendered} crops, {summary.skipped} already done, "
+        f"{summary.seconds:.0f} s ({summary.crops_per_minute:.2f} crops/min)"
+    )
     return 0
 
 
 # -------------------------------------------------------------------------------------- train
 def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", required=True, metavar="NAME", help="model config, a key of "
-                        "gdpt.reconstruct.dense_unet.CONFIGS (paper, nograd, fast, fast_xs, ...)")
+    parser.add_argument(
+        "--config",
+        required=True,
+        metavar="NAME",
+        help="model config, a key of "
+        "gdpt.reconstruct.dense_unet.CONFIGS (paper, nograd, fast, fast_xs, ...)",
+    )
     parser.add_argument("--data", required=True, help="dataset directory (gdpt dataset)")
     parser.add_argument("--out", required=True, help="run directory")
-    parser.add_argument("--val-data", default=None, help="validation dataset directory "
-                        "(default: every --holdout-every-th scene of --data)")
+    parser.add_argument(
+        "--val-data",
+        default=None,
+        help="validation dataset directory (default: every --holdout-every-th scene of --data)",
+    )
     parser.add_argument("--holdout-every", type=int, default=10, help="default: 10")
-    parser.add_argument("--loss", choices=["flip", "flip_rel", "flip_log", "flip_hdr", "l1",
-                                           "elpips"],
-                        default="flip", help="training loss (default: flip; flip_rel / flip_log "
-                        "add a relative / log-space L1, see gdpt.reconstruct.losses)")
+    parser.add_argument(
+        "--loss",
+        choices=["flip", "flip_rel", "flip_log", "flip_hdr", "l1", "elpips"],
+        default="flip",
+        help="training loss (default: flip; flip_rel / flip_log "
+        "add a relative / log-space L1, see gdpt.reconstruct.losses)",
+    )
     parser.add_argument("--steps", type=int, default=1000, help="updates (default: 1000)")
     parser.add_argument("--batch", type=int, default=8, help="crops per update and process")
-    parser.add_argument("--crop", type=int, default=None, help="random sub-crop side "
-                        "(default: the dataset crop)")
+    parser.add_argument(
+        "--crop", type=int, default=None, help="random sub-crop side (default: the dataset crop)"
+    )
     parser.add_argument("--lr", type=float, default=5e-4, help="base learning rate")
     parser.add_argument("--seed", type=int, default=0, help="training seed (default: 0)")
     parser.add_argument("--val-every", type=int, default=100, help="default: 100 (0: never)")
@@ -317,13 +383,24 @@ def _run_train(args: argparse.Namespace) -> int:
     from gdpt.training.train import TrainConfig, train
 
     config = TrainConfig(
-        model=args.config, data=args.data, out=args.out, val_data=args.val_data,
-        holdout_every=args.holdout_every, loss=args.loss, steps=args.steps, batch=args.batch,
-        crop=args.crop, lr=args.lr, seed=args.seed, val_every=args.val_every,
-        val_crops=args.val_crops, ckpt_every=args.ckpt_every, device=args.device,
+        model=args.config,
+        data=args.data,
+        out=args.out,
+        val_data=args.val_data,
+        holdout_every=args.holdout_every,
+        loss=args.loss,
+        steps=args.steps,
+        batch=args.batch,
+        crop=args.crop,
+        lr=args.lr,
+        seed=args.seed,
+        val_every=args.val_every,
+        val_crops=args.val_crops,
+        ckpt_every=args.ckpt_every,
+        device=args.device,
     )
     path = train(config, resume=args.resume)
-    if int(os.environ.get("RANK", 0)) == 0:
+    if int(os.environ.get("RANK", "0")) == 0:
         print(f"wrote {path}")
     return 0
 
@@ -331,15 +408,27 @@ def _run_train(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------- model-report
 def _add_model_report_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, help="dataset directory (gdpt dataset)")
-    parser.add_argument("--run", action="append", required=True, metavar="NAME=RUN_DIR",
-                        dest="runs",
-                        help="a gdpt train run directory and its model name (ngpt, "
-                        "ngpt-nograd); repeat for several")
+    parser.add_argument(
+        "--run",
+        action="append",
+        required=True,
+        metavar="NAME=RUN_DIR",
+        dest="runs",
+        help="a gdpt train run directory and its model name (ngpt, "
+        "ngpt-nograd); repeat for several",
+    )
     parser.add_argument("--out", type=Path, required=True, help="report folder")
-    parser.add_argument("--holdout-every", type=int, default=10,
-                        help="held-out scenes, as in gdpt train (default: 10)")
-    parser.add_argument("--ship", action="store_true",
-                        help="copy each run's network into gdpt/models/NAME with a model card")
+    parser.add_argument(
+        "--holdout-every",
+        type=int,
+        default=10,
+        help="held-out scenes, as in gdpt train (default: 10)",
+    )
+    parser.add_argument(
+        "--ship",
+        action="store_true",
+        help="copy each run's network into gdpt/models/NAME with a model card",
+    )
 
 
 def _run_model_report(args: argparse.Namespace) -> int:
@@ -360,8 +449,11 @@ def _run_model_report(args: argparse.Namespace) -> int:
         runs[name] = Path(run)
     args.out.mkdir(parents=True, exist_ok=True)
     plot_training(runs, args.out / "training.png")
-    result = compare_models(args.data, {k: v / "model.safetensors" for k, v in runs.items()},
-                            holdout_every=args.holdout_every)
+    result = compare_models(
+        args.data,
+        {k: v / "model.safetensors" for k, v in runs.items()},
+        holdout_every=args.holdout_every,
+    )
     (args.out / "comparison.json").write_text(json.dumps(result, indent=2) + "\n")
     table = comparison_markdown(result)
     (args.out / "comparison.md").write_text(table)
@@ -384,20 +476,33 @@ COMMANDS: tuple[Command, ...] = (
         _run_reconstruct,
     ),
     Command("render", "render gradient-domain buffers to EXR", _add_render_arguments, _run_render),
-    Command("demo", "every method on a built-in scene at equal time", _add_demo_arguments,
-            _run_demo),
+    Command(
+        "demo", "every method on a built-in scene at equal time", _add_demo_arguments, _run_demo
+    ),
     Command(
         "evaluate",
         "equal-time study: error vs measured time of every method on a scene set",
         _add_evaluate_arguments,
         _run_evaluate,
     ),
-    Command("dataset", "render NGPT training crops (resumable, parallel, Ray)",
-            _add_dataset_arguments, _run_dataset),
-    Command("train", "train an NGPT network on a dataset (torchrun-ready)",
-            _add_train_arguments, _run_train),
-    Command("model-report", "training curves and held-out comparison of trained networks",
-            _add_model_report_arguments, _run_model_report),
+    Command(
+        "dataset",
+        "render NGPT training crops (resumable, parallel, Ray)",
+        _add_dataset_arguments,
+        _run_dataset,
+    ),
+    Command(
+        "train",
+        "train an NGPT network on a dataset (torchrun-ready)",
+        _add_train_arguments,
+        _run_train,
+    ),
+    Command(
+        "model-report",
+        "training curves and held-out comparison of trained networks",
+        _add_model_report_arguments,
+        _run_model_report,
+    ),
 )
 
 

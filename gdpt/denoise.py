@@ -121,22 +121,33 @@ METHODS: Registry[Method] = Registry("reconstruction method")
 for _name, _detail in (
     ("l2", "L2 (alpha 0.2)"),
     ("l1", "L1 (alpha 0.2, reference IRLS schedule)"),
-    ("l1-fast", "L1 (alpha 0.2, DCT-preconditioned IRLS preset 'fast': same final energy, "
-     "about 3x faster)"),
+    (
+        "l1-fast",
+        "L1 (alpha 0.2, DCT-preconditioned IRLS preset 'fast': same final energy, about 3x faster)",
+    ),
 ):
     METHODS.register(
         _name, Method(partial(_poisson, method=_name), True, False, f"screened Poisson, {_detail}")
     )
 METHODS.register(
     "ngpt",
-    Method(partial(_ngpt, name="ngpt"), True, True, "the shipped NGPT network",
-           partial(_ngpt_check, "ngpt")),
+    Method(
+        partial(_ngpt, name="ngpt"),
+        True,
+        True,
+        "the shipped NGPT network",
+        partial(_ngpt_check, "ngpt"),
+    ),
 )
 METHODS.register(
     "ngpt-nograd",
-    Method(partial(_ngpt, name="ngpt-nograd"), False, True,
-           "the NGPT ablation network trained without gradients",
-           partial(_ngpt_check, "ngpt-nograd")),
+    Method(
+        partial(_ngpt, name="ngpt-nograd"),
+        False,
+        True,
+        "the NGPT ablation network trained without gradients",
+        partial(_ngpt_check, "ngpt-nograd"),
+    ),
 )
 
 

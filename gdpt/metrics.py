@@ -4,9 +4,10 @@ Every metric has the signature ``metric(image_test, image_ref, *, option=...) ->
 ``(H, W, C)`` float images (torch tensors on any device, or numpy arrays) of *linear HDR*
 radiance; the test image comes first. Options are keyword-only. Shapes are validated first.
 
-Metrics are registered by name in :data:`METRICS` (``@METRICS.register(name)``); :func:`compute_metrics` evaluates a
-list of them and reports metrics whose dependencies are missing (``flip_evaluator`` not
-installed, no E-LPIPS weight file) as skipped, with the reason, instead of failing.
+Metrics are registered by name in :data:`METRICS` (``@METRICS.register(name)``);
+:func:`compute_metrics` evaluates a list of them and reports metrics whose dependencies are
+missing (``flip_evaluator`` not installed, no E-LPIPS weight file) as skipped, with the reason,
+instead of failing.
 
 Conventions (apply them to every method that is compared):
 
@@ -239,8 +240,9 @@ def flip_hdr(
         raise ValueError("flip_hdr: the reference is black; HDR-FLIP exposures are undefined")
     flip = _flip_evaluator()
     params = {"ppd": ppd, "tonemapper": tonemapper}
-    _, mean, _ = flip.evaluate(_to_numpy(ref), _to_numpy(test), "HDR", applyMagma=False,
-                               parameters=params)
+    _, mean, _ = flip.evaluate(
+        _to_numpy(ref), _to_numpy(test), "HDR", applyMagma=False, parameters=params
+    )
     return float(mean)
 
 
@@ -267,8 +269,13 @@ def flip_ldr(image_test: Image, image_ref: Image, *, ppd: float = FLIP_DEFAULT_P
     if not ppd > 0:
         raise ValueError(f"flip_ldr: ppd must be positive, got {ppd}")
     flip = _flip_evaluator()
-    _, mean, _ = flip.evaluate(_to_numpy(_display(ref)), _to_numpy(_display(test)), "LDR",
-                               applyMagma=False, parameters={"ppd": ppd})
+    _, mean, _ = flip.evaluate(
+        _to_numpy(_display(ref)),
+        _to_numpy(_display(test)),
+        "LDR",
+        applyMagma=False,
+        parameters={"ppd": ppd},
+    )
     return float(mean)
 
 

@@ -72,7 +72,8 @@ def render(
 
     Returns:
         GradientBuffers: float32 HWC views of one tensor on the variant's device, with
-        ``spp`` and ``metadata`` (integrator, seed, render seconds) filled in.
+        ``spp`` and ``metadata`` (integrator, seed, render seconds, and ``guard_counts``: how
+        often each numerical guard of the integrator fired) filled in.
     """
     import drjit as dr
     import mitsuba as mi
@@ -119,6 +120,7 @@ def render(
         "max_depth": int(min(integrator.max_depth, 2**31 - 1)),
         "variant": mi.variant(),
         "render_seconds": seconds,
+        "guard_counts": dict(integrator.guard_counts),
     }
     return GradientBuffers(**views, spp=int(spp), metadata=metadata)
 
@@ -166,4 +168,3 @@ def render_and_denoise(
     t_rec = time.perf_counter() - t0
     timings = {"render": t_render, "reconstruct": t_rec, "total": t_render + t_rec}
     return RenderResult(image=image, buffers=buffers, timings=timings)
-

@@ -65,8 +65,9 @@ def load_scene(source: Any, *, box_filter: bool = False, long_side: int | None =
     return read_scene(source, box_filter=box_filter, long_side=long_side).scene
 
 
-def read_scene(source: Any, *, box_filter: bool = False, long_side: int | None = None
-               ) -> LoadedScene:
+def read_scene(
+    source: Any, *, box_filter: bool = False, long_side: int | None = None
+) -> LoadedScene:
     """Like :func:`load_scene`, with the film size, integrator depth and changes made."""
     from gdpt.backend import ensure_variant
 
@@ -167,8 +168,9 @@ def _from_xml(path: Path, *, box_filter: bool, long_side: int | None) -> LoadedS
                 "box-filtered film)"
             )
     integrator = root.find("integrator")
-    depth = _xml_value(None if integrator is None else integrator.find("*[@name='max_depth']"),
-                       defaults)
+    depth = _xml_value(
+        None if integrator is None else integrator.find("*[@name='max_depth']"), defaults
+    )
 
     resolver = mi.file_resolver()
     saved = mi.FileResolver(resolver)

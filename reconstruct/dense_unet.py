@@ -117,8 +117,10 @@ class ModelConfig:
         levels = len(self.growth_rates)
         if levels < 1:
             raise ValueError("ModelConfig needs at least one level")
-        per_level = {"unit_counts": self.unit_counts,
-                     "decoder_unit_counts": self.decoder_unit_counts}
+        per_level = {
+            "unit_counts": self.unit_counts,
+            "decoder_unit_counts": self.decoder_unit_counts,
+        }
         for name, value in per_level.items():
             if len(value) != levels:
                 raise ValueError(f"{name} has {len(value)} entries, expected {levels} (levels)")
@@ -139,8 +141,9 @@ class ModelConfig:
 
     def to_dict(self) -> dict[str, object]:
         """JSON-serialisable form (tuples become lists)."""
-        return {k: list(v) if isinstance(v, tuple) else v
-                for k, v in dataclasses.asdict(self).items()}
+        return {
+            k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()
+        }
 
     @classmethod
     def from_dict(cls, data: dict[str, object]) -> ModelConfig:
@@ -220,8 +223,17 @@ class Conv(nn.Module):
             for :meth:`DenseUNet.flops`).
     """
 
-    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, *, stride: int = 1,
-                 transposed: bool = False, weight_norm: bool = True, scale: int = 1) -> None:
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel_size: int,
+        *,
+        stride: int = 1,
+        transposed: bool = False,
+        weight_norm: bool = True,
+        scale: int = 1,
+    ) -> None:
         super().__init__()
         self.in_channels, self.out_channels = in_channels, out_channels
         self.kernel_size, self.stride, self.transposed = kernel_size, stride, transposed
@@ -305,7 +317,7 @@ class Unit(nn.Module):
         weight = self.bottleneck.effective_weight().view(-1, used)
         hidden = torch.addmm(self.bottleneck.bias, flat, weight.t())
         hidden = F.leaky_relu_(hidden, self.slope).view(n, h, w, -1).permute(0, 3, 1, 2)
-        buf[:, used:used + k] = F.leaky_relu_(self.conv(hidden), self.slope)
+        buf[:, used : used + k] = F.leaky_relu_(self.conv(hidden), self.slope)
         return used + k
 
 
@@ -351,14 +363,31 @@ class DenseUNet(nn.Module):
             self.encoders.append(units)
             self.list_widths.append((width, width))
             if level < cfg.levels - 1:
-                self.pools.append(Conv(width, cfg.pool_features[level], 2, stride=2,
-                                       weight_norm=wn, scale=s * 2**level))
+                self.pools.append(
+                    Conv(
+                        width,
+                        cfg.pool_features[level],
+                        2,
+                        stride=2,
+                        weight_norm=wn,
+                        scale=s * 2**level,
+                    )
+                )
                 width = cfg.pool_features[level]
         for level in reversed(range(cfg.levels)):
             if level < cfg.levels - 1:
-                self.unpools.insert(0, Conv(width, cfg.unpool_features[level], 2, stride=2,
-                                            transposed=True, weight_norm=wn,
-                                            scale=s * 2 ** (level + 1)))
+                self.unpools.insert(
+                    0,
+                    Conv(
+                        width,
+                        cfg.unpool_features[level],
+                        2,
+                        stride=2,
+                        transposed=True,
+                        weight_norm=wn,
+                        scale=s * 2 ** (level + 1),
+                    ),
+                )
                 width = self.list_widths[level][0] + cfg.unpool_features[level]
             units, width = add_units(cfg.decoder_unit_counts[level], width, level)
             self.decoders.insert(0, units)
@@ -366,10 +395,12 @@ class DenseUNet(nn.Module):
         if s == 1:
             self.head = nn.ModuleList([Conv(width, cfg.out_channels, 1, weight_norm=wn)])
         else:
-            self.head = nn.ModuleList([
-                Conv(width, cfg.head_features * s * s, 1, weight_norm=wn, scale=s),
-                Conv(cfg.head_features + cfg.in_channels, cfg.out_channels, 3, weight_norm=wn),
-            ])
+            self.head = nn.ModuleList(
+                [
+                    Conv(width, cfg.head_features * s * s, 1, weight_norm=wn, scale=s),
+                    Conv(cfg.head_features + cfg.in_channels, cfg.out_channels, 3, weight_norm=wn),
+                ]
+            )
 
     @property
     def alignment(self) -> int:
@@ -468,8 +499,7 @@ class DenseUNet(nn.Module):
             features = self._run_units(self.decoders[level], features)
         return _cat(features)
 
-    def _run_units(self, units: nn.ModuleList, features: list[torch.Tensor]
-                   ) -> list[torch.Tensor]:
+    def _run_units(self, units: nn.ModuleList, features: list[torch.Tensor]) -> list[torch.Tensor]:
         for unit in units:
             out = unit(_cat(features))
             features = [*features, out] if self.config.dense else [out]
@@ -483,8 +513,12 @@ class DenseUNet(nn.Module):
         level_in = x
         for level in range(cfg.levels):
             n, c, h, w = level_in.shape
-            buf = torch.empty((n, self.list_widths[level][1], h, w), dtype=x.dtype,
-                              device=x.device, memory_format=torch.channels_last)
+            buf = torch.empty(
+                (n, self.list_widths[level][1], h, w),
+                dtype=x.dtype,
+                device=x.device,
+                memory_format=torch.channels_last,
+            )
             buf[:, :c] = level_in
             for unit in self.encoders[level]:
                 c = unit.append_to(buf, c)
@@ -496,7 +530,7 @@ class DenseUNet(nn.Module):
             buf, c = buffers[level], used[level]
             if level < cfg.levels - 1:
                 up = F.leaky_relu_(self.unpools[level](buffers.pop()), slope)
-                buf[:, c:c + up.shape[1]] = up
+                buf[:, c : c + up.shape[1]] = up
                 c += up.shape[1]
             for unit in self.decoders[level]:
                 c = unit.append_to(buf, c)

@@ -178,7 +178,9 @@ def gradient_l1_tonemapped(pred: Tensor, target: Tensor) -> Tensor:
     """
     _check_pair(pred, target)
     loss = pred.new_zeros(())
-    for d_pred, d_target in zip(forward_differences(pred), forward_differences(target)):
+    for d_pred, d_target in zip(
+        forward_differences(pred), forward_differences(target), strict=False
+    ):
         loss = loss + (reinhard(d_pred) - reinhard(d_target)).abs().mean()
     return loss
 
@@ -761,8 +763,11 @@ def apply_ensemble(x: Tensor, sample: EnsembleSample, config: ELPIPSConfig) -> T
         x = torch.cat(rows)
     if config.enable_flip:
         flips = sample.flips.view(n, 1, 1, 1)
-        x = torch.where(flips == 0, x.flip(-1), torch.where(
-            flips == 1, x.flip(-2), torch.where(flips == 2, x.flip(-1, -2), x)))
+        x = torch.where(
+            flips == 0,
+            x.flip(-1),
+            torch.where(flips == 1, x.flip(-2), torch.where(flips == 2, x.flip(-1, -2), x)),
+        )
     if config.enable_swap and sample.swap:
         x = x.transpose(-1, -2)
     if config.enable_color_permutation:
@@ -790,8 +795,9 @@ class _Fire(nn.Module):
     def forward(self, x: Tensor, drop: Dropout) -> Tensor:
         """Squeeze, then the two expand branches, concatenated along channels."""
         x = _relu_conv(self.squeeze, x, drop)
-        return torch.cat([_relu_conv(self.expand1x1, x, drop),
-                          _relu_conv(self.expand3x3, x, drop)], 1)
+        return torch.cat(
+            [_relu_conv(self.expand1x1, x, drop), _relu_conv(self.expand3x3, x, drop)], 1
+        )
 
 
 class SqueezeNetFeatures(nn.Module):
@@ -804,9 +810,16 @@ class SqueezeNetFeatures(nn.Module):
 
     #: Channels of the layers fed to the linear heads (the input image first).
     channels = (3, 64, 128, 128, 256, 256, 384, 384, 512, 512)
-    _fires = {"3": (64, 16, 64), "4": (128, 16, 64), "6": (128, 32, 128), "7": (256, 32, 128),
-              "9": (256, 48, 192), "10": (384, 48, 192), "11": (384, 64, 256),
-              "12": (512, 64, 256)}
+    _fires = {
+        "3": (64, 16, 64),
+        "4": (128, 16, 64),
+        "6": (128, 32, 128),
+        "7": (256, 32, 128),
+        "9": (256, 48, 192),
+        "10": (384, 48, 192),
+        "11": (384, 64, 256),
+        "12": (512, 64, 256),
+    }
 
     def __init__(self) -> None:
         super().__init__()
@@ -840,8 +853,10 @@ class VGG16Features(nn.Module):
     def __init__(self) -> None:
         super().__init__()
         self.features = nn.ModuleDict(
-            {k: nn.Conv2d(self.channels[i], self.channels[i + 1], 3, padding=1)
-             for i, k in enumerate(self._convs)}
+            {
+                k: nn.Conv2d(self.channels[i], self.channels[i + 1], 3, padding=1)
+                for i, k in enumerate(self._convs)
+            }
         )
 
     def forward(self, x: Tensor, drop: Dropout) -> list[Tensor]:
@@ -967,7 +982,7 @@ class ELPIPS(nn.Module):
         super().__init__()
         channels = tuple(getattr(backbone, "channels", ()))
         if len(channels) != len(lin_weights) or any(
-            w.numel() != c for w, c in zip(lin_weights, channels)
+            w.numel() != c for w, c in zip(lin_weights, channels, strict=False)
         ):
             raise ValueError(
                 f"linear heads {[w.numel() for w in lin_weights]} do not match backbone "
@@ -1001,8 +1016,12 @@ class ELPIPS(nn.Module):
         n, device = image.shape[0], image.device
         generator = self._generator(device)
         sample = sample_ensemble(n, self.config, generator=generator, device=device)
-        x = torch.cat([apply_ensemble(image, sample, self.config),
-                       apply_ensemble(reference, sample, self.config)])
+        x = torch.cat(
+            [
+                apply_ensemble(image, sample, self.config),
+                apply_ensemble(reference, sample, self.config),
+            ]
+        )
         x = (2.0 * x - 1.0 - self.shift.to(x.dtype)) / self.scale.to(x.dtype)
         keep = self.config.dropout_keep_prob
 
@@ -1080,8 +1099,13 @@ class NGPTLoss(nn.Module):
     """
 
     def __init__(
-        self, perceptual: nn.Module | None, *, beta: float = 0.01, gamma: float = 0.01,
-        delta: float = 0.0, rho: float = 0.0,
+        self,
+        perceptual: nn.Module | None,
+        *,
+        beta: float = 0.01,
+        gamma: float = 0.01,
+        delta: float = 0.0,
+        rho: float = 0.0,
     ) -> None:
         super().__init__()
         self.perceptual, self.beta, self.gamma = perceptual, beta, gamma

@@ -74,8 +74,12 @@ def checkpoint_paths(path: str | Path) -> tuple[Path, Path]:
     return path.with_suffix(".safetensors"), path.with_suffix(".json")
 
 
-def encode_checkpoint(model: DenseUNet, card: Mapping[str, Any] | None = None,
-                      *, features: Sequence[str] | None = None) -> tuple[bytes, str]:
+def encode_checkpoint(
+    model: DenseUNet,
+    card: Mapping[str, Any] | None = None,
+    *,
+    features: Sequence[str] | None = None,
+) -> tuple[bytes, str]:
     """The two files of a checkpoint: safetensors weights and the JSON model card.
 
     Writing them is the caller's job (:func:`gdpt.training.checkpoint.save_checkpoint` writes
@@ -101,8 +105,9 @@ def encode_checkpoint(model: DenseUNet, card: Mapping[str, Any] | None = None,
         raise ValueError(f"card keys {clash} are reserved (written by encode_checkpoint)")
     features = tuple(features or default_features(model.config.in_channels))
     if sum(FEATURE_CHANNELS[f] for f in features) != model.config.in_channels:
-        raise ValueError(f"features {features} do not add up to {model.config.in_channels} "
-                         "input channels")
+        raise ValueError(
+            f"features {features} do not add up to {model.config.in_channels} input channels"
+        )
     full = {
         "format": CARD_FORMAT,
         "config_name": model.name,
@@ -112,19 +117,24 @@ def encode_checkpoint(model: DenseUNet, card: Mapping[str, Any] | None = None,
         **card,
     }
     text = json.dumps(full, indent=2)
-    state = {k: v.detach().to("cpu", torch.float32).contiguous()
-             for k, v in model.state_dict().items()}
+    state = {
+        k: v.detach().to("cpu", torch.float32).contiguous() for k, v in model.state_dict().items()
+    }
     weights = save(state, metadata={"format": CARD_FORMAT, "config_name": str(model.name)})
     return weights, text + "\n"
 
 
 def _config_diff(a: ModelConfig, b: ModelConfig) -> list[str]:
-    return [f"{f.name}: card {getattr(a, f.name)!r} vs code {getattr(b, f.name)!r}"
-            for f in dataclasses.fields(ModelConfig) if getattr(a, f.name) != getattr(b, f.name)]
+    return [
+        f"{f.name}: card {getattr(a, f.name)!r} vs code {getattr(b, f.name)!r}"
+        for f in dataclasses.fields(ModelConfig)
+        if getattr(a, f.name) != getattr(b, f.name)
+    ]
 
 
-def load_checkpoint(path: str | Path, *, device: torch.device | str = "cpu"
-                    ) -> tuple[DenseUNet, dict[str, Any]]:
+def load_checkpoint(
+    path: str | Path, *, device: torch.device | str = "cpu"
+) -> tuple[DenseUNet, dict[str, Any]]:
     """Rebuild a network saved by :func:`encode_checkpoint`.
 
     Args:
@@ -147,7 +157,8 @@ def load_checkpoint(path: str | Path, *, device: torch.device | str = "cpu"
     card = json.loads(card_path.read_text())
     if card.get("format") != CARD_FORMAT:
         raise CheckpointMismatchError(
-            f"{card_path}: format {card.get('format')!r}, this code reads {CARD_FORMAT!r}")
+            f"{card_path}: format {card.get('format')!r}, this code reads {CARD_FORMAT!r}"
+        )
     try:
         config = ModelConfig.from_dict(card["config"])
     except (KeyError, TypeError, ValueError) as err:
@@ -156,19 +167,25 @@ def load_checkpoint(path: str | Path, *, device: torch.device | str = "cpu"
     if name in CONFIGS and CONFIGS[name] != config:
         diff = "; ".join(_config_diff(config, CONFIGS[name]))
         raise CheckpointMismatchError(
-            f"{card_path}: config {name!r} in the card differs from the code's {name!r}: {diff}")
+            f"{card_path}: config {name!r} in the card differs from the code's {name!r}: {diff}"
+        )
     model = DenseUNet(config, name=name)
     state = load_file(str(weights_path), device=str(device))
     expected = model.state_dict()
     problems = [f"missing {k}" for k in expected if k not in state]
     problems += [f"unexpected {k}" for k in state if k not in expected]
-    problems += [f"{k}: stored {tuple(state[k].shape)} vs config {tuple(v.shape)}"
-                 for k, v in expected.items() if k in state and state[k].shape != v.shape]
+    problems += [
+        f"{k}: stored {tuple(state[k].shape)} vs config {tuple(v.shape)}"
+        for k, v in expected.items()
+        if k in state and state[k].shape != v.shape
+    ]
     if problems:
-        shown = "; ".join(problems[:6]) + (f" (+{len(problems) - 6} more)"
-                                           if len(problems) > 6 else "")
+        shown = "; ".join(problems[:6]) + (
+            f" (+{len(problems) - 6} more)" if len(problems) > 6 else ""
+        )
         raise CheckpointMismatchError(
-            f"{weights_path} does not match the config in {card_path.name}: {shown}")
+            f"{weights_path} does not match the config in {card_path.name}: {shown}"
+        )
     model.load_state_dict(state)
     return model.to(device).eval(), card
 
@@ -198,17 +215,26 @@ class NGPTReconstructor:
         card: the checkpoint's model card, kept as :attr:`card`.
     """
 
-    def __init__(self, model: DenseUNet, *, features: Sequence[str] | None = None,
-                 tile_size: int | None = 512, margin: int = 8,
-                 card: Mapping[str, Any] | None = None) -> None:
+    def __init__(
+        self,
+        model: DenseUNet,
+        *,
+        features: Sequence[str] | None = None,
+        tile_size: int | None = 512,
+        margin: int = 8,
+        card: Mapping[str, Any] | None = None,
+    ) -> None:
         self.features = tuple(features or default_features(model.config.in_channels))
         if sum(FEATURE_CHANNELS[f] for f in self.features) != model.config.in_channels:
-            raise ValueError(f"features {self.features} do not match the model's "
-                             f"{model.config.in_channels} input channels")
+            raise ValueError(
+                f"features {self.features} do not match the model's "
+                f"{model.config.in_channels} input channels"
+            )
         self.alignment = model.alignment
         self.overlap = -(-model.receptive_radius // self.alignment) * self.alignment
-        self.tile_size = (None if tile_size is None
-                          else -(-tile_size // self.alignment) * self.alignment)
+        self.tile_size = (
+            None if tile_size is None else -(-tile_size // self.alignment) * self.alignment
+        )
         self.margin = margin
         self.card = dict(card or {})
         self._model = model.fuse().eval().to(memory_format=torch.channels_last)
@@ -262,8 +288,9 @@ class NGPTReconstructor:
         out = out.float().contiguous()
         return out[0] if first.dim() == 3 else out
 
-    def tiles(self, height: int, width: int
-              ) -> list[tuple[tuple[int, int, int, int], tuple[int, int, int, int]]]:
+    def tiles(
+        self, height: int, width: int
+    ) -> list[tuple[tuple[int, int, int, int], tuple[int, int, int, int]]]:
         """Tiles for a padded network input of ``height x width`` (multiples of alignment).
 
         Returns:
@@ -291,5 +318,5 @@ class NGPTReconstructor:
         out = x.new_empty((n, model.config.out_channels, h, w))
         for (y0, y1, x0, x1), (wy0, wy1, wx0, wx1) in boxes:
             tile = model(x[:, :, wy0:wy1, wx0:wx1])
-            out[:, :, y0:y1, x0:x1] = tile[:, :, y0 - wy0:y1 - wy0, x0 - wx0:x1 - wx0]
+            out[:, :, y0:y1, x0:x1] = tile[:, :, y0 - wy0 : y1 - wy0, x0 - wx0 : x1 - wx0]
         return out

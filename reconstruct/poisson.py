@@ -603,9 +603,7 @@ def _l2_exact(
 # ------------------------------------------------------------------------------------------------
 
 
-def _residuals(
-    prob: _Problem, x: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _residuals(prob: _Problem, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Constraint residuals ``P x - b`` (primal part includes the factor alpha)."""
     gx, gy = _grad(x)
     return (x - prob.p) * prob.alpha, gx - prob.gx, gy - prob.gy
@@ -650,8 +648,7 @@ def _energy(
     _check_buffers(primal, dx, dy)
     if x.shape != primal.shape:
         raise ValueError(
-            f"x must have the shape of primal, got x {tuple(x.shape)}, "
-            f"primal {tuple(primal.shape)}"
+            f"x must have the shape of primal, got x {tuple(x.shape)}, primal {tuple(primal.shape)}"
         )
     prob = _prepare(primal, dx, dy, alpha, warn=False)
     xi = _to_bchw(x.to(primal.device), prob.p.dtype, prob.squeeze_channel) / prob.scale
@@ -1152,8 +1149,11 @@ def solve_weighted_cg(
         raise ValueError(f"max_iter must be >= 0, got {max_iter}")
     wu = [
         _user_weight(t, n, prob.p, prob)
-        for t, n in ((weights_primal, "weights_primal"), (weights_dx, "weights_dx"),
-                     (weights_dy, "weights_dy"))
+        for t, n in (
+            (weights_primal, "weights_primal"),
+            (weights_dx, "weights_dx"),
+            (weights_dy, "weights_dy"),
+        )
     ]
     base = _mask_weights(prob)
     wp = _mul_opt(base.p, wu[0])

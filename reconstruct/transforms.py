@@ -44,7 +44,12 @@ import torch
 
 #: Buffer name -> channel count of the NGPT input features, in network-input order.
 FEATURE_CHANNELS: dict[str, int] = {
-    "primal": 3, "dx": 3, "dy": 3, "albedo": 3, "normal": 3, "depth": 1,
+    "primal": 3,
+    "dx": 3,
+    "dy": 3,
+    "albedo": 3,
+    "normal": 3,
+    "depth": 1,
 }
 #: Feature sets of the registered models (16 and 10 input channels).
 FEATURES_WITH_GRADIENTS: tuple[str, ...] = ("primal", "dx", "dy", "albedo", "normal", "depth")
@@ -53,7 +58,10 @@ FEATURES_WITHOUT_GRADIENTS: tuple[str, ...] = ("primal", "albedo", "normal", "de
 #: Gradient-like buffers: name -> (axis it differentiates along, negate on a flip of that axis).
 #: Variances of gradients shift like the gradients but do not change sign.
 _GRADIENTS: dict[str, tuple[str, bool]] = {
-    "dx": ("x", True), "dy": ("y", True), "var_dx": ("x", False), "var_dy": ("y", False),
+    "dx": ("x", True),
+    "dy": ("y", True),
+    "var_dx": ("x", False),
+    "var_dy": ("y", False),
 }
 #: Buffers swapped by :func:`transpose`.
 _TRANSPOSE_SWAP: dict[str, str] = {"dx": "dy", "dy": "dx", "var_dx": "var_dy", "var_dy": "var_dx"}
@@ -136,8 +144,12 @@ def _image_max(x: torch.Tensor) -> torch.Tensor:
 
 #: Buffer name -> transform applied before the buffer enters the network.
 INPUT_TRANSFORMS: dict[str, Log1p | SignedLog1p | Identity | DepthNormalize] = {
-    "primal": Log1p(), "dx": SignedLog1p(), "dy": SignedLog1p(),
-    "albedo": Identity(), "normal": Identity(), "depth": DepthNormalize(),
+    "primal": Log1p(),
+    "dx": SignedLog1p(),
+    "dy": SignedLog1p(),
+    "albedo": Identity(),
+    "normal": Identity(),
+    "depth": DepthNormalize(),
 }
 #: Network output (log space) -> radiance: ``exp(y) - 1``; its ``forward`` maps training
 #: targets into the network's output space.
@@ -149,8 +161,9 @@ def sanitize(x: torch.Tensor) -> torch.Tensor:
     return torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
 
 
-def transform_buffers(buffers: Mapping[str, torch.Tensor], features: Sequence[str],
-                      *, depth_scale: float = 1.0) -> dict[str, torch.Tensor]:
+def transform_buffers(
+    buffers: Mapping[str, torch.Tensor], features: Sequence[str], *, depth_scale: float = 1.0
+) -> dict[str, torch.Tensor]:
     """Validate, sanitise and transform the feature buffers the network reads.
 
     Args:
@@ -185,8 +198,10 @@ def transform_buffers(buffers: Mapping[str, torch.Tensor], features: Sequence[st
         if size is None:
             size = tuple(t.shape[:-1])
         elif tuple(t.shape[:-1]) != size:
-            raise ValueError(f"buffer '{name}' has shape {tuple(t.shape)}, expected {size} + "
-                             f"({c},) like '{features[0]}'")
+            raise ValueError(
+                f"buffer '{name}' has shape {tuple(t.shape)}, expected {size} + "
+                f"({c},) like '{features[0]}'"
+            )
         if not t.is_floating_point() or t.dtype in (torch.float16, torch.bfloat16):
             t = t.float()
         transform = DepthNormalize(depth_scale) if name == "depth" else INPUT_TRANSFORMS[name]
@@ -232,6 +247,7 @@ def padding_for(height: int, width: int, alignment: int, margin: int = 8) -> Pad
     The reference pads 8 px on every side (``PAD_WIDTH``), which is what the network saw during
     training; ``margin=0`` gives the smallest aligned size.
     """
+
     def extra(n: int) -> int:
         return -(n + 2 * margin) % alignment
 
@@ -249,8 +265,9 @@ def _reflect_index(n: int, before: int, after: int, device: torch.device) -> tor
     return torch.where(pos < n, pos, period - pos)
 
 
-def _pad_axis(x: torch.Tensor, dim: int, before: int, after: int, kind: str,
-              negate: bool = True) -> torch.Tensor:
+def _pad_axis(
+    x: torch.Tensor, dim: int, before: int, after: int, kind: str, negate: bool = True
+) -> torch.Tensor:
     """Pad one spatial axis of ``x``.
 
     Args:
@@ -299,8 +316,7 @@ def _pad_kinds(name: str) -> tuple[str, str, bool]:
     return "reflect", "reflect", True
 
 
-def pad_buffers(buffers: Mapping[str, torch.Tensor], padding: Padding
-                ) -> dict[str, torch.Tensor]:
+def pad_buffers(buffers: Mapping[str, torch.Tensor], padding: Padding) -> dict[str, torch.Tensor]:
     """Mirror-pad every buffer as the reference does (see the module table).
 
     Works for any pad width (also wider than the image). Gradient buffers (``dx``, ``dy`` and
@@ -326,7 +342,7 @@ def pad_buffers(buffers: Mapping[str, torch.Tensor], padding: Padding
 def crop(x: torch.Tensor, padding: Padding) -> torch.Tensor:
     """Remove ``padding`` from an ``(..., H, W, C)`` tensor (inverse of :func:`pad_buffers`)."""
     h, w = x.shape[-3], x.shape[-2]
-    return x[..., padding.top:h - padding.bottom, padding.left:w - padding.right, :]
+    return x[..., padding.top : h - padding.bottom, padding.left : w - padding.right, :]
 
 
 # ----------------------------------------------------------------------------- augmentation
@@ -334,8 +350,9 @@ def _shift_flip(t: torch.Tensor, dim: int, negate: bool) -> torch.Tensor:
     """Forward differences of the flipped image from those of the image (last entry 0)."""
     n = t.shape[dim]
     flipped = t.narrow(dim, 0, n - 1).flip(dim)
-    return torch.cat([-flipped if negate else flipped, torch.zeros_like(t.narrow(dim, 0, 1))],
-                     dim=dim)
+    return torch.cat(
+        [-flipped if negate else flipped, torch.zeros_like(t.narrow(dim, 0, 1))], dim=dim
+    )
 
 
 def _flip(buffers: Mapping[str, torch.Tensor], axis: str) -> dict[str, torch.Tensor]:
@@ -349,8 +366,9 @@ def _flip(buffers: Mapping[str, torch.Tensor], axis: str) -> dict[str, torch.Ten
         t = t.flip(dim)
         if name == "normal":
             channel = 0 if axis == "x" else 1
-            t = torch.cat([t[..., :channel], -t[..., channel:channel + 1],
-                           t[..., channel + 1:]], dim=-1)
+            t = torch.cat(
+                [t[..., :channel], -t[..., channel : channel + 1], t[..., channel + 1 :]], dim=-1
+            )
         out[name] = t
     return out
 
@@ -403,5 +421,7 @@ def transpose(buffers: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 
 #: Name -> geometric augmentation (all eight flips/transposes are compositions of these).
 AUGMENTATIONS: dict[str, Callable[[Mapping[str, torch.Tensor]], dict[str, torch.Tensor]]] = {
-    "flip_x": flip_x, "flip_y": flip_y, "transpose": transpose,
+    "flip_x": flip_x,
+    "flip_y": flip_y,
+    "transpose": transpose,
 }

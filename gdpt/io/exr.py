@@ -289,4 +289,3 @@ def _stack(path: Path, names: tuple[str, ...], channels: dict[str, np.ndarray]) 
                 "(subsampled channels are not supported)"
             )
     return torch.from_numpy(np.stack([channels[n] for n in names], axis=-1).astype(np.float32))
-

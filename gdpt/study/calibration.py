@@ -73,8 +73,14 @@ def _run(method: EvalMethod, scene: EvalScene, spp: int, seed: int) -> MethodRes
 
 
 def calibrate(
-    method: EvalMethod, scene: EvalScene, *, budget: float, seed: int, repeats: int = 3,
-    probe_fraction: float = 0.5, max_probe_spp: int = 1 << 16,
+    method: EvalMethod,
+    scene: EvalScene,
+    *,
+    budget: float,
+    seed: int,
+    repeats: int = 3,
+    probe_fraction: float = 0.5,
+    max_probe_spp: int = 1 << 16,
 ) -> TimeModel:
     """Fit a :class:`TimeModel` by timing ``method`` on ``scene``.
 
@@ -111,8 +117,14 @@ def calibrate(
 
 
 def run_at_budget(
-    method: EvalMethod, scene: EvalScene, model: TimeModel, *, budget: float, seed: int,
-    tolerance: float = 0.2, max_rounds: int = 3,
+    method: EvalMethod,
+    scene: EvalScene,
+    model: TimeModel,
+    *,
+    budget: float,
+    seed: int,
+    tolerance: float = 0.2,
+    max_rounds: int = 3,
 ) -> tuple[MethodResult, dict[str, Any]]:
     """Render ``method`` with the sample count that fills ``budget``, checking the time.
 
@@ -140,8 +152,14 @@ def run_at_budget(
     spp = model.spp_for(budget)
     for k in range(max_rounds):
         result = _run(method, scene, spp, seed + k)
-        attempts.append({"spp": spp, "seconds": result.seconds, "seed": seed + k,
-                         "compile_seconds": result.compile_seconds})
+        attempts.append(
+            {
+                "spp": spp,
+                "seconds": result.seconds,
+                "seed": seed + k,
+                "compile_seconds": result.compile_seconds,
+            }
+        )
         error = abs(result.seconds - budget) / budget
         if best is None or error < best[0]:
             best = (error, result, spp, seed + k)

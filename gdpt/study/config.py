@@ -29,7 +29,13 @@ class EvaluateConfig:
     max_depth: int | None = None
     """Longest path; ``None`` uses the scene's integrator ``max_depth`` (else 6)."""
     metrics: tuple[str, ...] = (
-        "relmse", "mse", "smape", "one_minus_ssim", "flip_hdr", "flip_ldr", "elpips"
+        "relmse",
+        "mse",
+        "smape",
+        "one_minus_ssim",
+        "flip_hdr",
+        "flip_ldr",
+        "elpips",
     )
     """Names from :data:`gdpt.metrics.METRICS`; the first one ranks methods and is plotted."""
     metric_options: dict[str, dict[str, Any]] = field(

@@ -1,6 +1,7 @@
 """The ``make demo`` job: every method on the built-in ``cbox-demo`` scene at one equal time.
 
-The demo is a one-scene, one-budget run of the equal-time study (:func:`gdpt.study.evaluate.evaluate`):
+The demo is a one-scene, one-budget run of the equal-time study
+(:func:`gdpt.study.evaluate.evaluate`):
 G-PT reconstructed by the shipped NGPT network, L1 and L2 screened Poisson; path tracing alone,
 with Intel Open Image Denoise, and with the no-gradient NGPT ablation. Each method's sample
 count is calibrated by timing so that sampling + reconstruction takes ``budget`` seconds on this
@@ -64,19 +65,26 @@ def run_demo(cfg: DemoConfig, *, progress: bool = True) -> dict[str, Any]:
             raise FileExistsError(f"{out} holds an earlier demo; pass --force to overwrite it")
         results_path.unlink()  # a fresh study; the reference cache is kept
     study = EvaluateConfig(
-        budgets=(cfg.budget,), resolution=cfg.resolution, reference_spp=cfg.reference_spp,
-        max_depth=cfg.max_depth, metrics=("relmse", "flip_ldr"), metric_options={},
-        methods=cfg.methods, seed=cfg.seed, profile="demo",
+        budgets=(cfg.budget,),
+        resolution=cfg.resolution,
+        reference_spp=cfg.reference_spp,
+        max_depth=cfg.max_depth,
+        metrics=("relmse", "flip_ldr"),
+        metric_options={},
+        methods=cfg.methods,
+        seed=cfg.seed,
+        profile="demo",
     )
-    results = evaluate([f"builtin:{cfg.scene}"], out, study, progress=progress,
-                       command="gdpt demo")
+    results = evaluate([f"builtin:{cfg.scene}"], out, study, progress=progress, command="gdpt demo")
     entry = results["scenes"][cfg.scene]
     if entry.get("status") != "ok":
         raise RuntimeError(f"the demo scene failed: {entry.get('error')}")
 
     montage = {"reference": load_image(out / "images" / cfg.scene / "reference.exr")}
-    print(f"\n{cfg.scene}, {cfg.resolution}x{cfg.resolution} px, budget {cfg.budget:g} s "
-          f"(compilation excluded), reference {cfg.reference_spp} spp")
+    print(
+        f"\n{cfg.scene}, {cfg.resolution}x{cfg.resolution} px, budget {cfg.budget:g} s "
+        f"(compilation excluded), reference {cfg.reference_spp} spp"
+    )
     print(f"{'method':<16}{'spp':>6}{'seconds':>9}{'relMSE':>10}{'FLIP':>8}")
     for name in cfg.methods:
         info = entry["methods"].get(name, {})
@@ -85,8 +93,10 @@ def run_demo(cfg: DemoConfig, *, progress: bool = True) -> dict[str, Any]:
             print(f"{name:<16}  skipped: {info.get('note') or info.get('errors')}")
             continue
         cell, metrics = cells[0], cells[0]["metrics"]
-        print(f"{name:<16}{cell['spp']:>6}{cell['seconds']:>9.2f}"
-              f"{metrics['relmse']:>10.4f}{metrics['flip_ldr']:>8.4f}")
+        print(
+            f"{name:<16}{cell['spp']:>6}{cell['seconds']:>9.2f}"
+            f"{metrics['relmse']:>10.4f}{metrics['flip_ldr']:>8.4f}"
+        )
         montage[f"{name} ({cell['spp']} spp)"] = load_image(out / cell["image"])
     side_by_side(montage, out / "side_by_side.png", force=True)
     print(f"\nwrote {out}/: side_by_side.png, index.html, results.md, images/ (EXR + PNG)")

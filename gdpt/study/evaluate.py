@@ -75,12 +75,18 @@ def _as_specs(scenes: Sequence[str | os.PathLike[str] | SceneSpec]) -> list[Scen
     return specs
 
 
-def _study_reference(scene: EvalScene, spec: SceneSpec, cfg: EvaluateConfig, cache: Path,
-                     bar: Any) -> tuple[torch.Tensor, dict[str, Any]]:
+def _study_reference(
+    scene: EvalScene, spec: SceneSpec, cfg: EvaluateConfig, cache: Path, bar: Any
+) -> tuple[torch.Tensor, dict[str, Any]]:
     """:func:`render_reference` with the study's settings (shared by every entry point)."""
     return render_reference(
-        scene, cache, spp=cfg.reference_spp, chunk_spp=cfg.reference_chunk_spp,
-        seed=reference_seed(cfg.seed), source=spec.source, progress=bar,
+        scene,
+        cache,
+        spp=cfg.reference_spp,
+        chunk_spp=cfg.reference_chunk_spp,
+        seed=reference_seed(cfg.seed),
+        source=spec.source,
+        progress=bar,
     )
 
 
@@ -127,7 +133,9 @@ def evaluate(
 
     ensure_variant()
     results.update(
-        config=cfg.to_json(), machine=machine_info(), versions=versions(),
+        config=cfg.to_json(),
+        machine=machine_info(),
+        versions=versions(),
         conventions=CONVENTIONS,
         methods={m: _method_info(EVAL_METHODS[m]) for m in methods},
         protocol=(
@@ -137,13 +145,17 @@ def evaluate(
             f"path tracing at {cfg.reference_spp} spp on the same box-filtered film"
         ),
     )
-    results["runs"].append({"started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-                            "command": command, "scenes": [s.source for s in specs]})
+    results["runs"].append(
+        {
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "command": command,
+            "scenes": [s.source for s in specs],
+        }
+    )
     cache = Path(cfg.reference_dir) if cfg.reference_dir else out / "references"
 
     total = len(specs) * len(methods) * len(cfg.budgets)
-    bar = tqdm(total=total, unit="cell", desc="evaluate", disable=not progress,
-               dynamic_ncols=True)
+    bar = tqdm(total=total, unit="cell", desc="evaluate", disable=not progress, dynamic_ncols=True)
     history_flag = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
@@ -222,8 +234,14 @@ def _scene_done(entry: dict[str, Any], methods: list[str], cfg: EvaluateConfig) 
 
 
 def _evaluate_scene(
-    spec: SceneSpec, methods: list[str], cfg: EvaluateConfig, results: dict[str, Any],
-    results_path: Path, cache: Path, out: Path, bar: Any,
+    spec: SceneSpec,
+    methods: list[str],
+    cfg: EvaluateConfig,
+    results: dict[str, Any],
+    results_path: Path,
+    cache: Path,
+    out: Path,
+    bar: Any,
 ) -> None:
     """Reference, calibration and cells of one scene (results updated and saved in place)."""
     entry = results["scenes"].setdefault(spec.name, {"source": spec.source, "methods": {}})
@@ -235,8 +253,12 @@ def _evaluate_scene(
     try:
         bar.set_postfix_str(f"{spec.name}: loading")
         scene = load_eval_scene(spec, resolution=cfg.resolution, max_depth=cfg.max_depth)
-        entry.update(resolution=list(scene.resolution), max_depth=scene.max_depth,
-                     notes=scene.notes, film_filter=scene.film_filter)
+        entry.update(
+            resolution=list(scene.resolution),
+            max_depth=scene.max_depth,
+            notes=scene.notes,
+            film_filter=scene.film_filter,
+        )
         stage = "reference"
         reference, ref_meta = _study_reference(scene, spec, cfg, cache, bar)
     except Exception as err:  # a broken scene is a result, not the end of the study
@@ -257,13 +279,20 @@ def _evaluate_scene(
     save_image(image_dir / "reference.exr", reference, metadata=ref_meta, force=True)
     save_png(image_dir / "reference.png", reference, force=True)
     for name in methods:
-        _evaluate_method(EVAL_METHODS[name], scene, reference, cfg, entry, results,
-                         results_path, image_dir, bar)
+        _evaluate_method(
+            EVAL_METHODS[name], scene, reference, cfg, entry, results, results_path, image_dir, bar
+        )
 
 
 def _evaluate_method(
-    method: EvalMethod, scene: EvalScene, reference: torch.Tensor, cfg: EvaluateConfig,
-    entry: dict[str, Any], results: dict[str, Any], results_path: Path, image_dir: Path,
+    method: EvalMethod,
+    scene: EvalScene,
+    reference: torch.Tensor,
+    cfg: EvaluateConfig,
+    entry: dict[str, Any],
+    results: dict[str, Any],
+    results_path: Path,
+    image_dir: Path,
     bar: Any,
 ) -> None:
     """Calibrate one method on one scene and fill its missing budget cells."""
@@ -283,8 +312,9 @@ def _evaluate_method(
     if reason is None:
         try:
             seed = cell_seed(cfg.seed, scene.name, method.name, "calibration")
-            model = calibrate(method, scene, budget=min(todo), seed=seed,
-                              probe_fraction=cfg.probe_fraction)
+            model = calibrate(
+                method, scene, budget=min(todo), seed=seed, probe_fraction=cfg.probe_fraction
+            )
         except MethodUnavailable as err:
             reason = str(err)
         except Exception as err:  # e.g. a model that fails to load, an unsupported plugin
@@ -300,16 +330,22 @@ def _evaluate_method(
         bar.set_postfix_str(f"{scene.name}/{method.name}: {key} s")
         seed = cell_seed(cfg.seed, scene.name, method.name, key)
         try:
-            result, record = run_at_budget(method, scene, model, budget=budget, seed=seed,
-                                           tolerance=cfg.tolerance, max_rounds=cfg.max_rounds)
+            result, record = run_at_budget(
+                method,
+                scene,
+                model,
+                budget=budget,
+                seed=seed,
+                tolerance=cfg.tolerance,
+                max_rounds=cfg.max_rounds,
+            )
         except Exception as err:  # e.g. out of memory at a large spp: report, retry on resume
             info.setdefault("errors", {})[key] = f"{type(err).__name__}: {err}"
             write_json(results_path, results)
             bar.update(1)
             continue
         info.get("errors", {}).pop(key, None)
-        metrics = compute_metrics(result.image, reference, cfg.metrics,
-                                  options=cfg.metric_options)
+        metrics = compute_metrics(result.image, reference, cfg.metrics, options=cfg.metric_options)
         record.update(
             budget=budget,
             metrics={k: finite(v) for k, v in metrics.values.items()},
@@ -317,9 +353,17 @@ def _evaluate_method(
             nonfinite_pixels=int((~torch.isfinite(result.image)).any(-1).sum()),
             image=f"images/{scene.name}/{method.name}-{key}s.exr",
         )
-        save_image(image_dir / f"{method.name}-{key}s.exr", result.image,
-                   metadata={"method": method.name, "spp": record["spp"], "budget": budget,
-                             "seed": record["seed"]}, force=True)
+        save_image(
+            image_dir / f"{method.name}-{key}s.exr",
+            result.image,
+            metadata={
+                "method": method.name,
+                "spp": record["spp"],
+                "budget": budget,
+                "seed": record["seed"],
+            },
+            force=True,
+        )
         save_png(image_dir / f"{method.name}-{key}s.png", result.image, force=True)
         info["cells"][key] = record
         info["calibration"] = dataclasses.asdict(model)

@@ -167,16 +167,20 @@ def oidn_check() -> str | None:
     return None
 
 
-def oidn_denoise(primal: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor
-                 ) -> torch.Tensor:
+def oidn_denoise(primal: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
     """OIDN ``RT`` filter, HDR, quality ``high``, on ``(H, W, 3)`` float32 CPU tensors.
 
     Colour is clamped to >= 0, albedo to [0, 1] and normals to [-1, 1] as OIDN expects.
     """
     import pyoidn  # noqa: PLC0415 (optional dependency)
 
-    out = pyoidn.denoise(primal.clamp_min(0.0).contiguous(), albedo.clamp(0.0, 1.0).contiguous(),
-                         normal.clamp(-1.0, 1.0).contiguous(), hdr=True, quality="high")
+    out = pyoidn.denoise(
+        primal.clamp_min(0.0).contiguous(),
+        albedo.clamp(0.0, 1.0).contiguous(),
+        normal.clamp(-1.0, 1.0).contiguous(),
+        hdr=True,
+        quality="high",
+    )
     return torch.as_tensor(out)
 
 
@@ -226,16 +230,14 @@ def _register_denoiser(name: str, method: Method) -> None:
     def run(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
         if reason := method.check():
             raise MethodUnavailable(reason)
-        return _timed_run(
-            scene, spp, seed, partial(reconstruct, method=name), **method.needs
-        )
+        return _timed_run(scene, spp, seed, partial(reconstruct, method=name), **method.needs)
 
     label = "gradient-domain path tracing" if method.gradients else "path tracing"
     run.__name__ = run.__qualname__ = f"{sampler}_{name}".replace("-", "_")
     run.__doc__ = f"{label} buffers reconstructed with :data:`gdpt.denoise.METHODS` ``{name}``."
     EVAL_METHODS.register(
-        f"{sampler}+{name}", EvalMethod(f"{sampler}+{name}", f"{label} + {method.description}",
-                                        run, method.check)
+        f"{sampler}+{name}",
+        EvalMethod(f"{sampler}+{name}", f"{label} + {method.description}", run, method.check),
     )
 
 

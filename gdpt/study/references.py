@@ -19,8 +19,14 @@ def reference_seed(seed: int) -> int:
 
 
 def render_reference(
-    scene: EvalScene, cache_dir: Path, *, spp: int, chunk_spp: int, seed: int,
-    source: str = "", progress: Any = None,
+    scene: EvalScene,
+    cache_dir: Path,
+    *,
+    spp: int,
+    chunk_spp: int,
+    seed: int,
+    source: str = "",
+    progress: Any = None,
 ) -> tuple[torch.Tensor, dict[str, Any]]:
     """The path-traced reference, from the cache or rendered (resumably) into it.
 
@@ -51,9 +57,15 @@ def render_reference(
     stem = f"{scene.name}-{width}x{height}-d{scene.max_depth}-{spp}spp-seed{seed}"
     final, sidecar = cache_dir / f"{stem}.exr", cache_dir / f"{stem}.json"
     meta = {
-        "source": source, "scene": scene.name, "spp": spp, "seed": seed,
-        "chunk_spp": chunk_spp, "max_depth": scene.max_depth, "resolution": [width, height],
-        "film_filter": scene.film_filter, "method": "pt (gdpt integrator, gradients=False)",
+        "source": source,
+        "scene": scene.name,
+        "spp": spp,
+        "seed": seed,
+        "chunk_spp": chunk_spp,
+        "max_depth": scene.max_depth,
+        "resolution": [width, height],
+        "film_filter": scene.film_filter,
+        "method": "pt (gdpt integrator, gradients=False)",
     }
     old = json.loads(sidecar.read_text()) if sidecar.is_file() else None
     if old is not None and all(old.get(k) == meta[k] for k in ("source", "film_filter")):
@@ -67,15 +79,22 @@ def render_reference(
     write_json(sidecar, meta)
 
     mean, done = None, 0
-    partials = sorted(cache_dir.glob(f"{stem}.partial-*.exr"),
-                      key=lambda p: int(p.stem.rsplit("-", 1)[1]))
+    partials = sorted(
+        cache_dir.glob(f"{stem}.partial-*.exr"), key=lambda p: int(p.stem.rsplit("-", 1)[1])
+    )
     if partials:
         mean, done = load_image(partials[-1]).double(), int(partials[-1].stem.rsplit("-", 1)[1])
     while done < spp:
         n = min(chunk_spp, spp - done)
         start = time.perf_counter()
-        buffers = render(scene.scene, spp=n, seed=seed * 7919 + done,
-                         max_depth=scene.max_depth, gradients=False, features=False)
+        buffers = render(
+            scene.scene,
+            spp=n,
+            seed=seed * 7919 + done,
+            max_depth=scene.max_depth,
+            gradients=False,
+            features=False,
+        )
         chunk = buffers.primal.to("cpu", torch.float64)
         meta["seconds"] += time.perf_counter() - start
         mean = chunk if mean is None else mean + (chunk - mean) * (n / (done + n))

@@ -98,17 +98,25 @@ def _headline(results: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     head = ["scene", *(f"{k} s" for k in _budgets(results))]
     rows = []
     for scene, row in best_methods(results).items():
-        rows.append([scene, *(f"{b[0]} ({metric} {_fmt(b[1])})" if b else "n/a"
-                              for b in row.values())])
+        rows.append(
+            [scene, *(f"{b[0]} ({metric} {_fmt(b[1])})" if b else "n/a" for b in row.values())]
+        )
     return head, rows
 
 
-def _scene_table(results: dict[str, Any], entry: dict[str, Any]
-                 ) -> tuple[list[str], list[list[str]]]:
+def _scene_table(
+    results: dict[str, Any], entry: dict[str, Any]
+) -> tuple[list[str], list[list[str]]]:
     metrics = results["config"]["metrics"]
-    shown = [m for m in metrics if any(
-        m in cell["metrics"] for info in entry.get("methods", {}).values()
-        for cell in info.get("cells", {}).values())]
+    shown = [
+        m
+        for m in metrics
+        if any(
+            m in cell["metrics"]
+            for info in entry.get("methods", {}).values()
+            for cell in info.get("cells", {}).values()
+        )
+    ]
     head = ["method", "budget s", "spp", "time s", *(_label(m) for m in shown)]
     rows = []
     for key in _budgets(results):
@@ -117,8 +125,15 @@ def _scene_table(results: dict[str, Any], entry: dict[str, Any]
             if cell is None:
                 continue
             mark = "" if cell["within_tolerance"] else " *"
-            rows.append([name, key, str(cell["spp"]), f"{cell['seconds']:.2f}{mark}",
-                         *(_fmt(cell["metrics"].get(m)) for m in shown)])
+            rows.append(
+                [
+                    name,
+                    key,
+                    str(cell["spp"]),
+                    f"{cell['seconds']:.2f}{mark}",
+                    *(_fmt(cell["metrics"].get(m)) for m in shown),
+                ]
+            )
     return head, rows
 
 
@@ -165,9 +180,11 @@ def _run_summary(results: dict[str, Any]) -> list[str]:
 
 
 def _filter_notes(results: dict[str, Any]) -> list[str]:
-    return [f"{scene}: pixel filter '{e['film_filter']['original']}' replaced by 'box'"
-            for scene, e in _scenes(results)
-            if e.get("film_filter", {}).get("original") not in (None, "box")]
+    return [
+        f"{scene}: pixel filter '{e['film_filter']['original']}' replaced by 'box'"
+        for scene, e in _scenes(results)
+        if e.get("film_filter", {}).get("original") not in (None, "box")
+    ]
 
 
 def _markdown(results: dict[str, Any], plots: dict[str, str], crops: dict[str, str]) -> str:
@@ -181,17 +198,23 @@ def _markdown(results: dict[str, Any], plots: dict[str, str], crops: dict[str, s
         out += [f"- {n}" for n in notes]
     head, rows = _headline(results)
     out += ["", f"## Lowest {metric} at each budget", "", _md_table(head, rows)]
-    out += ["", "`*` after a time: the achieved time misses the budget by more than the "
-            "tolerance (usually: the method's fixed cost exceeds the budget even at 1 spp)."]
+    out += [
+        "",
+        "`*` after a time: the achieved time misses the budget by more than the "
+        "tolerance (usually: the method's fixed cost exceeds the budget even at 1 spp).",
+    ]
     for scene, entry in _scenes(results):
         out += ["", f"## {scene}", "", f"Source: `{entry.get('source')}`"]
         if entry.get("status") != "ok":
             out += ["", f"**Failed** at stage `{entry.get('stage')}`: {entry.get('error')}"]
             continue
         ref = entry.get("reference", {})
-        out += ["", f"{entry['resolution'][0]}x{entry['resolution'][1]} px, "
-                f"reference {ref.get('spp')} spp (seed {ref.get('seed')}, "
-                f"{ref.get('seconds', 0):.1f} s). " + "; ".join(entry.get("notes", [])) + "."]
+        out += [
+            "",
+            f"{entry['resolution'][0]}x{entry['resolution'][1]} px, "
+            f"reference {ref.get('spp')} spp (seed {ref.get('seed')}, "
+            f"{ref.get('seconds', 0):.1f} s). " + "; ".join(entry.get("notes", [])) + ".",
+        ]
         out += ["", _md_table(*_scene_table(results, entry))]
         if skips := _skips(entry):
             out += [""] + [f"- {s}" for s in skips]
@@ -213,22 +236,33 @@ def _html(results: dict[str, Any], plots: dict[str, str], crops: dict[str, str])
         "<h1>Equal-time evaluation</h1><ul>",
         *(f"<li>{esc(line)}</li>" for line in _run_summary(results)),
         "</ul><details><summary>Metric conventions</summary><ul>",
-        *(f"<li><code>{esc(k)}</code>: {esc(v)}</li>"
-          for k, v in results.get("conventions", {}).items()),
+        *(
+            f"<li><code>{esc(k)}</code>: {esc(v)}</li>"
+            for k, v in results.get("conventions", {}).items()
+        ),
         "</ul></details>",
     ]
     if notes := _filter_notes(results):
-        parts += ["<p>Scene changes (same for the reference and every method):</p><ul>",
-                  *(f"<li>{esc(n)}</li>" for n in notes), "</ul>"]
-    parts += [f"<h2>Lowest {esc(metric)} at each budget</h2>", _html_table(*_headline(results)),
-              "<p>* after a time: the achieved time misses the budget by more than the "
-              "tolerance.</p>"]
+        parts += [
+            "<p>Scene changes (same for the reference and every method):</p><ul>",
+            *(f"<li>{esc(n)}</li>" for n in notes),
+            "</ul>",
+        ]
+    parts += [
+        f"<h2>Lowest {esc(metric)} at each budget</h2>",
+        _html_table(*_headline(results)),
+        "<p>* after a time: the achieved time misses the budget by more than the tolerance.</p>",
+    ]
     for scene, entry in _scenes(results):
-        parts.append(f"<h2 id='{esc(scene)}'>{esc(scene)}</h2>"
-                     f"<p>Source: <code>{esc(str(entry.get('source')))}</code></p>")
+        parts.append(
+            f"<h2 id='{esc(scene)}'>{esc(scene)}</h2>"
+            f"<p>Source: <code>{esc(str(entry.get('source')))}</code></p>"
+        )
         if entry.get("status") != "ok":
-            parts.append(f"<p class='failed'>Failed at stage {esc(str(entry.get('stage')))}: "
-                         f"{esc(str(entry.get('error')))}</p>")
+            parts.append(
+                f"<p class='failed'>Failed at stage {esc(str(entry.get('stage')))}: "
+                f"{esc(str(entry.get('error')))}</p>"
+            )
             continue
         parts.append(f"<p>{esc('; '.join(entry.get('notes', [])))}</p>")
         parts.append(_html_table(*_scene_table(results, entry)))
@@ -250,17 +284,21 @@ def _plot(results: dict[str, Any], scene: str, entry: dict[str, Any], path: Path
     import matplotlib.pyplot as plt
 
     cells = {n: i.get("cells", {}) for n, i in entry.get("methods", {}).items() if i.get("cells")}
-    metrics = [m for m in PLOT_METRICS if m in results["config"]["metrics"] and any(
-        c["metrics"].get(m) for cs in cells.values() for c in cs.values())]
+    metrics = [
+        m
+        for m in PLOT_METRICS
+        if m in results["config"]["metrics"]
+        and any(c["metrics"].get(m) for cs in cells.values() for c in cs.values())
+    ]
     if not cells or not metrics:
         return False
     fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.6), squeeze=False)
-    for ax, metric in zip(axes[0], metrics):
+    for ax, metric in zip(axes[0], metrics, strict=False):
         for name, by_budget in cells.items():
             points = sorted((c["seconds"], c["metrics"].get(metric)) for c in by_budget.values())
             points = [(t, v) for t, v in points if v and v > 0]
             if points:
-                ax.plot(*zip(*points), marker="o", label=name)
+                ax.plot(*zip(*points, strict=False), marker="o", label=name)
         for budget in results["config"]["budgets"]:
             ax.axvline(budget, color="0.85", lw=0.8, zorder=0)
         ax.set_xscale("log")
@@ -269,8 +307,9 @@ def _plot(results: dict[str, Any], scene: str, entry: dict[str, Any], path: Path
         ax.set_ylabel(_label(metric))
         ax.grid(True, which="both", alpha=0.3)
     axes[0][0].legend(fontsize=8)
-    fig.suptitle(f"{scene}: error vs equal time ({entry['resolution'][0]}x"
-                 f"{entry['resolution'][1]} px)")
+    fig.suptitle(
+        f"{scene}: error vs equal time ({entry['resolution'][0]}x{entry['resolution'][1]} px)"
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -291,8 +330,9 @@ def _crop_window(errors: list[torch.Tensor], size: int) -> tuple[int, int]:
     return divmod(index, pooled.shape[1])
 
 
-def _crops(results: dict[str, Any], scene: str, entry: dict[str, Any], out: Path,
-           path: Path) -> bool:
+def _crops(
+    results: dict[str, Any], scene: str, entry: dict[str, Any], out: Path, path: Path
+) -> bool:
     """Reference, each method's image and its error map, cropped, at the largest budget."""
     import matplotlib
 
@@ -305,8 +345,11 @@ def _crops(results: dict[str, Any], scene: str, entry: dict[str, Any], out: Path
 
     ref_path = out / "images" / scene / "reference.exr"
     budget = _budgets(results)[-1]
-    cells = {n: i["cells"][budget] for n, i in entry.get("methods", {}).items()
-             if budget in i.get("cells", {}) and (out / i["cells"][budget]["image"]).is_file()}
+    cells = {
+        n: i["cells"][budget]
+        for n, i in entry.get("methods", {}).items()
+        if budget in i.get("cells", {}) and (out / i["cells"][budget]["image"]).is_file()
+    }
     if not ref_path.is_file() or not cells:
         return False
     ref = load_image(ref_path)
@@ -322,7 +365,7 @@ def _crops(results: dict[str, Any], scene: str, entry: dict[str, Any], out: Path
     for ax in axes.flat:
         ax.set_xticks([])
         ax.set_yticks([])
-    axes[0][0].imshow(to_srgb8(ref[y:y + size, x:x + size]), interpolation="nearest")
+    axes[0][0].imshow(to_srgb8(ref[y : y + size, x : x + size]), interpolation="nearest")
     axes[0][0].set_title("reference", fontsize=8)
     axes[1][0].imshow(to_srgb8(ref), interpolation="nearest")
     axes[1][0].add_patch(Rectangle((x - 0.5, y - 0.5), size, size, fill=False, ec="red"))
@@ -330,10 +373,15 @@ def _crops(results: dict[str, Any], scene: str, entry: dict[str, Any], out: Path
     image = None
     for col, (name, im) in enumerate(images.items(), start=1):
         cell = cells[name]
-        axes[0][col].imshow(to_srgb8(im[y:y + size, x:x + size]), interpolation="nearest")
+        axes[0][col].imshow(to_srgb8(im[y : y + size, x : x + size]), interpolation="nearest")
         axes[0][col].set_title(f"{name}\n{cell['spp']} spp, {cell['seconds']:.2f} s", fontsize=8)
-        image = axes[1][col].imshow(errors[name][y:y + size, x:x + size].numpy(), cmap="magma",
-                                    vmin=0.0, vmax=vmax, interpolation="nearest")
+        image = axes[1][col].imshow(
+            errors[name][y : y + size, x : x + size].numpy(),
+            cmap="magma",
+            vmin=0.0,
+            vmax=vmax,
+            interpolation="nearest",
+        )
         value = cell["metrics"].get("relmse")
         axes[1][col].set_title(f"relMSE map\n{_fmt(value)} overall", fontsize=8)
     if image is not None:
@@ -348,7 +396,8 @@ def write_report(results: dict[str, Any], out: str | os.PathLike[str]) -> list[P
     """Write ``results.md``, the plots, the crops and ``index.html`` into ``out``.
 
     Args:
-        results: the content of ``results.json`` (as returned by :func:`gdpt.study.evaluate.evaluate`).
+        results: the content of ``results.json`` (as returned by
+            :func:`gdpt.study.evaluate.evaluate`).
         out: the report folder (holding ``results.json`` and ``images/``).
 
     Returns:

@@ -113,9 +113,7 @@ def _choose_depth(configured: int | None, scene_depth: int | None, notes: list[s
     return DEFAULT_MAX_DEPTH
 
 
-def load_eval_scene(
-    spec: SceneSpec, *, resolution: int, max_depth: int | None = None
-) -> EvalScene:
+def load_eval_scene(spec: SceneSpec, *, resolution: int, max_depth: int | None = None) -> EvalScene:
     """Load a scene for evaluation at ``resolution`` pixels on the long side.
 
     Args:
@@ -133,9 +131,16 @@ def load_eval_scene(
     from gdpt.scene_io import GENERATED_PREFIXES, read_scene
 
     generated = spec.source.startswith(GENERATED_PREFIXES)
-    loaded = read_scene(spec.source if generated else Path(spec.source), box_filter=True,
-                        long_side=resolution)
+    loaded = read_scene(
+        spec.source if generated else Path(spec.source), box_filter=True, long_side=resolution
+    )
     notes = list(loaded.notes)
     depth = _choose_depth(max_depth, loaded.max_depth, notes)
-    return EvalScene(spec.name, loaded.scene, depth, loaded.resolution, notes,
-                     {"original": loaded.original_filter, "used": BOX_FILTER})
+    return EvalScene(
+        spec.name,
+        loaded.scene,
+        depth,
+        loaded.resolution,
+        notes,
+        {"original": loaded.original_filter, "used": BOX_FILTER},
+    )

@@ -18,8 +18,13 @@ from gdpt.reconstruct.dense_unet import DenseUNet
 from gdpt.reconstruct.ngpt import checkpoint_paths, encode_checkpoint
 
 
-def save_checkpoint(model: DenseUNet, path: str | Path, card: Mapping[str, Any] | None = None,
-                    *, features: Sequence[str] | None = None) -> tuple[Path, Path]:
+def save_checkpoint(
+    model: DenseUNet,
+    path: str | Path,
+    card: Mapping[str, Any] | None = None,
+    *,
+    features: Sequence[str] | None = None,
+) -> tuple[Path, Path]:
     """Write ``model`` as ``<path>.safetensors`` plus the model card ``<path>.json``.
 
     Args:

@@ -120,8 +120,15 @@ class DatasetConfig:
     scene_config: RandomSceneConfig | None = None
 
     def __post_init__(self) -> None:
-        for name in ("scenes", "views", "resolution", "spp_min", "levels", "target_spp",
-                     "max_depth"):
+        for name in (
+            "scenes",
+            "views",
+            "resolution",
+            "spp_min",
+            "levels",
+            "target_spp",
+            "max_depth",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.spp_max < self.spp_min:
@@ -223,13 +230,16 @@ def plan_crop(config: DatasetConfig, scene: int, view: int) -> CropPlan:
 def _scene_config(content: dict[str, Any]) -> RandomSceneConfig:
     from gdpt.scenes import RandomSceneConfig
 
-    fields = {k: tuple(v) if isinstance(v, list) else v
-              for k, v in content["scene_config"].items()}
+    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in content["scene_config"].items()}
     return RandomSceneConfig(**fields)
 
 
-def render_crop(plan: CropPlan, root: str | os.PathLike[str], content: dict[str, Any],
-                variant: str | None = None) -> dict[str, Any]:
+def render_crop(
+    plan: CropPlan,
+    root: str | os.PathLike[str],
+    content: dict[str, Any],
+    variant: str | None = None,
+) -> dict[str, Any]:
     """Render and store all elements of one crop; returns its manifest record.
 
     Sets the Mitsuba variant (:func:`gdpt.set_variant`), so it can run in a fresh worker
@@ -255,8 +265,11 @@ def render_crop(plan: CropPlan, root: str | os.PathLike[str], content: dict[str,
 
     root = Path(root)
     res = int(content["resolution"])
-    scene = load_scene(random_scene(plan.scene_seed, resolution=(res, res), view=plan.view,
-                                    config=_scene_config(content)))
+    scene = load_scene(
+        random_scene(
+            plan.scene_seed, resolution=(res, res), view=plan.view, config=_scene_config(content)
+        )
+    )
     crop_dir = root / CROPS_DIR / plan.crop_id
     crop_dir.mkdir(parents=True, exist_ok=True)
     files: dict[str, str] = {}
@@ -265,15 +278,23 @@ def render_crop(plan: CropPlan, root: str | os.PathLike[str], content: dict[str,
 
     def store(name: str, buffers: GradientBuffers, **extra: Any) -> None:
         metadata = {**buffers.metadata, "crop": plan.crop_id, "element": name, **extra}
-        path = save_buffers(crop_dir / f"{name}.exr", buffers.replace(metadata=metadata),
-                            force=True)  # fsync'ed by the atomic write
+        path = save_buffers(
+            crop_dir / f"{name}.exr", buffers.replace(metadata=metadata), force=True
+        )  # fsync'ed by the atomic write
         files[name] = path.relative_to(root).as_posix()
         sizes[name] = path.stat().st_size
         seconds[name] = round(float(buffers.metadata["render_seconds"]), 4)
 
     def draw(spp: int, seed: int, gradients: bool) -> GradientBuffers:
-        return render(scene, spp=spp, seed=seed, integrator="gdpt",
-                      max_depth=int(content["max_depth"]), gradients=gradients, features=True)
+        return render(
+            scene,
+            spp=spp,
+            seed=seed,
+            integrator="gdpt",
+            max_depth=int(content["max_depth"]),
+            gradients=gradients,
+            features=True,
+        )
 
     for k, (spp, seed) in enumerate(zip(plan.spp, plan.input_seeds, strict=True)):
         store(f"in{k}", draw(spp, seed, True))
@@ -283,8 +304,13 @@ def render_crop(plan: CropPlan, root: str | os.PathLike[str], content: dict[str,
     start = time.perf_counter()
     image = reconstruct(target, method="l1", alpha=float(content["alpha"]))
     solve = time.perf_counter() - start
-    store("target", target.replace(primal=image.float().contiguous()),
-          primal="l1_poisson", alpha=float(content["alpha"]), solve_seconds=round(solve, 4))
+    store(
+        "target",
+        target.replace(primal=image.float().contiguous()),
+        primal="l1_poisson",
+        alpha=float(content["alpha"]),
+        solve_seconds=round(solve, 4),
+    )
     seconds["total"] = round(sum(seconds.values()) + solve, 4)
     return {
         "crop": plan.crop_id,
@@ -295,8 +321,11 @@ def render_crop(plan: CropPlan, root: str | os.PathLike[str], content: dict[str,
         "spp": list(plan.spp),
         "pt_spp": list(plan.pt_spp),
         "target_spp": int(content["target_spp"]),
-        "seeds": {"inputs": list(plan.input_seeds), "pt": list(plan.pt_seeds),
-                  "target": plan.target_seed},
+        "seeds": {
+            "inputs": list(plan.input_seeds),
+            "pt": list(plan.pt_seeds),
+            "target": plan.target_seed,
+        },
         "files": files,
         "bytes": sizes,
         "render_seconds": seconds,
@@ -371,8 +400,11 @@ def _check_config(root: Path, content: dict[str, Any]) -> None:
     if path.exists():
         stored = json.loads(path.read_text())
         old = stored.get("config", {})
-        diff = [f"{k}: {old.get(k)!r} in {path} vs {content.get(k)!r} requested"
-                for k in sorted(set(old) | set(content)) if old.get(k) != content.get(k)]
+        diff = [
+            f"{k}: {old.get(k)!r} in {path} vs {content.get(k)!r} requested"
+            for k in sorted(set(old) | set(content))
+            if old.get(k) != content.get(k)
+        ]
         if stored.get("format") != DATASET_FORMAT or diff:
             raise ValueError(
                 f"{root} holds a dataset with other settings ({'; '.join(diff) or 'format'}); "
@@ -396,15 +428,17 @@ def _render_task(args: tuple[CropPlan, str, dict[str, Any], str | None]) -> dict
     return render_crop(*args)
 
 
-def _ray_render_task(plan: CropPlan, root: str, content: dict[str, Any],
-                     variant: str | None) -> dict[str, Any]:
+def _ray_render_task(
+    plan: CropPlan, root: str, content: dict[str, Any], variant: str | None
+) -> dict[str, Any]:
     """Ray task body: one crop with one Dr.Jit thread (Ray runs one task per CPU)."""
     _init_worker(variant, 1)
     return render_crop(plan, root, content, variant)
 
 
-def _run_local(plans: list[CropPlan], root: Path, content: dict[str, Any], variant: str | None,
-               workers: int) -> Iterator[dict[str, Any]]:
+def _run_local(
+    plans: list[CropPlan], root: Path, content: dict[str, Any], variant: str | None, workers: int
+) -> Iterator[dict[str, Any]]:
     """Render crops in this process (``workers == 1``) or in a spawn pool; yield records."""
     if workers == 1:
         for plan in plans:
@@ -417,8 +451,14 @@ def _run_local(plans: list[CropPlan], root: Path, content: dict[str, Any], varia
         yield from pool.imap_unordered(_render_task, tasks)
 
 
-def _run_ray(plans: list[CropPlan], root: Path, content: dict[str, Any], variant: str | None,
-             address: str, workers: int) -> Iterator[dict[str, Any]]:
+def _run_ray(
+    plans: list[CropPlan],
+    root: Path,
+    content: dict[str, Any],
+    variant: str | None,
+    address: str,
+    workers: int,
+) -> Iterator[dict[str, Any]]:
     """Render crops as Ray tasks (one per crop, 1 CPU each); yield records as they finish.
 
     ``address == "local"`` starts a private single-node Ray instance with ``workers`` CPUs;
@@ -468,9 +508,15 @@ class BuildSummary:
         return 60.0 * self.rendered / self.seconds if self.seconds > 0 else 0.0
 
 
-def build_dataset(config: DatasetConfig, out: str | os.PathLike[str], *, workers: int = 1,
-                  ray_address: str | None = None, variant: str | None = None,
-                  progress: bool = True) -> BuildSummary:
+def build_dataset(
+    config: DatasetConfig,
+    out: str | os.PathLike[str],
+    *,
+    workers: int = 1,
+    ray_address: str | None = None,
+    variant: str | None = None,
+    progress: bool = True,
+) -> BuildSummary:
     """Render the crops of ``config`` that ``out`` does not hold yet (resumable).
 
     Args:
@@ -500,8 +546,11 @@ def build_dataset(config: DatasetConfig, out: str | os.PathLike[str], *, workers
     _check_config(root, content)
     records, problems = read_manifest(root)
     if problems:
-        warnings.warn(f"{root}: repairing {MANIFEST_FILE}:\n  " + "\n  ".join(problems),
-                      DatasetWarning, stacklevel=2)
+        warnings.warn(
+            f"{root}: repairing {MANIFEST_FILE}:\n  " + "\n  ".join(problems),
+            DatasetWarning,
+            stacklevel=2,
+        )
         _rewrite_manifest(root, records)
     done = {record["crop"] for record in records}
     ids = [(s, v) for s in range(config.scenes) for v in range(config.views)]
@@ -512,8 +561,14 @@ def build_dataset(config: DatasetConfig, out: str | os.PathLike[str], *, workers
     else:
         results = _run_ray(plans, root, content, variant, ray_address, workers)
     rendered = 0
-    with tqdm(total=len(ids), initial=skipped, unit="crop", desc="dataset",
-              disable=not progress, dynamic_ncols=True) as bar:
+    with tqdm(
+        total=len(ids),
+        initial=skipped,
+        unit="crop",
+        desc="dataset",
+        disable=not progress,
+        dynamic_ncols=True,
+    ) as bar:
         for record in results:
             append_manifest(root, record)
             rendered += 1
@@ -548,8 +603,13 @@ class CropDataset(Dataset):
             all corrupt); crops of different sizes.
     """
 
-    def __init__(self, root: str | os.PathLike[str], *, kind: str = "gdpt",
-                 scenes: Callable[[int], bool] | None = None) -> None:
+    def __init__(
+        self,
+        root: str | os.PathLike[str],
+        *,
+        kind: str = "gdpt",
+        scenes: Callable[[int], bool] | None = None,
+    ) -> None:
         if kind not in INPUT_KINDS:
             raise ValueError(f"unknown input kind {kind!r}; valid: {', '.join(INPUT_KINDS)}")
         self.root = Path(root)
@@ -569,23 +629,32 @@ class CropDataset(Dataset):
                 raise ValueError(f"{self.root}: no crop of the selected scenes")
         sizes = sorted({tuple(r["resolution"]) for r in records})
         if len(sizes) > 1:
-            counts = {f"{w}x{h}": sum(tuple(r["resolution"]) == (w, h) for r in records)
-                      for w, h in sizes}
-            raise ValueError(f"{self.root}: crops of different sizes (crops per size: {counts}); "
-                             "a dataset must have one crop size")
+            counts = {
+                f"{w}x{h}": sum(tuple(r["resolution"]) == (w, h) for r in records) for w, h in sizes
+            }
+            raise ValueError(
+                f"{self.root}: crops of different sizes (crops per size: {counts}); "
+                "a dataset must have one crop size"
+            )
         self.resolution: tuple[int, int] = (int(sizes[0][0]), int(sizes[0][1]))
         bad = list(problems)
         self.crops: list[dict[str, Any]] = []
         for record in records:
-            broken = [msg for name in self._element_names(record)
-                      if (msg := self._check_file(record, name))]
+            broken = [
+                msg
+                for name in self._element_names(record)
+                if (msg := self._check_file(record, name))
+            ]
             if broken:
                 bad.append(f"crop {record['crop']} skipped: {'; '.join(broken)}")
             else:
                 self.crops.append(record)
         if bad:
-            warnings.warn(f"{self.root}: skipped {len(bad)} corrupt/partial entries:\n  "
-                          + "\n  ".join(bad), DatasetWarning, stacklevel=2)
+            warnings.warn(
+                f"{self.root}: skipped {len(bad)} corrupt/partial entries:\n  " + "\n  ".join(bad),
+                DatasetWarning,
+                stacklevel=2,
+            )
         if not self.crops:
             raise ValueError(f"{self.root}: no usable crop (all {len(records)} are corrupt)")
         self.levels = min(len(r["spp"]) for r in self.crops)
@@ -641,12 +710,19 @@ class CropDataset(Dataset):
             tensors[feature] = tensor
         for what, tensor in (("input", inputs.primal), ("target", target)):
             if tuple(tensor.shape[:2]) != (height, width):
-                raise ValueError(f"crop {record['crop']}: {what} is "
-                                 f"{tensor.shape[1]}x{tensor.shape[0]}, expected "
-                                 f"{width}x{height}")
+                raise ValueError(
+                    f"crop {record['crop']}: {what} is "
+                    f"{tensor.shape[1]}x{tensor.shape[0]}, expected "
+                    f"{width}x{height}"
+                )
         spp = record["spp" if self.kind == "gdpt" else "pt_spp"][level]
-        return {"inputs": tensors, "target": target, "spp": int(spp), "crop": record["crop"],
-                "level": level}
+        return {
+            "inputs": tensors,
+            "target": target,
+            "spp": int(spp),
+            "crop": record["crop"],
+            "level": level,
+        }
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         """Element ``index`` as in :meth:`load`, or the next readable one (with a warning)."""
@@ -659,7 +735,7 @@ class CropDataset(Dataset):
                 return self.load(i)
             except (ValueError, OSError) as error:
                 self._unreadable.add(i)
-                warnings.warn(f"skipping unreadable element {i}: {error}", DatasetWarning,
-                              stacklevel=2)
+                warnings.warn(
+                    f"skipping unreadable element {i}: {error}", DatasetWarning, stacklevel=2
+                )
         raise RuntimeError(f"{self.root}: no readable element left")
-

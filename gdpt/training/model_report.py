@@ -41,7 +41,7 @@ def _smooth(values: list[float], window: int) -> list[float]:
     """Centred running mean of ``values`` over ``window`` entries (shorter at the ends)."""
     out, half = [], window // 2
     for i in range(len(values)):
-        part = values[max(0, i - half):i + half + 1]
+        part = values[max(0, i - half) : i + half + 1]
         out.append(sum(part) / len(part))
     return out
 
@@ -78,10 +78,16 @@ def plot_training(runs: Mapping[str, str | Path], path: str | Path) -> Path:
             vh = [r["time"] / 3600 for r in val]
             for ax, key in ((axes[1], "relmse"), (axes[2], "flip")):
                 ax.plot(vh, [r[key] for r in val], "o-", ms=3, color=colour, label=label)
-                ax.axhline(val[-1][f"l1_{key}"], color=colour, ls="--", lw=1,
-                           label=f"L1 Poisson on the {label} validation inputs")
-    axes[0].set(title="training loss (101-step running mean)", xlabel="wall-clock hours",
-                ylabel="loss")
+                ax.axhline(
+                    val[-1][f"l1_{key}"],
+                    color=colour,
+                    ls="--",
+                    lw=1,
+                    label=f"L1 Poisson on the {label} validation inputs",
+                )
+    axes[0].set(
+        title="training loss (101-step running mean)", xlabel="wall-clock hours", ylabel="loss"
+    )
     axes[1].set(title="validation relMSE", xlabel="wall-clock hours", yscale="log")
     axes[2].set(title="validation LDR-FLIP", xlabel="wall-clock hours")
     for ax in axes:
@@ -100,7 +106,10 @@ def _timed(fn: Any, *args: Any) -> tuple[torch.Tensor, float]:
 
 
 def compare_models(
-    data: str | Path, models: Mapping[str, str | Path], *, holdout_every: int = HOLDOUT_EVERY,
+    data: str | Path,
+    models: Mapping[str, str | Path],
+    *,
+    holdout_every: int = HOLDOUT_EVERY,
     progress: bool = True,
 ) -> dict[str, Any]:
     """Score networks and baselines on the held-out crops of a dataset.
@@ -133,12 +142,14 @@ def compare_models(
         rec = NGPTReconstructor.from_checkpoint(path)
         nets[label] = (rec, "gdpt" if "dx" in rec.features else "pt")
     methods: dict[str, tuple[str, Any]] = {
-        label: (kind, rec) for label, (rec, kind) in nets.items()}
-    methods["gdpt+l1"] = ("gdpt", lambda b: poisson(b["primal"], b["dx"], b["dy"], method="l1",
-                                                      alpha=0.2))
+        label: (kind, rec) for label, (rec, kind) in nets.items()
+    }
+    methods["gdpt+l1"] = (
+        "gdpt",
+        lambda b: poisson(b["primal"], b["dx"], b["dy"], method="l1", alpha=0.2),
+    )
     if oidn_check() is None:
-        methods["pt+oidn"] = ("pt", lambda b: oidn_denoise(b["primal"], b["albedo"],
-                                                            b["normal"]))
+        methods["pt+oidn"] = ("pt", lambda b: oidn_denoise(b["primal"], b["albedo"], b["normal"]))
     methods["pt"] = ("pt", lambda b: b["primal"])
 
     gdpt_set = sets["gdpt"]
@@ -169,18 +180,35 @@ def compare_models(
 
     out_levels = []
     for bucket in scores:
-        out_levels.append({
-            "spp": mean(bucket["spp"]), "pt_spp": mean(bucket["pt_spp"]),
-            "render_seconds": {"gdpt": mean(bucket["render_gdpt"]),
-                               "pt": mean(bucket["render_pt"])},
-            "methods": {label: {m: mean(bucket[f"{label}/{m}"])
-                                for m in ("relmse", "flip", "seconds")} for label in methods},
-        })
-    overall = {label: {m: mean([lv["methods"][label][m] for lv in out_levels])
-                       for m in ("relmse", "flip", "seconds")} for label in methods}
-    return {"data": str(data), "holdout_every": holdout_every,
-            "crops": len(gdpt_set.crops), "models": {k: str(v) for k, v in models.items()},
-            "levels": out_levels, "mean": overall}
+        out_levels.append(
+            {
+                "spp": mean(bucket["spp"]),
+                "pt_spp": mean(bucket["pt_spp"]),
+                "render_seconds": {
+                    "gdpt": mean(bucket["render_gdpt"]),
+                    "pt": mean(bucket["render_pt"]),
+                },
+                "methods": {
+                    label: {m: mean(bucket[f"{label}/{m}"]) for m in ("relmse", "flip", "seconds")}
+                    for label in methods
+                },
+            }
+        )
+    overall = {
+        label: {
+            m: mean([lv["methods"][label][m] for lv in out_levels])
+            for m in ("relmse", "flip", "seconds")
+        }
+        for label in methods
+    }
+    return {
+        "data": str(data),
+        "holdout_every": holdout_every,
+        "crops": len(gdpt_set.crops),
+        "models": {k: str(v) for k, v in models.items()},
+        "levels": out_levels,
+        "mean": overall,
+    }
 
 
 def comparison_markdown(result: Mapping[str, Any]) -> str:
@@ -192,24 +220,38 @@ def comparison_markdown(result: Mapping[str, Any]) -> str:
     for level in [*result["levels"], None]:
         entry = result["mean"] if level is None else level["methods"]
         best = min(labels, key=lambda k: entry[k]["relmse"])
-        cells = [f"**{entry[k]['relmse']:.4f}** / {entry[k]['flip']:.3f}" if k == best
-                 else f"{entry[k]['relmse']:.4f} / {entry[k]['flip']:.3f}" for k in labels]
+        cells = [
+            f"**{entry[k]['relmse']:.4f}** / {entry[k]['flip']:.3f}"
+            if k == best
+            else f"{entry[k]['relmse']:.4f} / {entry[k]['flip']:.3f}"
+            for k in labels
+        ]
         if level is None:
             rows.append(["mean over levels", ""] + cells)
         else:
-            rows.append([f"{level['spp']:.0f} / {level['pt_spp']:.0f}",
-                         f"{level['render_seconds']['gdpt']:.2f} / "
-                         f"{level['render_seconds']['pt']:.2f}"] + cells)
+            rows.append(
+                [
+                    f"{level['spp']:.0f} / {level['pt_spp']:.0f}",
+                    f"{level['render_seconds']['gdpt']:.2f} / {level['render_seconds']['pt']:.2f}",
+                ]
+                + cells
+            )
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     return "\n".join(lines) + (
         f"\n\nrelMSE / LDR-FLIP, means over {result['crops']} held-out crops (128 px) per "
         "level; G-PT methods read the gradient-domain input, PT methods the path-traced input "
-        "with 2.5x the samples.\n")
+        "with 2.5x the samples.\n"
+    )
 
 
-def ship_model(run: str | Path, name: str, *, comparison: Mapping[str, Any] | None = None,
-               dest: str | Path | None = None) -> Path:
+def ship_model(
+    run: str | Path,
+    name: str,
+    *,
+    comparison: Mapping[str, Any] | None = None,
+    dest: str | Path | None = None,
+) -> Path:
     """Copy a run's final network into the package as ``<dest>/<name>.safetensors`` + card.
 
     The card adds to the run's own card: the dataset configuration and size (crops, scenes,
@@ -248,16 +290,20 @@ def ship_model(run: str | Path, name: str, *, comparison: Mapping[str, Any] | No
         train_config=config,
         dataset=json.loads(data.read_text()) if data.is_file() else None,
         dataset_size={
-            "crops": len(manifest), "scenes": len(scenes),
+            "crops": len(manifest),
+            "scenes": len(scenes),
             "heldout_scenes": [s for s in scenes if s % holdout == holdout - 1]
-            if config.get("val_data") is None else "separate validation set",
+            if config.get("val_data") is None
+            else "separate validation set",
         },
     )
     if comparison is not None:
         extra["heldout_comparison"] = comparison
     size = sum(p.numel() for p in model.state_dict().values()) * 4 / 2**20
     if size > MAX_SHIPPED_MIB:
-        raise ValueError(f"{run}: a {size:.1f} MiB network exceeds the {MAX_SHIPPED_MIB} MiB "
-                         "limit of shipped models")
+        raise ValueError(
+            f"{run}: a {size:.1f} MiB network exceeds the {MAX_SHIPPED_MIB} MiB "
+            "limit of shipped models"
+        )
     weights, _ = save_checkpoint(model, Path(dest or MODEL_DIR) / name, extra)
     return weights

@@ -1,4 +1,5 @@
-"""Training the NGPT reconstruction network (Kettunen et al. 2019) on a :mod:`gdpt.training.dataset`.
+"""Training the NGPT reconstruction network (Kettunen et al. 2019) on a
+:mod:`gdpt.training.dataset`.
 
 The recipe follows the reference implementation (``gdpt-notes.md`` sections 3.1, 3.3, 3.4):
 
@@ -83,8 +84,16 @@ COLOUR_BUFFERS = ("primal", "dx", "dy", "albedo", "target")
 #: Buffers scaled by the brightness multiplier (colour and gradients only, not albedo).
 BRIGHTNESS_BUFFERS = ("primal", "dx", "dy", "target")
 #: Config fields that may change when a run is resumed.
-RESUMABLE_FIELDS = ("data", "val_data", "out", "steps", "val_every", "ckpt_every",
-                    "keep_checkpoints", "device")
+RESUMABLE_FIELDS = (
+    "data",
+    "val_data",
+    "out",
+    "steps",
+    "val_every",
+    "ckpt_every",
+    "keep_checkpoints",
+    "device",
+)
 _SCHEDULE_FIELDS = ("warmup_steps", "decay_start", "half_life")
 _CKPT_PREFIX = "ckpt-"
 
@@ -159,8 +168,14 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if not self.data or not self.out:
             raise ValueError("TrainConfig needs data= and out= directories")
-        for name in ("steps", "batch", "holdout_every", "val_crops", "ckpt_every",
-                     "keep_checkpoints"):
+        for name in (
+            "steps",
+            "batch",
+            "holdout_every",
+            "val_crops",
+            "ckpt_every",
+            "keep_checkpoints",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.val_every < 0 or self.pad < 0 or not 0 <= self.vary_padding <= self.pad:
@@ -170,10 +185,14 @@ class TrainConfig:
 
     def resolved(self) -> TrainConfig:
         """A copy with the schedule defaults (``None``) replaced by their values for ``steps``."""
-        defaults = {"warmup_steps": self.steps // 50, "decay_start": self.steps // 4,
-                    "half_life": max(1, self.steps // 4)}
-        return dataclasses.replace(self, **{k: v for k, v in defaults.items()
-                                            if getattr(self, k) is None})
+        defaults = {
+            "warmup_steps": self.steps // 50,
+            "decay_start": self.steps // 4,
+            "half_life": max(1, self.steps // 4),
+        }
+        return dataclasses.replace(
+            self, **{k: v for k, v in defaults.items() if getattr(self, k) is None}
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form."""
@@ -234,8 +253,9 @@ class AugmentParams:
     offset: tuple[int, int] = (0, 0)
 
 
-def sample_augmentation(generator: torch.Generator, config: TrainConfig,
-                        shape: tuple[int, int]) -> AugmentParams:
+def sample_augmentation(
+    generator: torch.Generator, config: TrainConfig, shape: tuple[int, int]
+) -> AugmentParams:
     """Draw the augmentations of one sample.
 
     Args:
@@ -246,6 +266,7 @@ def sample_augmentation(generator: torch.Generator, config: TrainConfig,
     Returns:
         The draw; with ``config.augment`` false only the sub-crop position is random.
     """
+
     def uniform(n: int = 1) -> list[float]:
         return torch.rand(n, generator=generator, dtype=torch.float64).tolist()
 
@@ -253,8 +274,10 @@ def sample_augmentation(generator: torch.Generator, config: TrainConfig,
     size = None if config.crop is None else (config.crop, config.crop)
     origin = (0, 0)
     if size is not None:
-        origin = (int(torch.randint(height - size[0] + 1, (1,), generator=generator)),
-                  int(torch.randint(width - size[1] + 1, (1,), generator=generator)))
+        origin = (
+            int(torch.randint(height - size[0] + 1, (1,), generator=generator)),
+            int(torch.randint(width - size[1] + 1, (1,), generator=generator)),
+        )
     if not config.augment:
         return AugmentParams(origin=origin, size=size)
     flips = uniform(3)
@@ -270,8 +293,7 @@ def sample_augmentation(generator: torch.Generator, config: TrainConfig,
         transpose=square and flips[2] < 0.5,
         permutation=tuple(torch.randperm(3, generator=generator).tolist()),
         colour=tuple((3.0 * simplex / simplex.sum()).tolist()),
-        brightness=math.exp(float(torch.randn(1, generator=generator, dtype=torch.float64))
-                            - 0.5),
+        brightness=math.exp(float(torch.randn(1, generator=generator, dtype=torch.float64)) - 0.5),
         depth_scale=0.1 + uniform()[0],
         offset=(int(offset[0]), int(offset[1])),
     )
@@ -298,13 +320,16 @@ def augment(buffers: Mapping[str, torch.Tensor], params: AugmentParams) -> dict[
     out = dict(buffers)
     if params.size is not None:
         (y, x), (h, w) = params.origin, params.size
-        out = {n: t[y:y + h, x:x + w] for n, t in out.items()}
+        out = {n: t[y : y + h, x : x + w] for n, t in out.items()}
         if "dx" in out:
             out["dx"] = torch.cat([out["dx"][:, :-1], torch.zeros_like(out["dx"][:, -1:])], 1)
         if "dy" in out:
             out["dy"] = torch.cat([out["dy"][:-1], torch.zeros_like(out["dy"][-1:])], 0)
-    for name, active in (("flip_x", params.flip_x), ("flip_y", params.flip_y),
-                         ("transpose", params.transpose)):
+    for name, active in (
+        ("flip_x", params.flip_x),
+        ("flip_y", params.flip_y),
+        ("transpose", params.transpose),
+    ):
         if active:
             out = AUGMENTATIONS[name](out)
     for name in COLOUR_BUFFERS:
@@ -323,8 +348,9 @@ def padding_of(params: AugmentParams, pad: int) -> Padding:
     return Padding(pad + oy, pad - oy, pad + ox, pad - ox)
 
 
-def prepare_sample(item: Mapping[str, Any], params: AugmentParams, features: tuple[str, ...],
-                   pad: int) -> tuple[torch.Tensor, torch.Tensor]:
+def prepare_sample(
+    item: Mapping[str, Any], params: AugmentParams, features: tuple[str, ...], pad: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Network input and target of one dataset element.
 
     Args:
@@ -345,8 +371,9 @@ def prepare_sample(item: Mapping[str, Any], params: AugmentParams, features: tup
     return x, padded["target"].permute(2, 0, 1)
 
 
-def make_batch(dataset: CropDataset, config: TrainConfig, step: int, rank: int = 0
-               ) -> tuple[torch.Tensor, torch.Tensor]:
+def make_batch(
+    dataset: CropDataset, config: TrainConfig, step: int, rank: int = 0
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The batch of update ``step`` on process ``rank`` (a pure function of the seeds).
 
     Returns:
@@ -372,11 +399,12 @@ def step_seed(seed: int, step: int, rank: int) -> int:
 
 # ------------------------------------------------------------------------------------- training
 def _interior(t: torch.Tensor, border: int) -> torch.Tensor:
-    return t[..., border:t.shape[-2] - border, border:t.shape[-1] - border]
+    return t[..., border : t.shape[-2] - border, border : t.shape[-1] - border]
 
 
-def compute_loss(model: nn.Module, loss_fn: nn.Module, x: torch.Tensor, target: torch.Tensor,
-                 border: int) -> torch.Tensor:
+def compute_loss(
+    model: nn.Module, loss_fn: nn.Module, x: torch.Tensor, target: torch.Tensor, border: int
+) -> torch.Tensor:
     """Loss of a batch: network in log space, ``exp(y) - 1``, interior without ``border``.
 
     Args:
@@ -393,9 +421,15 @@ def compute_loss(model: nn.Module, loss_fn: nn.Module, x: torch.Tensor, target: 
     return loss_fn(_interior(pred, border), _interior(target, border))
 
 
-def train_step(model: nn.Module, optimizer: torch.optim.Optimizer, loss_fn: nn.Module,
-               x: torch.Tensor, target: torch.Tensor, border: int, lr: float
-               ) -> tuple[float, bool]:
+def train_step(
+    model: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    loss_fn: nn.Module,
+    x: torch.Tensor,
+    target: torch.Tensor,
+    border: int,
+    lr: float,
+) -> tuple[float, bool]:
     """One optimizer update at learning rate ``lr``.
 
     Non-finite gradients (identical on every rank after DDP's all-reduce) skip the update.
@@ -409,8 +443,9 @@ def train_step(model: nn.Module, optimizer: torch.optim.Optimizer, loss_fn: nn.M
     optimizer.zero_grad(set_to_none=True)
     loss = compute_loss(model, loss_fn, x, target, border)
     loss.backward()
-    finite = all(bool(torch.isfinite(p.grad).all()) for p in model.parameters()
-                 if p.grad is not None)
+    finite = all(
+        bool(torch.isfinite(p.grad).all()) for p in model.parameters() if p.grad is not None
+    )
     if finite:
         optimizer.step()
     return float(loss.detach()), finite
@@ -418,8 +453,9 @@ def train_step(model: nn.Module, optimizer: torch.optim.Optimizer, loss_fn: nn.M
 
 def make_optimizer(model: nn.Module, config: TrainConfig) -> torch.optim.Adam:
     """Adam with the reference's ``beta2`` and ``eps``."""
-    return torch.optim.Adam(model.parameters(), lr=config.lr, betas=(config.beta1, config.beta2),
-                            eps=config.eps)
+    return torch.optim.Adam(
+        model.parameters(), lr=config.lr, betas=(config.beta1, config.beta2), eps=config.eps
+    )
 
 
 # ----------------------------------------------------------------------------------- validation
@@ -440,8 +476,7 @@ def _metrics(pred: torch.Tensor, target: torch.Tensor, flip: FLIPLoss) -> dict[s
     return {"relmse": relmse(pred, target), "flip": float(flip(*nchw))}
 
 
-def load_validation(dataset: CropDataset, count: int, device: torch.device
-                    ) -> list[_ValElement]:
+def load_validation(dataset: CropDataset, count: int, device: torch.device) -> list[_ValElement]:
     """Up to ``count`` evenly spaced elements of ``dataset`` with their L1-Poisson metrics.
 
     The L1 Poisson baseline (``alpha = 0.2``) reconstructs the gradient-domain input of the same
@@ -460,8 +495,9 @@ def load_validation(dataset: CropDataset, count: int, device: torch.device
             item = dataset.load(index)
             g = load_buffers(dataset.root / record["files"][f"in{level}"]).to(device)
         except (ValueError, OSError) as error:
-            warnings.warn(f"validation element {index} skipped: {error}", DatasetWarning,
-                          stacklevel=2)
+            warnings.warn(
+                f"validation element {index} skipped: {error}", DatasetWarning, stacklevel=2
+            )
             continue
         target = item["target"].to(device)
         l1 = reconstruct(g.primal, g.dx, g.dy, method="l1", alpha=0.2)
@@ -472,8 +508,9 @@ def load_validation(dataset: CropDataset, count: int, device: torch.device
     return elements
 
 
-def validate(model: DenseUNet, elements: list[_ValElement], features: tuple[str, ...],
-             margin: int) -> dict[str, float]:
+def validate(
+    model: DenseUNet, elements: list[_ValElement], features: tuple[str, ...], margin: int
+) -> dict[str, float]:
     """Mean relMSE and FLIP of the network and of L1 Poisson over the validation elements."""
     reconstructor = NGPTReconstructor(model, features=features, tile_size=None, margin=margin)
     flip = FLIPLoss("ldr")
@@ -499,8 +536,11 @@ def _append_jsonl(path: Path, record: Mapping[str, Any]) -> None:
 def _truncate_jsonl(path: Path, step: int) -> None:
     """Drop the lines of steps after ``step`` (written after the checkpoint resumed from)."""
     if path.is_file():
-        lines = [line for line in path.read_text().splitlines()
-                 if line.strip() and json.loads(line)["step"] <= step]
+        lines = [
+            line
+            for line in path.read_text().splitlines()
+            if line.strip() and json.loads(line)["step"] <= step
+        ]
         atomic_write(path, "".join(line + "\n" for line in lines))
 
 
@@ -513,14 +553,16 @@ def check_resume(stored: TrainConfig, requested: TrainConfig) -> TrainConfig:
     """
     fill = {k: getattr(stored, k) for k in _SCHEDULE_FIELDS if getattr(requested, k) is None}
     config = dataclasses.replace(requested, **fill).resolved()
-    diff = [f"{f.name}: {getattr(stored, f.name)!r} (run) vs {getattr(config, f.name)!r} (now)"
-            for f in dataclasses.fields(TrainConfig)
-            if f.name not in RESUMABLE_FIELDS
-            and getattr(stored, f.name) != getattr(config, f.name)]
+    diff = [
+        f"{f.name}: {getattr(stored, f.name)!r} (run) vs {getattr(config, f.name)!r} (now)"
+        for f in dataclasses.fields(TrainConfig)
+        if f.name not in RESUMABLE_FIELDS and getattr(stored, f.name) != getattr(config, f.name)
+    ]
     if diff:
         raise ConfigMismatchError(
             f"cannot resume {requested.out} with another config: {'; '.join(diff)} "
-            "(use a new --out directory)")
+            "(use a new --out directory)"
+        )
     return config
 
 
@@ -535,8 +577,10 @@ def prepare_run(config: TrainConfig, resume: bool) -> TrainConfig:
     if not path.is_file():
         return config.resolved()
     if not resume:
-        raise FileExistsError(f"{config.out} already holds a run; pass --resume to continue it "
-                              "or choose another --out")
+        raise FileExistsError(
+            f"{config.out} already holds a run; pass --resume to continue it "
+            "or choose another --out"
+        )
     return check_resume(TrainConfig.from_dict(json.loads(path.read_text())), config)
 
 
@@ -546,21 +590,33 @@ def latest_checkpoint(run: Path) -> tuple[int, Path] | None:
     for state in (run / "checkpoints").glob(f"{_CKPT_PREFIX}*.pt"):
         base = state.with_suffix("")
         if base.with_suffix(".safetensors").is_file() and base.with_suffix(".json").is_file():
-            step = int(base.name[len(_CKPT_PREFIX):])
+            step = int(base.name[len(_CKPT_PREFIX) :])
             best = max(best or (step, base), (step, base))
     return best
 
 
-def _save(run: Path, model: DenseUNet, optimizer: torch.optim.Optimizer, step: int,
-          elapsed: float, config: TrainConfig, card: dict[str, Any], world: int) -> None:
+def _save(
+    run: Path,
+    model: DenseUNet,
+    optimizer: torch.optim.Optimizer,
+    step: int,
+    elapsed: float,
+    config: TrainConfig,
+    card: dict[str, Any],
+    world: int,
+) -> None:
     base = run / "checkpoints" / f"{_CKPT_PREFIX}{step:07d}"
     save_checkpoint(model, base, card)
-    state = {"step": step, "elapsed": elapsed, "world_size": world,
-             "optimizer": optimizer.state_dict()}
+    state = {
+        "step": step,
+        "elapsed": elapsed,
+        "world_size": world,
+        "optimizer": optimizer.state_dict(),
+    }
     with atomic_path(base.with_suffix(".pt")) as tmp:
         torch.save(state, tmp)
     states = sorted((run / "checkpoints").glob(f"{_CKPT_PREFIX}*.pt"))
-    for old in states[:-config.keep_checkpoints]:
+    for old in states[: -config.keep_checkpoints]:
         for suffix in (".pt", ".safetensors", ".json"):
             old.with_suffix(suffix).unlink(missing_ok=True)
 
@@ -568,8 +624,11 @@ def _save(run: Path, model: DenseUNet, optimizer: torch.optim.Optimizer, step: i
 # --------------------------------------------------------------------------------------- driver
 def _distributed() -> tuple[int, int, int]:
     """``(rank, local_rank, world_size)`` from the torchrun environment."""
-    return (int(os.environ.get("RANK", 0)), int(os.environ.get("LOCAL_RANK", 0)),
-            int(os.environ.get("WORLD_SIZE", 1)))
+    return (
+        int(os.environ.get("RANK", "0")),
+        int(os.environ.get("LOCAL_RANK", "0")),
+        int(os.environ.get("WORLD_SIZE", "1")),
+    )
 
 
 def _datasets(config: TrainConfig, kind: str) -> tuple[CropDataset, CropDataset]:
@@ -580,8 +639,10 @@ def _datasets(config: TrainConfig, kind: str) -> tuple[CropDataset, CropDataset]
         train_set = CropDataset(config.data, kind=kind, scenes=lambda s: s % every != every - 1)
         val_set = CropDataset(config.data, kind=kind, scenes=lambda s: s % every == every - 1)
     except ValueError as error:
-        raise ValueError(f"{error}; holding out every {every}th scene leaves no training or "
-                         "validation crop: pass --val-data or another --holdout-every") from None
+        raise ValueError(
+            f"{error}; holding out every {every}th scene leaves no training or "
+            "validation crop: pass --val-data or another --holdout-every"
+        ) from None
     return train_set, val_set
 
 
@@ -625,9 +686,11 @@ def train(config: TrainConfig, *, resume: bool = False, progress: bool = True) -
         train_set, val_set = _datasets(config, kind)
         side = config.crop or min(train_set.resolution)
         if side > min(train_set.resolution) or (side + 2 * config.pad) % model.alignment:
-            raise ValueError(f"crop {side} must fit the {train_set.resolution} dataset crops and "
-                             f"crop + 2 * pad ({config.pad}) must be a multiple of the "
-                             f"{config.model!r} alignment {model.alignment}")
+            raise ValueError(
+                f"crop {side} must fit the {train_set.resolution} dataset crops and "
+                f"crop + 2 * pad ({config.pad}) must be a multiple of the "
+                f"{config.model!r} alignment {model.alignment}"
+            )
         loss_fn = get_loss(config.loss).to(device)
         if world > 1:
             dist.barrier()  # every rank has checked the run dir before rank 0 writes it
@@ -641,35 +704,54 @@ def train(config: TrainConfig, *, resume: bool = False, progress: bool = True) -
         if found is not None:
             loaded, _ = load_checkpoint(found[1], device=device)
             model.load_state_dict(loaded.state_dict())
-            state = torch.load(found[1].with_suffix(".pt"), map_location=device,
-                               weights_only=True)
+            state = torch.load(found[1].with_suffix(".pt"), map_location=device, weights_only=True)
             optimizer.load_state_dict(state["optimizer"])
             start, elapsed = int(state["step"]), float(state["elapsed"])
             if state["world_size"] != world:
-                warnings.warn(f"resuming a {state['world_size']}-process run with {world} "
-                              "processes: batches differ from the original run", stacklevel=2)
+                warnings.warn(
+                    f"resuming a {state['world_size']}-process run with {world} "
+                    "processes: batches differ from the original run",
+                    stacklevel=2,
+                )
         if rank == 0:
             for name in ("log.jsonl", "val.jsonl"):
                 _truncate_jsonl(run / name, start)
         net = model
         if world > 1:
             net = nn.parallel.DistributedDataParallel(
-                model, device_ids=[device.index] if device.type == "cuda" else None)
-        val_elements = (load_validation(val_set, config.val_crops, device)
-                        if rank == 0 and config.val_every else [])
-        card = {"training": {"data": config.data, "crops": len(train_set.crops),
-                             "loss": config.loss, "batch": config.batch * world}}
+                model, device_ids=[device.index] if device.type == "cuda" else None
+            )
+        val_elements = (
+            load_validation(val_set, config.val_crops, device)
+            if rank == 0 and config.val_every
+            else []
+        )
+        card = {
+            "training": {
+                "data": config.data,
+                "crops": len(train_set.crops),
+                "loss": config.loss,
+                "batch": config.batch * world,
+            }
+        }
         border = config.pad + config.vary_padding
         last_val: dict[str, float] = {}
-        bar = tqdm(total=config.steps, initial=start, unit="step", desc="train",
-                   disable=not progress or rank != 0, dynamic_ncols=True)
+        bar = tqdm(
+            total=config.steps,
+            initial=start,
+            unit="step",
+            desc="train",
+            disable=not progress or rank != 0,
+            dynamic_ncols=True,
+        )
         for step in range(start, config.steps):
             t0 = time.perf_counter()
             torch.manual_seed(step_seed(config.seed, step, rank) ^ 1)
             x, target = make_batch(train_set, config, step, rank)
             lr = learning_rate(step, config)
-            loss, updated = train_step(net, optimizer, loss_fn, x.to(device), target.to(device),
-                                       border, lr)
+            loss, updated = train_step(
+                net, optimizer, loss_fn, x.to(device), target.to(device), border, lr
+            )
             if world > 1:
                 total = torch.tensor([loss], dtype=torch.float64)
                 dist.all_reduce(total)
@@ -678,24 +760,42 @@ def train(config: TrainConfig, *, resume: bool = False, progress: bool = True) -
             elapsed += seconds
             done = step + 1
             if rank == 0:
-                record = {"step": done, "loss": loss, "lr": lr, "time": round(elapsed, 3),
-                          "step_seconds": round(seconds, 4)}
+                record = {
+                    "step": done,
+                    "loss": loss,
+                    "lr": lr,
+                    "time": round(elapsed, 3),
+                    "step_seconds": round(seconds, 4),
+                }
                 _append_jsonl(run / "log.jsonl", record | ({} if updated else {"skipped": True}))
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.4g}", lr=f"{lr:.2e}")
                 final = done == config.steps
                 if config.val_every and (done % config.val_every == 0 or final):
                     last_val = validate(model, val_elements, features, config.pad)
-                    _append_jsonl(run / "val.jsonl",
-                                  {"step": done, "time": round(elapsed, 3), **last_val})
+                    _append_jsonl(
+                        run / "val.jsonl", {"step": done, "time": round(elapsed, 3), **last_val}
+                    )
                 if done % config.ckpt_every == 0 or final:
-                    _save(run, model, optimizer, done, elapsed, config,
-                          {**card, "steps": done, "validation": last_val}, world)
+                    _save(
+                        run,
+                        model,
+                        optimizer,
+                        done,
+                        elapsed,
+                        config,
+                        {**card, "steps": done, "validation": last_val},
+                        world,
+                    )
                 if final:
-                    save_checkpoint(model, run / "model",
-                                    {**card, "steps": done, "validation": last_val})
-            if world > 1 and (done % config.ckpt_every == 0 or done == config.steps
-                              or (config.val_every and done % config.val_every == 0)):
+                    save_checkpoint(
+                        model, run / "model", {**card, "steps": done, "validation": last_val}
+                    )
+            if world > 1 and (
+                done % config.ckpt_every == 0
+                or done == config.steps
+                or (config.val_every and done % config.val_every == 0)
+            ):
                 dist.barrier()
         bar.close()
         return run / "model.safetensors"

@@ -21,7 +21,12 @@ def run_python(code: str, **env: str | None) -> str:
     environment = {k: v for k, v in os.environ.items() if k not in env}
     environment.update({k: v for k, v in env.items() if v is not None})
     result = subprocess.run(
-        [sys.executable, "-c", code], env=environment, capture_output=True, text=True, timeout=120
+        [sys.executable, "-c", code],
+        check=False,
+        env=environment,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert result.returncode == 0, result.stderr
     return result.stdout.strip()
@@ -54,18 +59,18 @@ def restore_variant():
         mi.set_variant(before)
 
 
-def test01_invalid_name_lists_valid_variants():
+def test_invalid_name_lists_valid_variants():
     with pytest.raises(ValueError, match=r"'foo_rgb'.*cuda_ad_rgb, llvm_ad_rgb"):
         backend.set_variant("foo_rgb")
 
 
-def test02_invalid_env_variant_names_the_variable(monkeypatch):
+def test_invalid_env_variant_names_the_variable(monkeypatch):
     monkeypatch.setenv("GDPT_VARIANT", "scalar_rgb")
     with pytest.raises(ValueError, match=r"\$GDPT_VARIANT.*'scalar_rgb'.*llvm_ad_rgb"):
         backend.set_variant()
 
 
-def test03_auto_choice_and_torch_device(monkeypatch, restore_variant):
+def test_auto_choice_and_torch_device(monkeypatch, restore_variant):
     import drjit as dr
     import mitsuba as mi
 
@@ -78,7 +83,7 @@ def test03_auto_choice_and_torch_device(monkeypatch, restore_variant):
     assert mi.TensorXf([1.0, 2.0]).torch().device == device
 
 
-def test04_env_override(monkeypatch, restore_variant):
+def test_env_override(monkeypatch, restore_variant):
     import mitsuba as mi
 
     monkeypatch.setenv("GDPT_VARIANT", "llvm_ad_rgb")
@@ -87,7 +92,7 @@ def test04_env_override(monkeypatch, restore_variant):
     assert str(backend.torch_device()) == "cpu"
 
 
-def test05_unavailable_cuda_is_a_clear_error(restore_variant):
+def test_unavailable_cuda_is_a_clear_error(restore_variant):
     import drjit as dr
 
     if dr.has_backend(dr.JitBackend.CUDA):
@@ -96,7 +101,7 @@ def test05_unavailable_cuda_is_a_clear_error(restore_variant):
         backend.set_variant("cuda_ad_rgb")
 
 
-def test06_no_backend_says_what_to_install(monkeypatch):
+def test_no_backend_says_what_to_install(monkeypatch):
     import drjit as dr
 
     monkeypatch.delenv("GDPT_VARIANT", raising=False)
@@ -105,7 +110,7 @@ def test06_no_backend_says_what_to_install(monkeypatch):
         backend.set_variant()
 
 
-def test07_registers_plugins_and_reregisters_on_variant_change(register_calls, restore_variant):
+def test_registers_plugins_and_reregisters_on_variant_change(register_calls, restore_variant):
     import mitsuba as mi
 
     calls = register_calls
@@ -119,7 +124,7 @@ def test07_registers_plugins_and_reregisters_on_variant_change(register_calls, r
     assert calls == ["llvm_ad_rgb", "llvm_ad_rgb", "llvm_ad_mono", "llvm_ad_rgb"]
 
 
-def test08_torch_device_needs_a_variant():
+def test_torch_device_needs_a_variant():
     code = (
         "from gdpt import backend\n"
         "try:\n    backend.torch_device()\nexcept RuntimeError as e:\n    print(e)\n"
@@ -127,7 +132,7 @@ def test08_torch_device_needs_a_variant():
     assert "set_variant" in run_python(code)
 
 
-def test09_libllvm_is_located_before_the_first_drjit_import():
+def test_libllvm_is_located_before_the_first_drjit_import():
     found = backend.find_libllvm()
     if found is None:
         pytest.skip("no libLLVM >= 16 in the standard locations")
@@ -139,7 +144,7 @@ def test09_libllvm_is_located_before_the_first_drjit_import():
     assert run_python(code, DRJIT_LIBLLVM_PATH=None, GDPT_VARIANT=None) == f"llvm_ad_rgb {found}"
 
 
-def test10_existing_libllvm_path_is_respected():
+def test_existing_libllvm_path_is_respected():
     found = backend.find_libllvm()
     if found is None:
         pytest.skip("no libLLVM >= 16 in the standard locations")

@@ -1,4 +1,5 @@
-"""gdpt.training.dataset: deterministic plans, resumable rendering, manifest safety, corrupt shards, Ray."""
+"""gdpt.training.dataset: deterministic plans, resumable rendering, manifest safety, corrupt
+shards, Ray."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import torch
 
 import gdpt.training.dataset as dataset_module
 from gdpt.cli import main
+from gdpt.io.exr import load_buffers
 from gdpt.training.dataset import (
     MANIFEST_FILE,
     CropDataset,
@@ -22,7 +24,6 @@ from gdpt.training.dataset import (
     plan_crop,
     read_manifest,
 )
-from gdpt.io.exr import load_buffers
 
 #: Manifest fields that depend on timing (and thus on file headers), not on the content.
 TIMING_FIELDS = ("render_seconds", "bytes")
@@ -32,10 +33,19 @@ def tiny_config(**changes) -> DatasetConfig:
     """16x16 crops of one-object scenes (fast kernels), a handful of samples."""
     from gdpt.scenes import RandomSceneConfig
 
-    scene = RandomSceneConfig(num_objects=(1, 1), p_extra_light=0.0, p_window=0.0,
-                              p_bitmap_env=0.0, p_thinlens=0.0)
-    settings = dict(scenes=1, views=2, resolution=16, spp_min=1, spp_max=4, target_spp=8,
-                    max_depth=4, scene_config=scene)
+    scene = RandomSceneConfig(
+        num_objects=(1, 1), p_extra_light=0.0, p_window=0.0, p_bitmap_env=0.0, p_thinlens=0.0
+    )
+    settings = dict(
+        scenes=1,
+        views=2,
+        resolution=16,
+        spp_min=1,
+        spp_max=4,
+        target_spp=8,
+        max_depth=4,
+        scene_config=scene,
+    )
     return DatasetConfig(**{**settings, **changes})
 
 
@@ -67,7 +77,7 @@ def copy_of(tiny_dataset, tmp_path) -> Path:
     return Path(shutil.copytree(tiny_dataset, tmp_path / "copy"))
 
 
-def test01_plan_is_deterministic_stratified_log_uniform():
+def test_plan_is_deterministic_stratified_log_uniform():
     config = DatasetConfig(spp_min=2, spp_max=1024, levels=5, seed=3)
     plan = plan_crop(config, 7, 2)
     assert plan == plan_crop(config, 7, 2)
@@ -87,12 +97,15 @@ def test01_plan_is_deterministic_stratified_log_uniform():
         assert edges[0].floor() <= plan.spp[k] <= edges[1].ceil()
 
 
-def test02_dataset_layout_and_reader(tiny_dataset):
+def test_dataset_layout_and_reader(tiny_dataset):
     records, _ = read_manifest(tiny_dataset)
     assert [r["crop"] for r in records] == ["s00000-v000", "s00000-v001"]
     record = records[0]
-    assert set(record["files"]) == {*(f"in{k}" for k in range(5)), *(f"pt{k}" for k in range(5)),
-                                    "target"}
+    assert set(record["files"]) == {
+        *(f"in{k}" for k in range(5)),
+        *(f"pt{k}" for k in range(5)),
+        "target",
+    }
     assert record["resolution"] == [16, 16] and record["target_spp"] == 8
     target = load_buffers(tiny_dataset / record["files"]["target"])
     assert target.metadata["primal"] == "l1_poisson" and target.spp == 8 and target.has_gradients
@@ -105,13 +118,18 @@ def test02_dataset_layout_and_reader(tiny_dataset):
     item = gdpt_set[7]
     assert (item["crop"], item["level"], item["spp"]) == ("s00000-v001", 2, records[1]["spp"][2])
     assert {k: tuple(v.shape) for k, v in item["inputs"].items()} == {
-        "primal": (16, 16, 3), "dx": (16, 16, 3), "dy": (16, 16, 3), "albedo": (16, 16, 3),
-        "normal": (16, 16, 3), "depth": (16, 16, 1)}
+        "primal": (16, 16, 3),
+        "dx": (16, 16, 3),
+        "dy": (16, 16, 3),
+        "albedo": (16, 16, 3),
+        "normal": (16, 16, 3),
+        "depth": (16, 16, 1),
+    }
     assert set(pt_set[0]["inputs"]) == {"primal", "albedo", "normal", "depth"}
     assert item["target"].shape == (16, 16, 3) and torch.isfinite(item["target"]).all()
 
 
-def test03_resume_after_kill_gives_the_same_dataset(tiny_dataset, tmp_path, monkeypatch):
+def test_resume_after_kill_gives_the_same_dataset(tiny_dataset, tmp_path, monkeypatch):
     root = tmp_path / "resumed"
     real = dataset_module.render_crop
     calls = []
@@ -143,7 +161,7 @@ def test03_resume_after_kill_gives_the_same_dataset(tiny_dataset, tmp_path, monk
     assert build_dataset(tiny_config(), root, progress=False).rendered == 0
 
 
-def test04_corrupt_and_partial_shards_are_skipped_with_warning(copy_of):
+def test_corrupt_and_partial_shards_are_skipped_with_warning(copy_of):
     partial = copy_of / "crops" / "s00000-v001" / "pt2.exr"
     partial.write_bytes(partial.read_bytes()[:-100])
     assert len(CropDataset(copy_of)) == 10  # the gdpt inputs do not use pt2
@@ -162,7 +180,7 @@ def test04_corrupt_and_partial_shards_are_skipped_with_warning(copy_of):
     assert (item["crop"], item["level"]) == ("s00000-v000", 2)
 
 
-def test05_empty_missing_and_mismatched_datasets(copy_of, tmp_path):
+def test_empty_missing_and_mismatched_datasets(copy_of, tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist"):
         CropDataset(tmp_path / "nowhere")
     (tmp_path / "empty").mkdir()
@@ -178,7 +196,7 @@ def test05_empty_missing_and_mismatched_datasets(copy_of, tmp_path):
         CropDataset(copy_of)
 
 
-def test06_rerun_with_other_settings_is_refused(copy_of, capsys):
+def test_rerun_with_other_settings_is_refused(copy_of, capsys):
     with pytest.raises(ValueError, match="target_spp: 8 .* vs 16 requested"):
         build_dataset(tiny_config(target_spp=16), copy_of, progress=False)
     status = main(["dataset", "--out", str(copy_of), "--scenes", "1", "--views", "1"])
@@ -186,7 +204,7 @@ def test06_rerun_with_other_settings_is_refused(copy_of, capsys):
     assert "gdpt dataset: error:" in capsys.readouterr().err
 
 
-def test07_ray_local_mode(tiny_dataset, tmp_path):
+def test_ray_local_mode(tiny_dataset, tmp_path):
     pytest.importorskip("ray")
     root = tmp_path / "ray"
     summary = build_dataset(tiny_config(views=1), root, ray_address="local", progress=False)
@@ -196,7 +214,7 @@ def test07_ray_local_mode(tiny_dataset, tmp_path):
     assert_same_pixels(root, tiny_dataset, "s00000-v000")
 
 
-def test08_local_worker_processes(tiny_dataset, tmp_path):
+def test_local_worker_processes(tiny_dataset, tmp_path):
     root = tmp_path / "workers"
     summary = build_dataset(tiny_config(), root, workers=2, progress=False)
     assert summary.rendered == 2
@@ -204,7 +222,7 @@ def test08_local_worker_processes(tiny_dataset, tmp_path):
     assert_same_pixels(root, tiny_dataset, "s00000-v001")
 
 
-def test09_out_of_disk_while_appending_leaves_a_valid_manifest(tmp_path, monkeypatch):
+def test_out_of_disk_while_appending_leaves_a_valid_manifest(tmp_path, monkeypatch):
     append_manifest(tmp_path, {"crop": "a", "files": {}, "resolution": [8, 8]})
     real_write = os.write
 

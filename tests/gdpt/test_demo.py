@@ -10,8 +10,9 @@ from gdpt.study.demo import DemoConfig, run_demo
 
 
 def _tiny(out, **kw) -> DemoConfig:
-    return DemoConfig(out=out, resolution=24, budget=0.3, reference_spp=64,
-                      methods=("gdpt+l1", "pt"), **kw)
+    return DemoConfig(
+        out=out, resolution=24, budget=0.3, reference_spp=64, methods=("gdpt+l1", "pt"), **kw
+    )
 
 
 def test_demo_writes_montage_images_and_table(tmp_path, capsys):

@@ -1,4 +1,4 @@
-"""gdpt.study.evaluate: equal-time calibration, scene loading, the report files, resume, bad input."""
+"""gdpt.study: equal-time calibration, scene loading, the report files, resume, bad input."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from gdpt.cli import main
 from gdpt.study.calibration import TimeModel, calibrate, run_at_budget
 from gdpt.study.config import EvaluateConfig
 from gdpt.study.evaluate import evaluate, render_references
-from gdpt.study.scenes import SceneSpec, load_eval_scene, resolve_scenes
 from gdpt.study.methods import EVAL_METHODS
+from gdpt.study.scenes import SceneSpec, load_eval_scene, resolve_scenes
 
 SHARED_SCENES = Path(__file__).resolve().parents[3] / "shared" / "scenes"
 
@@ -100,17 +100,41 @@ def test_calibration_meets_budget(variant, name):
 
 
 def _tiny_cfg(**changes) -> EvaluateConfig:
-    base = dict(budgets=(0.1, 0.2), resolution=24, reference_spp=64, reference_chunk_spp=32,
-                metrics=("relmse", "smape", "one_minus_ssim", "flip_ldr"), metric_options={},
-                methods=("pt", "gdpt+l2"))
+    base = dict(
+        budgets=(0.1, 0.2),
+        resolution=24,
+        reference_spp=64,
+        reference_chunk_spp=32,
+        metrics=("relmse", "smape", "one_minus_ssim", "flip_ldr"),
+        metric_options={},
+        methods=("pt", "gdpt+l2"),
+    )
     return EvaluateConfig(**{**base, **changes})
 
 
 def test_quick_cli_writes_every_output(variant, tmp_path, capsys):
     out = tmp_path / "report"
-    status = main(["evaluate", "--scenes", "random:3", "--out", str(out), "--quick",
-                   "--resolution", "24", "--budgets", "0.1", "0.2", "--reference-spp", "64",
-                   "--methods", "pt", "gdpt+l2", "--no-progress"])
+    status = main(
+        [
+            "evaluate",
+            "--scenes",
+            "random:3",
+            "--out",
+            str(out),
+            "--quick",
+            "--resolution",
+            "24",
+            "--budgets",
+            "0.1",
+            "0.2",
+            "--reference-spp",
+            "64",
+            "--methods",
+            "pt",
+            "gdpt+l2",
+            "--no-progress",
+        ]
+    )
     assert status == 0
     results = json.loads((out / "results.json").read_text())
     for name in ("results.md", "index.html", "plots/random-3.png", "crops/random-3.png"):
@@ -182,10 +206,24 @@ def test_method_that_failed_is_retried_on_resume(variant, tmp_path, monkeypatch)
 
 def test_references_only_then_cells_reuse_them(variant, tmp_path, monkeypatch, capsys):
     cache = tmp_path / "refs"
-    status = main(["evaluate", "--scenes", "random:3", str(tmp_path / "missing.xml"),
-                   "--out", str(tmp_path / "report"), "--references", str(cache),
-                   "--resolution", "24", "--reference-spp", "64", "--references-only",
-                   "--no-progress"])
+    status = main(
+        [
+            "evaluate",
+            "--scenes",
+            "random:3",
+            str(tmp_path / "missing.xml"),
+            "--out",
+            str(tmp_path / "report"),
+            "--references",
+            str(cache),
+            "--resolution",
+            "24",
+            "--reference-spp",
+            "64",
+            "--references-only",
+            "--no-progress",
+        ]
+    )
     assert status == 1  # one scene failed, and says so
     printed = capsys.readouterr().out
     assert "missing: failed" in printed and "not found" in printed

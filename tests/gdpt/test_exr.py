@@ -13,8 +13,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gdpt.io import exr
 from gdpt.buffers import CHANNELS, GradientBuffers
+from gdpt.io import exr
 from gdpt.io.exr import channel_names, load_buffers, load_image, save_buffers, save_image
 
 OPTIONAL = [n for n in CHANNELS if n not in ("primal", "dx", "dy")]
@@ -39,7 +39,7 @@ def write_raw(path: Path, channels: dict[str, np.ndarray]) -> Path:
     return path
 
 
-def test01_float_round_trip_is_bit_exact(tmp_path):
+def test_float_round_trip_is_bit_exact(tmp_path):
     meta = {"integrator": "gdpt", "seed": 3, "timings": {"render": 1.5}, "tags": ["a", "b"]}
     buffers = make_buffers(spp=64, metadata=meta)
     buffers.primal[0, 0, 0] = float("nan")
@@ -50,7 +50,7 @@ def test01_float_round_trip_is_bit_exact(tmp_path):
     assert_same(buffers, load_buffers(path))
 
 
-def test02_conventional_channel_names_and_header(tmp_path):
+def test_conventional_channel_names_and_header(tmp_path):
     save_buffers(tmp_path / "r.exr", make_buffers(spp=4, metadata={"k": 1}))
     f = OpenEXR.File(str(tmp_path / "r.exr"), separate_channels=True)
     assert len(f.parts) == 1
@@ -67,7 +67,7 @@ def test02_conventional_channel_names_and_header(tmp_path):
     assert all(c.pixels.dtype == np.float32 for c in f.channels().values())
 
 
-def test03_half_round_trip_within_half_precision(tmp_path):
+def test_half_round_trip_within_half_precision(tmp_path):
     buffers = make_buffers()
     path = save_buffers(tmp_path / "h.exr", buffers, half=True)
     f = OpenEXR.File(str(path), separate_channels=True)
@@ -81,21 +81,21 @@ def test03_half_round_trip_within_half_precision(tmp_path):
     assert path.stat().st_size < save_buffers(tmp_path / "f.exr", buffers).stat().st_size
 
 
-def test04_primal_only_and_subsets(tmp_path):
+def test_primal_only_and_subsets(tmp_path):
     buffers = make_buffers(names=("primal", "depth"))
     loaded = load_buffers(save_buffers(tmp_path / "p.exr", buffers))
     assert loaded.present() == ["primal", "depth"] and not loaded.has_gradients
     assert (loaded.spp, loaded.metadata) == (0, {})
 
 
-def test05_missing_primal_names_channel_and_file(tmp_path):
+def test_missing_primal_names_channel_and_file(tmp_path):
     rgb = {c: np.zeros((4, 3), np.float32) for c in "RGB"}
     path = write_raw(tmp_path / "plain.exr", rgb)
     with pytest.raises(ValueError, match=r"plain\.exr.*'primal\.R'"):
         load_buffers(path)
 
 
-def test06_partial_layer_names_channel_and_file(tmp_path):
+def test_partial_layer_names_channel_and_file(tmp_path):
     channels = {f"primal.{c}": np.zeros((4, 3), np.float32) for c in "RGB"}
     channels.update({"dx.R": np.zeros((4, 3), np.float32), "dx.B": np.zeros((4, 3), np.float32)})
     path = write_raw(tmp_path / "partial.exr", channels)
@@ -103,20 +103,20 @@ def test06_partial_layer_names_channel_and_file(tmp_path):
         load_buffers(path)
 
 
-def test07_inconsistent_buffers_name_file(tmp_path):
+def test_inconsistent_buffers_name_file(tmp_path):
     channels = {f"{n}.{c}": np.zeros((4, 3), np.float32) for n in ("primal", "dx") for c in "RGB"}
     path = write_raw(tmp_path / "nody.exr", channels)
     with pytest.raises(ValueError, match=r"nody\.exr.*'dx' and 'dy'"):
         load_buffers(path)
 
 
-def test08_uint_channel_is_rejected(tmp_path):
+def test_uint_channel_is_rejected(tmp_path):
     channels = {f"primal.{c}": np.zeros((4, 3), np.uint32) for c in "RGB"}
     with pytest.raises(ValueError, match=r"u\.exr.*'primal\.R'.*uint32"):
         load_buffers(write_raw(tmp_path / "u.exr", channels))
 
 
-def test09_not_an_exr(tmp_path):
+def test_not_an_exr(tmp_path):
     path = tmp_path / "notes.exr"
     path.write_text("hello, not an image\n")
     with pytest.raises(ValueError, match=r"notes\.exr: not an OpenEXR file"):
@@ -126,7 +126,7 @@ def test09_not_an_exr(tmp_path):
 
 
 @pytest.mark.parametrize("fraction", [0.05, 0.5, 0.95])
-def test10_truncated_file(tmp_path, fraction):
+def test_truncated_file(tmp_path, fraction):
     path = save_buffers(tmp_path / "full.exr", make_buffers(40, 30))
     data = path.read_bytes()
     cut = tmp_path / "cut.exr"
@@ -135,12 +135,12 @@ def test10_truncated_file(tmp_path, fraction):
         load_buffers(cut)
 
 
-def test11_missing_file(tmp_path):
+def test_missing_file(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"nothing\.exr"):
         load_buffers(tmp_path / "nothing.exr")
 
 
-def test12_no_overwrite_without_force(tmp_path):
+def test_no_overwrite_without_force(tmp_path):
     path = save_buffers(tmp_path / "r.exr", make_buffers(seed=1))
     before = path.read_bytes()
     with pytest.raises(FileExistsError, match=r"r\.exr"):
@@ -153,7 +153,7 @@ def test12_no_overwrite_without_force(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.exr"]
 
 
-def test13_failed_write_leaves_no_file(tmp_path, monkeypatch):
+def test_failed_write_leaves_no_file(tmp_path, monkeypatch):
     class BrokenFile:
         def __init__(self, header, channels):
             pass
@@ -168,13 +168,13 @@ def test13_failed_write_leaves_no_file(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
-def test14_unserialisable_metadata_writes_nothing(tmp_path):
+def test_unserialisable_metadata_writes_nothing(tmp_path):
     with pytest.raises(TypeError, match="JSON"):
         save_buffers(tmp_path / "r.exr", make_buffers(metadata={"x": object()}))
     assert list(tmp_path.iterdir()) == []
 
 
-def test15_save_and_load_image(tmp_path):
+def test_save_and_load_image(tmp_path):
     image = torch.rand(6, 9, 3, dtype=torch.float64)
     path = save_image(tmp_path / "img.exr", image, metadata={"method": "l1"})
     f = OpenEXR.File(str(path), separate_channels=True)
@@ -187,7 +187,7 @@ def test15_save_and_load_image(tmp_path):
         save_image(tmp_path / "bad.exr", np.zeros((4, 4)))
 
 
-def test16_load_image_layers(tmp_path):
+def test_load_image_layers(tmp_path):
     buffers = make_buffers()
     path = save_buffers(tmp_path / "r.exr", buffers)
     assert torch.equal(load_image(path, "dx"), buffers.dx)
@@ -199,7 +199,7 @@ def test16_load_image_layers(tmp_path):
         load_image(path, "beauty")
 
 
-def test17_channel_names():
+def test_channel_names():
     assert channel_names("normal") == ("normal.X", "normal.Y", "normal.Z")
     assert channel_names("var_dx") == ("var_dx.Y",)
     with pytest.raises(ValueError, match="valid buffers"):
@@ -226,7 +226,7 @@ def random_buffers(draw):
 
 @settings(max_examples=30, deadline=None)
 @given(buffers=random_buffers(), half=st.booleans())
-def test18_property_round_trip(buffers, half):
+def test_property_round_trip(buffers, half):
     with tempfile.TemporaryDirectory() as tmp:
         loaded = load_buffers(save_buffers(Path(tmp) / "r.exr", buffers, half=half))
     if not half:

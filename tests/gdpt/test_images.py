@@ -10,7 +10,7 @@ from PIL import Image
 from gdpt.io.images import preview_path, save_png, side_by_side, to_srgb8
 
 
-def test01_srgb_encoding_of_known_values():
+def test_srgb_encoding_of_known_values():
     hdr = torch.tensor([[[0.0, 0.0031308, 0.18], [1.0, 2.0, -1.0], [float("nan"), 0.5, 0.0]]])
     out = to_srgb8(hdr)
     assert out.dtype == np.uint8 and out.shape == (1, 3, 3)
@@ -20,7 +20,7 @@ def test01_srgb_encoding_of_known_values():
     assert out[0, 2].tolist() == [0, 188, 0]  # NaN shows as black
 
 
-def test02_exposure_tonemap_and_gray():
+def test_exposure_tonemap_and_gray():
     hdr = np.full((2, 2, 1), 0.5, dtype=np.float32)
     assert to_srgb8(hdr).shape == (2, 2, 3)
     assert to_srgb8(hdr, exposure=1.0)[0, 0, 0] == 255
@@ -31,7 +31,7 @@ def test02_exposure_tonemap_and_gray():
         to_srgb8(np.zeros((4, 4)))
 
 
-def test03_save_png_and_preview_path(tmp_path):
+def test_save_png_and_preview_path(tmp_path):
     path = preview_path(tmp_path / "out" / "render.exr")
     assert path == tmp_path / "out" / "render.png"
     path.parent.mkdir()
@@ -42,7 +42,7 @@ def test03_save_png_and_preview_path(tmp_path):
     save_png(path, torch.rand(5, 7, 3), force=True)
 
 
-def test04_side_by_side(tmp_path):
+def test_side_by_side(tmp_path):
     images = {"noisy": torch.rand(8, 8, 3), "L1 reconstruction": torch.rand(6, 8, 3)}
     path = side_by_side(images, tmp_path / "m.png", scale=3)
     montage = Image.open(path)

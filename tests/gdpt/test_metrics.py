@@ -8,11 +8,11 @@ import flip_evaluator
 import numpy as np
 import pytest
 import torch
+from gdpt.reconstruct import losses as L
+from gdpt.reconstruct.registry import Registry
 from scipy.ndimage import gaussian_filter
 
 from gdpt import metrics as M
-from gdpt.reconstruct.registry import Registry
-from gdpt.reconstruct import losses as L
 
 
 @pytest.fixture(autouse=True)
@@ -39,8 +39,9 @@ def hdr_pair(size: int = 48, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 def display(image: np.ndarray) -> np.ndarray:
     """Reference display transform: sRGB(clamp(x / (1 + mean_c |x|), 0, 1))."""
     tonemapped = np.clip(image / (1 + np.abs(image).mean(-1, keepdims=True)), 0, 1)
-    return np.where(tonemapped <= 0.0031308, 12.92 * tonemapped,
-                    1.055 * tonemapped ** (1 / 2.4) - 0.055)
+    return np.where(
+        tonemapped <= 0.0031308, 12.92 * tonemapped, 1.055 * tonemapped ** (1 / 2.4) - 0.055
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -85,8 +86,9 @@ def test_ssim_matches_scipy_reference() -> None:
     mu_x, mu_y = blur(x), blur(y)
     var_x, var_y, cov = blur(x * x) - mu_x**2, blur(y * y) - mu_y**2, blur(x * y) - mu_x * mu_y
     c1, c2 = 0.01**2, 0.03**2
-    ssim = (2 * mu_x * mu_y + c1) * (2 * cov + c2) / ((mu_x**2 + mu_y**2 + c1)
-                                                      * (var_x + var_y + c2))
+    ssim = (
+        (2 * mu_x * mu_y + c1) * (2 * cov + c2) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
+    )
     assert M.one_minus_ssim(test, ref) == pytest.approx(1 - ssim[5:-5, 5:-5].mean(), rel=1e-9)
 
 
@@ -108,8 +110,9 @@ def test_flip_metrics_match_tool_and_torch_flip() -> None:
     test, ref = hdr_pair()
     _, expected, _ = flip_evaluator.evaluate(ref, test, "HDR", applyMagma=False)
     assert M.flip_hdr(test, ref) == pytest.approx(expected, rel=1e-6)
-    torch_flip = L.hdr_flip(torch.from_numpy(test).permute(2, 0, 1)[None],
-                            torch.from_numpy(ref).permute(2, 0, 1)[None])
+    torch_flip = L.hdr_flip(
+        torch.from_numpy(test).permute(2, 0, 1)[None], torch.from_numpy(ref).permute(2, 0, 1)[None]
+    )
     assert torch_flip.item() == pytest.approx(expected, rel=0.01)
     srgb_ref = display(ref).astype(np.float32)
     srgb_test = display(test).astype(np.float32)
@@ -120,8 +123,9 @@ def test_flip_metrics_match_tool_and_torch_flip() -> None:
 
 def test_flip_hdr_tonemapper_case_and_errors() -> None:
     test, ref = hdr_pair(32)
-    _, reinhard, _ = flip_evaluator.evaluate(ref, test, "HDR", applyMagma=False,
-                                             parameters={"tonemapper": "reinhard"})
+    _, reinhard, _ = flip_evaluator.evaluate(
+        ref, test, "HDR", applyMagma=False, parameters={"tonemapper": "reinhard"}
+    )
     assert M.flip_hdr(test, ref, tonemapper="Reinhard") == pytest.approx(reinhard, rel=1e-6)
     assert M.flip_hdr(test, ref, tonemapper="Reinhard") != pytest.approx(M.flip_hdr(test, ref))
     with pytest.raises(ValueError, match="black"):
@@ -138,8 +142,11 @@ def test_flip_hdr_tonemapper_case_and_errors() -> None:
 
 
 def test_shape_and_type_errors_name_the_metric_and_shapes() -> None:
-    with pytest.raises(ValueError, match=r"relmse: .*image_test \(4, 4, 3\) and image_ref "
-                                         r"\(4, 5, 3\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"relmse: .*image_test \(4, 4, 3\) and image_ref "
+        r"\(4, 5, 3\)",
+    ):
         M.relmse(np.zeros((4, 4, 3)), np.zeros((4, 5, 3)))
     with pytest.raises(ValueError, match=r"mse: expected two \(H, W, C\)"):
         M.mse(np.zeros((1, 4, 4, 3)), np.zeros((1, 4, 4, 3)))
@@ -188,8 +195,9 @@ def test_compute_metrics_skips_unavailable(monkeypatch: pytest.MonkeyPatch) -> N
 def test_elpips_metric_with_local_weights(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
     torch.manual_seed(0)
     state = dict(L.SqueezeNetFeatures().state_dict())
-    state.update({f"lin{i}.weight": torch.rand(c)
-                  for i, c in enumerate(L.SqueezeNetFeatures.channels)})
+    state.update(
+        {f"lin{i}.weight": torch.rand(c) for i, c in enumerate(L.SqueezeNetFeatures.channels)}
+    )
     path = tmp_path / "elpips.pt"
     torch.save(state, path)
     monkeypatch.setenv(L.ELPIPS_WEIGHTS_ENV, str(path))

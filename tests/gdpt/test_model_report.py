@@ -1,4 +1,4 @@
-"""gdpt.training.model_report: training plot, held-out comparison bookkeeping, shipping, CLI errors."""
+"""gdpt.training.model_report: training plot, held-out comparison, shipping, CLI errors."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ from pathlib import Path
 import pytest
 from gdpt.reconstruct.ngpt import NGPTReconstructor
 
-from gdpt.training import model_report
 from gdpt.cli import main
-from gdpt.training.dataset import DatasetConfig, build_dataset, read_manifest
 from gdpt.io.exr import load_buffers
 from gdpt.metrics import relmse
+from gdpt.training import model_report
+from gdpt.training.dataset import DatasetConfig, build_dataset, read_manifest
 from gdpt.training.train import TrainConfig, train
 
 
@@ -22,25 +22,59 @@ def runs(tmp_path_factory) -> tuple[Path, dict[str, Path]]:
     from gdpt.scenes import RandomSceneConfig
 
     root = tmp_path_factory.mktemp("report")
-    scene = RandomSceneConfig(num_objects=(1, 1), p_extra_light=0.0, p_window=0.0,
-                              p_bitmap_env=0.0, p_thinlens=0.0)
+    scene = RandomSceneConfig(
+        num_objects=(1, 1), p_extra_light=0.0, p_window=0.0, p_bitmap_env=0.0, p_thinlens=0.0
+    )
     data = root / "data"
-    build_dataset(DatasetConfig(scenes=1, views=2, resolution=16, spp_min=1, spp_max=4,
-                                target_spp=8, max_depth=4, scene_config=scene), data,
-                  progress=False)
+    build_dataset(
+        DatasetConfig(
+            scenes=1,
+            views=2,
+            resolution=16,
+            spp_min=1,
+            spp_max=4,
+            target_spp=8,
+            max_depth=4,
+            scene_config=scene,
+        ),
+        data,
+        progress=False,
+    )
     out = {}
     for name, config in (("ngpt", "fast_xs"), ("ngpt-nograd", "fast_xs_nograd")):
         out[name] = root / name
-        train(TrainConfig(model=config, data=str(data), val_data=str(data), out=str(out[name]),
-                          loss="l1", steps=2, batch=1, vary_padding=2, val_every=1, val_crops=2),
-              progress=False)
+        train(
+            TrainConfig(
+                model=config,
+                data=str(data),
+                val_data=str(data),
+                out=str(out[name]),
+                loss="l1",
+                steps=2,
+                batch=1,
+                vary_padding=2,
+                val_every=1,
+                val_crops=2,
+            ),
+            progress=False,
+        )
     return data, out
 
 
 def test_cli_writes_plot_and_comparison(runs, tmp_path):
     data, run_dirs = runs
-    status = main(["model-report", "--data", str(data), "--holdout-every", "1", "--out",
-                   str(tmp_path), *[f"--run={k}={v}" for k, v in run_dirs.items()]])
+    status = main(
+        [
+            "model-report",
+            "--data",
+            str(data),
+            "--holdout-every",
+            "1",
+            "--out",
+            str(tmp_path),
+            *[f"--run={k}={v}" for k, v in run_dirs.items()],
+        ]
+    )
     assert status == 0
     assert (tmp_path / "training.png").stat().st_size > 10_000
     result = json.loads((tmp_path / "comparison.json").read_text())
@@ -53,7 +87,8 @@ def test_comparison_scores_the_right_inputs(runs):
     """The ``pt`` row must equal relMSE of each crop's own path-traced input at that level."""
     data, run_dirs = runs
     result = model_report.compare_models(
-        data, {"ngpt": run_dirs["ngpt"] / "model.safetensors"}, holdout_every=1, progress=False)
+        data, {"ngpt": run_dirs["ngpt"] / "model.safetensors"}, holdout_every=1, progress=False
+    )
     records, _ = read_manifest(data)
     for level, entry in enumerate(result["levels"]):
         expected = []
@@ -65,8 +100,7 @@ def test_comparison_scores_the_right_inputs(runs):
         assert entry["spp"] == sum(r["spp"][level] for r in records) / 2
 
 
-def test_ship_model_writes_a_loadable_card_and_enforces_the_size_limit(runs, tmp_path,
-                                                                        monkeypatch):
+def test_ship_model_writes_a_loadable_card_and_enforces_the_size_limit(runs, tmp_path, monkeypatch):
     _, run_dirs = runs
     path = model_report.ship_model(run_dirs["ngpt"], "ngpt", comparison={"x": 1}, dest=tmp_path)
     card = NGPTReconstructor.from_checkpoint(path).card
@@ -81,8 +115,10 @@ def test_ship_model_writes_a_loadable_card_and_enforces_the_size_limit(runs, tmp
     assert not (tmp_path / "big.safetensors").exists()
 
 
-@pytest.mark.parametrize("run, message", [("ngpt", "expected NAME=RUN_DIR"),
-                                          ("ngpt=/nonexistent", "model.safetensors not found")])
+@pytest.mark.parametrize(
+    "run, message",
+    [("ngpt", "expected NAME=RUN_DIR"), ("ngpt=/nonexistent", "model.safetensors not found")],
+)
 def test_cli_bad_run_argument(runs, tmp_path, capsys, run, message):
     data, _ = runs
     status = main(["model-report", "--data", str(data), "--out", str(tmp_path), "--run", run])

@@ -5,10 +5,10 @@ from __future__ import annotations
 import sys
 import types
 
+import gdpt.reconstruct
 import pytest
 import torch
 
-import gdpt.reconstruct
 from gdpt.buffers import GradientBuffers
 from gdpt.denoise import METHODS, reconstruct
 
@@ -33,19 +33,19 @@ def fake_poisson(monkeypatch):
 
 
 @pytest.mark.parametrize("method", ["l1", "l2"])
-def test01_poisson_methods_dispatch(fake_poisson, method):
+def test_poisson_methods_dispatch(fake_poisson, method):
     buffers = make_buffers()
     out = reconstruct(buffers, method, alpha=0.5, iterations=3)
     assert torch.equal(out, buffers.primal + 1)
     assert fake_poisson == [(method, 0.5, {"iterations": 3})]
 
 
-def test02_primal_only_is_a_clear_error(fake_poisson):
+def test_primal_only_is_a_clear_error(fake_poisson):
     with pytest.raises(ValueError, match=r"'l1' needs dx and dy.*primal-only"):
         reconstruct(make_buffers(gradients=False))
     assert fake_poisson == []
 
 
-def test03_unknown_method_lists_valid_ones():
+def test_unknown_method_lists_valid_ones():
     with pytest.raises(ValueError, match="valid names: " + ", ".join(METHODS)):
         reconstruct(make_buffers(), "bilateral")

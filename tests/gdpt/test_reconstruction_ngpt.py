@@ -5,9 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-import gdpt
-from gdpt.denoise import reconstruct
 from gdpt.buffers import GradientBuffers
+from gdpt.denoise import reconstruct
 
 
 def _buffers(h=13, w=17, gradients=True):
@@ -22,6 +21,7 @@ def _buffers(h=13, w=17, gradients=True):
 @pytest.fixture
 def checkpoint(tmp_path):
     from gdpt.reconstruct.dense_unet import build_model
+
     from gdpt.training.checkpoint import save_checkpoint
 
     torch.manual_seed(0)
@@ -30,23 +30,23 @@ def checkpoint(tmp_path):
     return path
 
 
-def test01_ngpt_with_explicit_checkpoint(checkpoint):
+def test_ngpt_with_explicit_checkpoint(checkpoint):
     image = reconstruct(_buffers(), method="ngpt", model=checkpoint)
     assert image.shape == (13, 17, 3) and image.dtype == torch.float32
     assert torch.isfinite(image).all() and (image >= 0).all()  # radiance: clamped at 0
 
 
-def test02_checkpoint_from_environment(checkpoint, monkeypatch):
+def test_checkpoint_from_environment(checkpoint, monkeypatch):
     monkeypatch.setenv("GDPT_NGPT_MODEL", str(checkpoint))
     assert reconstruct(_buffers(), method="ngpt").shape == (13, 17, 3)
 
 
-def test03_missing_checkpoint_says_what_to_provide(tmp_path, monkeypatch):
+def test_missing_checkpoint_says_what_to_provide(tmp_path, monkeypatch):
     monkeypatch.delenv("GDPT_NGPT_MODEL", raising=False)
     with pytest.raises(FileNotFoundError, match="model=PATH"):
         reconstruct(_buffers(), method="ngpt", model=tmp_path / "none.safetensors")
 
 
-def test04_missing_gradients_named(checkpoint):
+def test_missing_gradients_named(checkpoint):
     with pytest.raises((KeyError, ValueError), match="dx"):
         reconstruct(_buffers(gradients=False), method="ngpt", model=checkpoint)

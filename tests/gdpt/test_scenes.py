@@ -19,14 +19,35 @@ COVERAGE_SEEDS = range(40)
 
 #: Plugin types the generator must produce over COVERAGE_SEEDS.
 GENERATOR_TYPES = {
-    "rectangle", "cube", "sphere", "cylinder", "disk",
-    "diffuse", "checkerboard", "roughconductor", "conductor", "plastic", "roughplastic",
-    "dielectric", "thindielectric", "twosided",
-    "area", "point", "constant", "envmap",
-    "perspective", "thinlens",
+    "rectangle",
+    "cube",
+    "sphere",
+    "cylinder",
+    "disk",
+    "diffuse",
+    "checkerboard",
+    "roughconductor",
+    "conductor",
+    "plastic",
+    "roughplastic",
+    "dielectric",
+    "thindielectric",
+    "twosided",
+    "area",
+    "point",
+    "constant",
+    "envmap",
+    "perspective",
+    "thinlens",
 }
 ALLOWED_TYPES = GENERATOR_TYPES | {
-    "scene", "hdrfilm", "box", "independent", "rgb", "principled", "roughdielectric"
+    "scene",
+    "hdrfilm",
+    "box",
+    "independent",
+    "rgb",
+    "principled",
+    "roughdielectric",
 }
 
 
@@ -82,8 +103,7 @@ def _check_contract(scene: dict, resolution: tuple[int, int]) -> None:
 
 def _covering_seeds() -> list[int]:
     """A few seeds of COVERAGE_SEEDS whose scenes together show every generator feature."""
-    features = {s: _features(scenes.random_scene(s, resolution=(16, 16)))
-                for s in COVERAGE_SEEDS}
+    features = {s: _features(scenes.random_scene(s, resolution=(16, 16))) for s in COVERAGE_SEEDS}
     missing, chosen = set().union(*features.values()), []
     while missing:
         best = max(features, key=lambda s: len(features[s] & missing))
@@ -95,7 +115,7 @@ def _covering_seeds() -> list[int]:
 # --------------------------------------------------------------------------------------------
 
 
-def test01_builtin_registry():
+def test_builtin_registry():
     names = scenes.builtin_names()
     assert "cbox-demo" in names and "principled" in names and len(names) == len(set(names))
     with pytest.raises(ValueError, match="diffuse-box"):
@@ -103,7 +123,7 @@ def test01_builtin_registry():
 
 
 @pytest.mark.parametrize("name", scenes.builtin_names())
-def test02_builtin_renders_finite_and_lit(name):
+def test_builtin_renders_finite_and_lit(name):
     scene = scenes.builtin_scene(name, resolution=(16, 12))
     _check_contract(scene, (16, 12))
     image = _render(scene)
@@ -112,7 +132,7 @@ def test02_builtin_renders_finite_and_lit(name):
     assert image.mean() > 1e-3
 
 
-def test03_builtin_defaults_and_features():
+def test_builtin_defaults_and_features():
     assert scenes.builtin_scene("cbox-demo")["sensor"]["film"]["width"] == 256
     assert scenes.builtin_scene("glass")["sensor"]["film"]["width"] == scenes.TEST_RESOLUTION[0]
     assert scenes.builtin_scene("thin-lens")["sensor"]["type"] == "thinlens"
@@ -123,9 +143,8 @@ def test03_builtin_defaults_and_features():
     assert min(bright) >= 1e5
 
 
-@pytest.mark.parametrize("resolution", [(0, 16), (16,), (16.0, 16), (-2, 8), (True, 8), "ab",
-                                        None])
-def test04_bad_resolution(resolution):
+@pytest.mark.parametrize("resolution", [(0, 16), (16,), (16.0, 16), (-2, 8), (True, 8), "ab", None])
+def test_bad_resolution(resolution):
     if resolution is not None:
         with pytest.raises(ValueError):
             scenes.builtin_scene("diffuse-box", resolution=resolution)
@@ -133,7 +152,7 @@ def test04_bad_resolution(resolution):
         scenes.random_scene(0, resolution=resolution)
 
 
-def test05_bad_generator_arguments():
+def test_bad_generator_arguments():
     for kwargs in ({"seed": -1}, {"seed": 1.5}, {"seed": 0, "view": -1}):
         with pytest.raises(ValueError):
             scenes.random_scene(**kwargs)
@@ -145,18 +164,24 @@ def test05_bad_generator_arguments():
         scenes.RandomSceneConfig(num_objects=(4, 2))
 
 
-def test06_generator_coverage_and_contract():
+def test_generator_coverage_and_contract():
     found = set()
     for seed in COVERAGE_SEEDS:
         scene = scenes.random_scene(seed, resolution=(20, 10), view=seed % 3)
         _check_contract(scene, (20, 10))
         found |= _features(scene)
-    expected = GENERATOR_TYPES | {"area-rectangle", "area-sphere", "room", "open", "tabletop",
-                                  "shelfside"}
+    expected = GENERATOR_TYPES | {
+        "area-rectangle",
+        "area-sphere",
+        "room",
+        "open",
+        "tabletop",
+        "shelfside",
+    }
     assert expected <= found, f"never generated: {expected - found}"
 
 
-def test07_random_scenes_render_finite():
+def test_random_scenes_render_finite():
     seeds = _covering_seeds()
     assert len(seeds) <= 8
     for seed in seeds:
@@ -165,7 +190,7 @@ def test07_random_scenes_render_finite():
         assert image.mean() > 1e-3, seed
 
 
-def test08_random_determinism():
+def test_random_determinism():
     a = scenes.random_scene(7, resolution=(16, 16))
     b = scenes.random_scene(7, resolution=(16, 16))
     assert _canonical(a) == _canonical(b)
@@ -173,7 +198,7 @@ def test08_random_determinism():
     assert _canonical(scenes.random_scene(8, resolution=(16, 16))) != _canonical(a)
 
 
-def test09_random_views_share_content():
+def test_random_views_share_content():
     views = scenes.random_views(3, 4, resolution=(16, 16))
     content = [_canonical({k: v for k, v in s.items() if k != "sensor"}) for s in views]
     assert all(c == content[0] for c in content)

@@ -13,10 +13,10 @@ import pytest
 import torch
 
 import gdpt
-from gdpt.metrics import relmse
-from gdpt.training.model_report import MAX_SHIPPED_MIB
 from gdpt.denoise import MODEL_DIR, reconstruct
+from gdpt.metrics import relmse
 from gdpt.scenes import builtin_scene
+from gdpt.training.model_report import MAX_SHIPPED_MIB
 
 SHIPPED = {"ngpt": True, "ngpt-nograd": False}  # name -> reads gradients
 
@@ -60,8 +60,10 @@ def test_shipped_model_is_the_default_and_finite(name, cbox, monkeypatch):
 # Known deficiency, kept visible: the CPU-trained networks (2,500 updates on 40 crops) make
 # cbox-demo worse than their own noisy input (README, "Training data ..."). strict: once a
 # better-trained model passes, this xfail turns into a failure and must be removed.
-@pytest.mark.xfail(strict=True, reason="shipped CPU-trained networks do not yet beat their noisy "
-                   "input on cbox-demo (issue 5)")
+@pytest.mark.xfail(
+    strict=True,
+    reason="shipped CPU-trained networks do not yet beat their noisy input on cbox-demo (issue 5)",
+)
 @pytest.mark.parametrize("name", SHIPPED)
 def test_shipped_model_reduces_error(name, cbox, monkeypatch):
     scene, reference = cbox

@@ -1,4 +1,5 @@
-"""gdpt.training.train: gradient-correct augmentations, schedule, learning, exact resume, DDP, run dirs."""
+"""gdpt.training.train: gradient-correct augmentations, schedule, learning, exact resume, DDP,
+run dirs."""
 
 from __future__ import annotations
 
@@ -12,11 +13,11 @@ from pathlib import Path
 
 import pytest
 import torch
+from gdpt.reconstruct.dense_unet import build_model
+from gdpt.reconstruct.losses import get_loss
 
 from gdpt.cli import main
 from gdpt.training.dataset import CropDataset, DatasetConfig, build_dataset
-from gdpt.reconstruct.dense_unet import build_model
-from gdpt.reconstruct.losses import get_loss
 from gdpt.training.train import (
     AugmentParams,
     ConfigMismatchError,
@@ -38,19 +39,41 @@ def data(tmp_path_factory) -> Path:
     """Two rendered 16x16 crops of a one-object scene."""
     from gdpt.scenes import RandomSceneConfig
 
-    scene = RandomSceneConfig(num_objects=(1, 1), p_extra_light=0.0, p_window=0.0,
-                              p_bitmap_env=0.0, p_thinlens=0.0)
+    scene = RandomSceneConfig(
+        num_objects=(1, 1), p_extra_light=0.0, p_window=0.0, p_bitmap_env=0.0, p_thinlens=0.0
+    )
     root = tmp_path_factory.mktemp("train") / "data"
-    config = DatasetConfig(scenes=1, views=2, resolution=16, spp_min=1, spp_max=4, target_spp=8,
-                           max_depth=4, scene_config=scene)
+    config = DatasetConfig(
+        scenes=1,
+        views=2,
+        resolution=16,
+        spp_min=1,
+        spp_max=4,
+        target_spp=8,
+        max_depth=4,
+        scene_config=scene,
+    )
     build_dataset(config, root, progress=False)
     return root
 
 
 def tiny(data: Path, out: Path, **changes) -> TrainConfig:
-    settings = dict(model="fast_xs", data=str(data), val_data=str(data), out=str(out), loss="l1",
-                    steps=3, batch=2, vary_padding=2, warmup_steps=0, decay_start=1, half_life=2,
-                    val_every=2, val_crops=2, ckpt_every=1)
+    settings = dict(
+        model="fast_xs",
+        data=str(data),
+        val_data=str(data),
+        out=str(out),
+        loss="l1",
+        steps=3,
+        batch=2,
+        vary_padding=2,
+        warmup_steps=0,
+        decay_start=1,
+        half_life=2,
+        val_every=2,
+        val_crops=2,
+        ckpt_every=1,
+    )
     return TrainConfig(**{**settings, **changes})
 
 
@@ -59,15 +82,23 @@ def read_jsonl(path: Path) -> list[dict]:
 
 
 # ------------------------------------------------------------------------------- augmentation
-def buffers_of(image: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor,
-               depth: torch.Tensor) -> dict[str, torch.Tensor]:
+def buffers_of(
+    image: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor
+) -> dict[str, torch.Tensor]:
     """The exact G-PT buffers of an image: forward differences, unused last column/row 0."""
     dx = torch.zeros_like(image)
     dy = torch.zeros_like(image)
     dx[:, :-1] = image[:, 1:] - image[:, :-1]
     dy[:-1] = image[1:] - image[:-1]
-    return {"primal": image, "dx": dx, "dy": dy, "albedo": albedo, "normal": normal,
-            "depth": depth, "target": image}
+    return {
+        "primal": image,
+        "dx": dx,
+        "dy": dy,
+        "albedo": albedo,
+        "normal": normal,
+        "depth": depth,
+        "target": image,
+    }
 
 
 def augment_scene(scene: dict[str, torch.Tensor], p: AugmentParams) -> dict[str, torch.Tensor]:
@@ -75,7 +106,9 @@ def augment_scene(scene: dict[str, torch.Tensor], p: AugmentParams) -> dict[str,
     image, albedo, normal, depth = (scene[k] for k in ("image", "albedo", "normal", "depth"))
     if p.size is not None:
         (y, x), (h, w) = p.origin, p.size
-        image, albedo, normal, depth = (t[y:y + h, x:x + w] for t in (image, albedo, normal, depth))
+        image, albedo, normal, depth = (
+            t[y : y + h, x : x + w] for t in (image, albedo, normal, depth)
+        )
     sign = torch.ones(3)
     if p.flip_x:
         image, albedo, normal, depth = (t.flip(1) for t in (image, albedo, normal, depth))
@@ -101,17 +134,28 @@ CASES = {
     "colour": AugmentParams(colour=(0.5, 2.0, 0.5)),
     "brightness": AugmentParams(brightness=3.7),
     "sub-crop": AugmentParams(origin=(1, 2), size=(5, 5)),
-    "all": AugmentParams(origin=(2, 1), size=(6, 6), flip_x=True, flip_y=True, transpose=True,
-                         permutation=(1, 2, 0), colour=(1.2, 0.3, 1.5), brightness=0.4),
+    "all": AugmentParams(
+        origin=(2, 1),
+        size=(6, 6),
+        flip_x=True,
+        flip_y=True,
+        transpose=True,
+        permutation=(1, 2, 0),
+        colour=(1.2, 0.3, 1.5),
+        brightness=0.4,
+    ),
 }
 
 
 @pytest.mark.parametrize("name", list(CASES))
-def test01_augmenting_buffers_equals_buffers_of_augmented_image(name):
+def test_augmenting_buffers_equals_buffers_of_augmented_image(name):
     g = torch.Generator().manual_seed(1)
-    scene = {"image": torch.rand(H, W, 3, generator=g) * 4, "albedo": torch.rand(H, W, 3,
-             generator=g), "normal": torch.randn(H, W, 3, generator=g),
-             "depth": torch.rand(H, W, 1, generator=g)}
+    scene = {
+        "image": torch.rand(H, W, 3, generator=g) * 4,
+        "albedo": torch.rand(H, W, 3, generator=g),
+        "normal": torch.randn(H, W, 3, generator=g),
+        "depth": torch.rand(H, W, 1, generator=g),
+    }
     buffers = buffers_of(scene["image"], scene["albedo"], scene["normal"], scene["depth"])
     got = augment(buffers, CASES[name])
     expected = augment_scene(scene, CASES[name])
@@ -120,7 +164,7 @@ def test01_augmenting_buffers_equals_buffers_of_augmented_image(name):
         torch.testing.assert_close(got[key], expected[key], msg=f"{name}: buffer {key}")
 
 
-def test02_sampled_augmentations_have_the_reference_distributions():
+def test_sampled_augmentations_have_the_reference_distributions():
     g = torch.Generator().manual_seed(0)
     config = TrainConfig(data="d", out="o", crop=12)
     draws = [sample_augmentation(g, config, (16, 16)) for _ in range(2000)]
@@ -139,19 +183,20 @@ def test02_sampled_augmentations_have_the_reference_distributions():
     assert dataclasses.replace(plain, origin=(0, 0)) == AugmentParams(size=(12, 12))
 
 
-def test03_learning_rate_warms_up_geometrically_and_decays_exponentially():
+def test_learning_rate_warms_up_geometrically_and_decays_exponentially():
     config = TrainConfig(data="d", out="o", steps=1000).resolved()
     assert (config.warmup_steps, config.decay_start, config.half_life) == (20, 250, 250)
     assert math.isclose(learning_rate(0, config), 5e-4 * 1e-4 * 1e4 ** (1 / 20))
-    assert math.isclose(learning_rate(9, config) ** 2,
-                        learning_rate(4, config) * learning_rate(14, config))
+    assert math.isclose(
+        learning_rate(9, config) ** 2, learning_rate(4, config) * learning_rate(14, config)
+    )
     assert learning_rate(19, config) == learning_rate(250, config) == 5e-4
     assert math.isclose(learning_rate(500, config), 2.5e-4)
     assert math.isclose(learning_rate(999, config), 5e-4 * 0.5 ** (749 / 250))
 
 
 # ------------------------------------------------------------------------------------ training
-def test04_three_steps_on_a_fixed_batch_reduce_the_loss(data, tmp_path):
+def test_three_steps_on_a_fixed_batch_reduce_the_loss(data, tmp_path):
     config = tiny(data, tmp_path)
     dataset = CropDataset(data)
     x, target = make_batch(dataset, config, step=0)
@@ -160,12 +205,13 @@ def test04_three_steps_on_a_fixed_batch_reduce_the_loss(data, tmp_path):
     model = build_model("fast_xs").to(memory_format=torch.channels_last)
     optimizer = make_optimizer(model, config)
     loss_fn = get_loss("l1")
-    losses = [train_step(model, optimizer, loss_fn, x, target, border=10, lr=1e-3)[0]
-              for _ in range(4)]
+    losses = [
+        train_step(model, optimizer, loss_fn, x, target, border=10, lr=1e-3)[0] for _ in range(4)
+    ]
     assert losses[3] < losses[2] < losses[1] < losses[0], losses
 
 
-def test05_run_directory_and_exact_resume(data, tmp_path):
+def test_run_directory_and_exact_resume(data, tmp_path):
     run = tmp_path / "run"
     config = tiny(data, run)
     train(config, progress=False)
@@ -190,38 +236,76 @@ def test05_run_directory_and_exact_resume(data, tmp_path):
     assert resumed[2]["lr"] == log[2]["lr"]
 
 
-def test06_resume_with_another_config_is_refused(data, tmp_path, capsys):
+def test_resume_with_another_config_is_refused(data, tmp_path, capsys):
     run = tmp_path / "run"
     train(tiny(data, run, steps=1, val_every=0), progress=False)
     with pytest.raises(FileExistsError, match="--resume"):
         train(tiny(data, run, steps=1, val_every=0), progress=False)
     with pytest.raises(ConfigMismatchError, match="model: 'fast_xs' .* 'fast'"):
         train(tiny(data, run, steps=2, model="fast"), resume=True, progress=False)
-    status = main(["train", "--config", "fast_xs", "--data", str(data), "--out", str(run),
-                   "--loss", "flip", "--resume"])
+    status = main(
+        [
+            "train",
+            "--config",
+            "fast_xs",
+            "--data",
+            str(data),
+            "--out",
+            str(run),
+            "--loss",
+            "flip",
+            "--resume",
+        ]
+    )
     assert status == 2
     err = capsys.readouterr().err
     assert "gdpt train: error: cannot resume" in err and "loss: 'l1'" in err
 
 
-def test07_nograd_model_trains_on_path_traced_inputs(data, tmp_path):
+def test_nograd_model_trains_on_path_traced_inputs(data, tmp_path):
     config = tiny(data, tmp_path / "nograd", model="nograd", steps=1, batch=1, val_every=1)
     train(config, progress=False)
     val = read_jsonl(tmp_path / "nograd" / "val.jsonl")[0]
     assert val["count"] == 2 and math.isfinite(val["relmse"])
 
 
-def test08_torchrun_ddp_two_processes(data, tmp_path):
+def test_torchrun_ddp_two_processes(data, tmp_path):
     run = tmp_path / "ddp"
-    command = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
-               "--master-port", str(29500 + os.getpid() % 1000), "-m", "gdpt", "train",
-               "--config", "fast_xs", "--data", str(data), "--val-data", str(data),
-               "--out", str(run), "--loss", "l1", "--steps", "2", "--batch", "1",
-               "--val-every", "2", "--val-crops", "2", "--ckpt-every", "1"]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    command = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc_per_node",
+        "2",
+        "--master-port",
+        str(29500 + os.getpid() % 1000),
+        "-m",
+        "gdpt",
+        "train",
+        "--config",
+        "fast_xs",
+        "--data",
+        str(data),
+        "--val-data",
+        str(data),
+        "--out",
+        str(run),
+        "--loss",
+        "l1",
+        "--steps",
+        "2",
+        "--batch",
+        "1",
+        "--val-every",
+        "2",
+        "--val-crops",
+        "2",
+        "--ckpt-every",
+        "1",
+    ]
+    result = subprocess.run(command, check=False, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
     assert [r["step"] for r in read_jsonl(run / "log.jsonl")] == [1, 2]
     assert len(read_jsonl(run / "val.jsonl")) == 1
     assert (run / "checkpoints" / "ckpt-0000002.pt").is_file()
-    assert torch.load(run / "checkpoints" / "ckpt-0000002.pt",
-                      weights_only=True)["world_size"] == 2
+    assert torch.load(run / "checkpoints" / "ckpt-0000002.pt", weights_only=True)["world_size"] == 2

@@ -7,7 +7,6 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
-
 from gdpt.reconstruct import dense_unet
 from gdpt.reconstruct.dense_unet import CONFIGS, DenseUNet, ModelConfig, build_model
 
@@ -24,14 +23,16 @@ def _perturbed(model: DenseUNet, seed: int = 0) -> DenseUNet:
     return model
 
 
-def test01_paper_parameter_count_and_layer_shapes():
+def test_paper_parameter_count_and_layer_shapes():
     model = build_model("paper")
     assert dense_unet.parameter_count(model) == PAPER_PARAMETERS
     assert model.alignment == 8
     e0 = [u.bottleneck.weight.shape[1] for u in model.encoders[0]]
     assert e0 == [16, 56, 96, 136]
-    assert all(u.bottleneck.weight.shape[0] == 80 and u.conv.weight.shape[:2] == (40, 80)
-               for u in model.encoders[0])
+    assert all(
+        u.bottleneck.weight.shape[0] == 80 and u.conv.weight.shape[:2] == (40, 80)
+        for u in model.encoders[0]
+    )
     assert [u.bottleneck.weight.shape[1] for u in model.encoders[1]] == [160, 240, 320]
     assert [u.bottleneck.weight.shape[1] for u in model.encoders[2]] == [160, 240]
     assert [u.bottleneck.weight.shape[1] for u in model.encoders[3]] == [160, 240]
@@ -40,32 +41,38 @@ def test01_paper_parameter_count_and_layer_shapes():
     assert [u.bottleneck.weight.shape[1] for u in model.decoders[1]] == [560, 640, 720]
     assert [u.bottleneck.weight.shape[1] for u in model.decoders[0]] == [256, 296, 336, 376]
     assert [tuple(p.weight.shape) for p in model.pools] == [
-        (160, 176, 2, 2), (160, 400, 2, 2), (160, 320, 2, 2)]
+        (160, 176, 2, 2),
+        (160, 400, 2, 2),
+        (160, 320, 2, 2),
+    ]
     # transposed convs: torch layout (C_in, C_out, kh, kw), gain per input channel
     assert [tuple(u.weight.shape) for u in model.unpools] == [
-        (800, 80, 2, 2), (640, 160, 2, 2), (480, 160, 2, 2)]
+        (800, 80, 2, 2),
+        (640, 160, 2, 2),
+        (480, 160, 2, 2),
+    ]
     assert tuple(model.head[0].weight.shape) == (3, 416, 1, 1)
     assert model.list_widths == [(176, 416), (400, 800), (320, 640), (320, 480)]
 
 
-def test02_nograd_shapes():
+def test_nograd_shapes():
     model = build_model("nograd")
     assert model.decoders[0][0].bottleneck.weight.shape[1] == 250
     assert tuple(model.head[0].weight.shape) == (3, 410, 1, 1)
 
 
-def test03_plain_unet_has_equal_capacity():
+def test_plain_unet_has_equal_capacity():
     ratio = dense_unet.parameter_count(build_model("unet")) / PAPER_PARAMETERS
     assert abs(ratio - 1) < 0.05
     assert not CONFIGS["unet"].dense
 
 
-def test04_registry_error_lists_names():
+def test_registry_error_lists_names():
     with pytest.raises(ValueError, match="paper.*nograd.*unet"):
         build_model("papper")
 
 
-def test05_weight_norm_formula():
+def test_weight_norm_formula():
     conv = dense_unet.Conv(7, 5, 3)
     with torch.no_grad():
         conv.gain.copy_(torch.arange(1.0, 6.0))
@@ -74,14 +81,15 @@ def test05_weight_norm_formula():
     torch.testing.assert_close(norms, math.sqrt(2) * torch.arange(1.0, 6.0))
     tconv = dense_unet.Conv(7, 5, 2, stride=2, transposed=True)
     assert tconv.gain.shape == (7,)  # TF convention: normalised per input channel
-    torch.testing.assert_close(tconv.effective_weight().square().sum(dim=(1, 2, 3)),
-                               torch.full((7,), 2.0))
+    torch.testing.assert_close(
+        tconv.effective_weight().square().sum(dim=(1, 2, 3)), torch.full((7,), 2.0)
+    )
     assert torch.count_nonzero(conv.bias) == 0
 
 
 @pytest.mark.parametrize("name", list(CONFIGS))
 @pytest.mark.parametrize("size", [(20, 28), (9, 13)])
-def test06_forward_backward_every_config(name, size):
+def test_forward_backward_every_config(name, size):
     from gdpt.reconstruct.transforms import padding_for
 
     model = _perturbed(build_model(name))
@@ -97,7 +105,7 @@ def test06_forward_backward_every_config(name, size):
 
 
 @pytest.mark.parametrize("name", list(CONFIGS))
-def test07_inference_path_and_fuse_match_autograd_path(name):
+def test_inference_path_and_fuse_match_autograd_path(name):
     model = _perturbed(build_model(name), seed=1)
     x = torch.randn(1, model.config.in_channels, 16, 24)
     reference = model(x)
@@ -118,7 +126,7 @@ def test07b_residual_adds_the_input_primal():
     assert (pre_activation < 0).any()  # no final activation clips the correction
 
 
-def test08_input_errors():
+def test_input_errors():
     model = build_model("fast_xs")
     with pytest.raises(ValueError, match="multiple of 8"):
         model(torch.zeros(1, 16, 12, 16))
@@ -126,7 +134,7 @@ def test08_input_errors():
         model(torch.zeros(1, 10, 16, 16))
 
 
-def test09_config_round_trip_and_validation():
+def test_config_round_trip_and_validation():
     for cfg in CONFIGS.values():
         assert ModelConfig.from_dict(cfg.to_dict()) == cfg
     with pytest.raises(ValueError, match="unknown ModelConfig fields"):
@@ -135,7 +143,7 @@ def test09_config_round_trip_and_validation():
         ModelConfig(pool_features=(160,))
 
 
-def test10_receptive_radius_bounds_influence():
+def test_receptive_radius_bounds_influence():
     model = _perturbed(build_model("fast_xs"))
     size, c = 160, 80
     x = torch.randn(1, 16, size, size, requires_grad=True)
@@ -145,7 +153,7 @@ def test10_receptive_radius_bounds_influence():
     assert 0 < reach <= model.receptive_radius
 
 
-def test11_flops():
+def test_flops():
     conv = dense_unet.Conv(4, 6, 3, scale=2)
     assert conv.flops(16, 32) == 2 * 4 * 6 * 9 * 8 * 16
     assert math.isclose(build_model("paper").flops(720, 1280) / 1e9, 2052.7, rel_tol=1e-3)

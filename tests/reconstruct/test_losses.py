@@ -11,10 +11,9 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from gdpt.reconstruct import losses as L
 from scipy.ndimage import gaussian_filter
 from torch import nn
-
-from gdpt.reconstruct import losses as L
 
 # ---------------------------------------------------------------------------------------------
 # Fixtures and helpers
@@ -37,8 +36,9 @@ def nchw(image: np.ndarray) -> torch.Tensor:
 
 def _base_ldr(size: int = 64) -> np.ndarray:
     yy, xx = np.mgrid[0:size, 0:size] / size
-    image = np.stack([0.5 + 0.4 * np.sin(6 * xx), 0.5 + 0.4 * np.cos(5 * yy), 0.3 + 0.3 * xx * yy],
-                     -1)
+    image = np.stack(
+        [0.5 + 0.4 * np.sin(6 * xx), 0.5 + 0.4 * np.cos(5 * yy), 0.3 + 0.3 * xx * yy], -1
+    )
     image[20:40, 10:30] = [0.9, 0.2, 0.1]
     return image.astype(np.float32)
 
@@ -103,8 +103,9 @@ def test_srgb_matches_colour_science() -> None:
     y = np.linspace(-0.1, 1.5, 1001)
     decoded = L.srgb_decode(torch.from_numpy(y)).numpy()
     np.testing.assert_allclose(decoded, colour.cctf_decoding(y, function="sRGB"), atol=1e-12)
-    np.testing.assert_allclose(L.srgb_decode(L.srgb_encode(torch.from_numpy(x))).numpy(), x,
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        L.srgb_decode(L.srgb_encode(torch.from_numpy(x))).numpy(), x, atol=1e-12
+    )
 
 
 def test_srgb_and_reinhard_gradcheck() -> None:
@@ -124,8 +125,9 @@ def test_reinhard_values_oddness_and_layouts() -> None:
     assert torch.allclose(L.reinhard(x), x / 3.0)
     assert torch.equal(L.reinhard(-x), -L.reinhard(x))
     hwc = torch.randn(4, 5, 3)
-    assert torch.allclose(L.reinhard(hwc, channel_dim=-1),
-                          L.reinhard(hwc.permute(2, 0, 1)).permute(1, 2, 0))
+    assert torch.allclose(
+        L.reinhard(hwc, channel_dim=-1), L.reinhard(hwc.permute(2, 0, 1)).permute(1, 2, 0)
+    )
 
 
 def test_forward_differences_convention() -> None:
@@ -183,15 +185,19 @@ def test_registry_weights_and_errors() -> None:
     expected = L.l1_tonemapped(pred, target) + 0.01 * L.gradient_l1_tonemapped(pred, target)
     assert torch.allclose(l1(pred, target), expected)
     flip = L.get_loss("flip")
-    expected = (L.ldr_flip(L.reinhard(pred), L.reinhard(target), inputs_srgb=False)
-                + 0.01 * L.l1_tonemapped(pred, target)
-                + 0.01 * L.gradient_l1_tonemapped(pred, target))
+    expected = (
+        L.ldr_flip(L.reinhard(pred), L.reinhard(target), inputs_srgb=False)
+        + 0.01 * L.l1_tonemapped(pred, target)
+        + 0.01 * L.gradient_l1_tonemapped(pred, target)
+    )
     assert torch.allclose(flip(pred, target), expected)
     flip_log = L.get_loss("flip_log")
     assert torch.allclose(flip_log(pred, target), expected + 0.1 * L.l1_log(pred, target))
     flip_rel = L.get_loss("flip_rel")
     assert torch.allclose(flip_rel(pred, target), expected + L.l1_relative(pred, target))
-    with pytest.raises(KeyError, match="valid names: flip, flip_hdr, flip_log, flip_rel, elpips, l1"):
+    with pytest.raises(
+        KeyError, match="valid names: flip, flip_hdr, flip_log, flip_rel, elpips, l1"
+    ):
         L.get_loss("lpips")
 
 
@@ -221,12 +227,14 @@ def test_ldr_flip_matches_flip_evaluator(name: str) -> None:
 
 def test_ldr_flip_linear_inputs_and_batching() -> None:
     test = LDR_PAIRS["noise"].astype(np.float32)
-    _, mean, _ = flip_evaluator.evaluate(BASE_LDR, test, "LDR", inputsRGB=False,
-                                         applyMagma=False)
+    _, mean, _ = flip_evaluator.evaluate(BASE_LDR, test, "LDR", inputsRGB=False, applyMagma=False)
     ours = L.ldr_flip(nchw(test), nchw(BASE_LDR), inputs_srgb=False)
     assert ours.item() == pytest.approx(mean, rel=0.01)
-    batch = L.ldr_flip(torch.cat([nchw(test), nchw(BASE_LDR)]),
-                       torch.cat([nchw(BASE_LDR), nchw(BASE_LDR)]), reduction="none")
+    batch = L.ldr_flip(
+        torch.cat([nchw(test), nchw(BASE_LDR)]),
+        torch.cat([nchw(BASE_LDR), nchw(BASE_LDR)]),
+        reduction="none",
+    )
     assert batch[1].abs().max() == 0.0  # identical images
     assert torch.allclose(batch[0], L.ldr_flip(nchw(test), nchw(BASE_LDR), reduction="none")[0])
 
@@ -247,12 +255,21 @@ def test_hdr_flip_matches_flip_evaluator(name: str) -> None:
 def test_hdr_flip_other_tonemappers_and_explicit_exposures(tonemapper: str) -> None:
     # flip_evaluator compares names case-sensitively: "Reinhard" silently falls back to ACES.
     test = HDR_PAIRS["noise"].astype(np.float32)
-    params = {"tonemapper": tonemapper, "startExposure": -2.0, "stopExposure": 1.0,
-              "numExposures": 3}
-    _, mean, _ = flip_evaluator.evaluate(BASE_HDR, test, "HDR", applyMagma=False,
-                                         parameters=params)
-    ours = L.hdr_flip(nchw(test), nchw(BASE_HDR), tonemapper=tonemapper, start_exposure=-2.0,
-                      stop_exposure=1.0, num_exposures=3)
+    params = {
+        "tonemapper": tonemapper,
+        "startExposure": -2.0,
+        "stopExposure": 1.0,
+        "numExposures": 3,
+    }
+    _, mean, _ = flip_evaluator.evaluate(BASE_HDR, test, "HDR", applyMagma=False, parameters=params)
+    ours = L.hdr_flip(
+        nchw(test),
+        nchw(BASE_HDR),
+        tonemapper=tonemapper,
+        start_exposure=-2.0,
+        stop_exposure=1.0,
+        num_exposures=3,
+    )
     assert ours.item() == pytest.approx(mean, rel=0.01)
 
 
@@ -263,11 +280,12 @@ def test_hdr_flip_batch_and_median_zero() -> None:
     _, mean_dark, params = flip_evaluator.evaluate(dark, test, "HDR", applyMagma=False)
     assert params["numExposures"] > 20
     noisy = HDR_PAIRS["noise"][:32, :32].astype(np.float32)
-    _, mean_noise, _ = flip_evaluator.evaluate(BASE_HDR[:32, :32], noisy, "HDR",
-                                               applyMagma=False)
-    ours = L.hdr_flip(torch.cat([nchw(test), nchw(noisy)]),
-                      torch.cat([nchw(dark), nchw(BASE_HDR[:32, :32])]),
-                      reduction="none").mean((1, 2))
+    _, mean_noise, _ = flip_evaluator.evaluate(BASE_HDR[:32, :32], noisy, "HDR", applyMagma=False)
+    ours = L.hdr_flip(
+        torch.cat([nchw(test), nchw(noisy)]),
+        torch.cat([nchw(dark), nchw(BASE_HDR[:32, :32])]),
+        reduction="none",
+    ).mean((1, 2))
     assert ours[0].item() == pytest.approx(mean_dark, rel=0.01)
     assert ours[1].item() == pytest.approx(mean_noise, rel=0.01)
     black = torch.zeros(1, 3, 8, 8)  # the tool aborts here; we return a finite value
@@ -289,10 +307,11 @@ def test_flip_argument_errors() -> None:
 def test_ldr_flip_gradcheck() -> None:
     gen = torch.Generator().manual_seed(3)
     ref = 0.2 + 0.6 * torch.rand(1, 3, 6, 6, generator=gen, dtype=torch.float64)
-    test = (ref + 0.1 * torch.randn(1, 3, 6, 6, generator=gen, dtype=torch.float64))
+    test = ref + 0.1 * torch.randn(1, 3, 6, 6, generator=gen, dtype=torch.float64)
     test = test.clamp(0.05, 0.95).requires_grad_()
-    assert torch.autograd.gradcheck(lambda t: L.ldr_flip(t, ref, inputs_srgb=False), (test,),
-                                    atol=1e-5)
+    assert torch.autograd.gradcheck(
+        lambda t: L.ldr_flip(t, ref, inputs_srgb=False), (test,), atol=1e-5
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -305,15 +324,17 @@ def test_ensemble_sampling_is_stratified() -> None:
     config = L.ELPIPSConfig()
     sample = L.sample_ensemble(6, config, generator=gen)
     assert sorted(map(tuple, sample.permutations.tolist())) == sorted(
-        [(0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)])
+        [(0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)]
+    )
     sample = L.sample_ensemble(4, config, generator=gen)
     assert sorted(sample.flips.tolist()) == [0, 1, 2, 3]
     u = (sample.color_factors - 0.2) / 0.8  # stratified: one value in each [k/N, (k+1)/N)
     for channel in range(3):
         assert sorted((u[:, channel] * 4).floor().long().tolist()) == [0, 1, 2, 3]
     assert ((sample.offsets >= 0) & (sample.offsets <= 7)).all()
-    scales = [L.sample_ensemble(1, L.ELPIPSConfig(num_scales=2), generator=gen).scale
-              for _ in range(2000)]
+    scales = [
+        L.sample_ensemble(1, L.ELPIPSConfig(num_scales=2), generator=gen).scale for _ in range(2000)
+    ]
     assert np.mean(np.array(scales) == 1) == pytest.approx(0.8, abs=0.04)  # P(s) ~ 1/s^2
     brightness = L.sample_ensemble(3, L.ELPIPSConfig(color_multiplication_mode="brightness"))
     assert torch.equal(brightness.color_factors[:, :1].expand(3, 3), brightness.color_factors)
@@ -322,20 +343,28 @@ def test_ensemble_sampling_is_stratified() -> None:
 def test_apply_ensemble_transforms() -> None:
     x = torch.rand(4, 3, 16, 12)
     sample = L.EnsembleSample(
-        scale=1, scale_offset=(0, 0), offsets=torch.tensor([[0, 0], [7, 7], [3, 2], [0, 5]]),
-        flips=torch.tensor([0, 1, 2, 3]), swap=True,
+        scale=1,
+        scale_offset=(0, 0),
+        offsets=torch.tensor([[0, 0], [7, 7], [3, 2], [0, 5]]),
+        flips=torch.tensor([0, 1, 2, 3]),
+        swap=True,
         permutations=torch.tensor([[2, 1, 0], [0, 1, 2], [1, 2, 0], [0, 2, 1]]),
-        color_factors=torch.tensor([[1.0, 0.5, 0.2]] * 4))
+        color_factors=torch.tensor([[1.0, 0.5, 0.2]] * 4),
+    )
     only = L.ELPIPSConfig(enable_offset=False, enable_scale=False)
     out = L.apply_ensemble(x, sample, only)
     expected = torch.stack([x[0].flip(-1), x[1].flip(-2), x[2].flip(-1, -2), x[3]])
     expected = expected.transpose(-1, -2)
-    expected = torch.stack([e[p] for e, p in zip(expected, sample.permutations)])
+    expected = torch.stack([e[p] for e, p in zip(expected, sample.permutations, strict=False)])
     expected = expected * torch.tensor([1.0, 0.5, 0.2]).view(1, 3, 1, 1)
     assert torch.equal(out, expected)
-    offsets_only = L.ELPIPSConfig(enable_flip=False, enable_swap=False, enable_scale=False,
-                                  enable_color_permutation=False,
-                                  enable_color_multiplication=False)
+    offsets_only = L.ELPIPSConfig(
+        enable_flip=False,
+        enable_swap=False,
+        enable_scale=False,
+        enable_color_permutation=False,
+        enable_color_multiplication=False,
+    )
     padded = L.apply_ensemble(x, sample, offsets_only)
     assert padded.shape == (4, 3, 23, 19)
     assert torch.equal(padded[1, :, :16, :12], x[1])  # offset 7: all padding after the image
@@ -372,13 +401,20 @@ def test_elpips_average_over_and_dropout() -> None:
     averaged = tiny_elpips(L.ELPIPSConfig(num_scales=2, average_over=3), seed=3)(a, b)
     assert torch.allclose(averaged, mean_of_three, rtol=1e-5)
     # Without any randomness it is plain LPIPS (on the tiny net), independent of the seed.
-    plain = L.ELPIPSConfig(enable_dropout=False, enable_offset=False, enable_flip=False,
-                           enable_swap=False, enable_color_permutation=False,
-                           enable_color_multiplication=False, enable_scale=False)
+    plain = L.ELPIPSConfig(
+        enable_dropout=False,
+        enable_offset=False,
+        enable_flip=False,
+        enable_swap=False,
+        enable_color_permutation=False,
+        enable_color_multiplication=False,
+        enable_scale=False,
+    )
     assert torch.equal(tiny_elpips(plain, seed=1)(a, b), tiny_elpips(plain, seed=2)(a, b))
     dropout_only = replace(plain, enable_dropout=True, dropout_keep_prob=0.5)
-    assert not torch.equal(tiny_elpips(dropout_only, seed=1)(a, b),
-                           tiny_elpips(dropout_only, seed=2)(a, b))
+    assert not torch.equal(
+        tiny_elpips(dropout_only, seed=1)(a, b), tiny_elpips(dropout_only, seed=2)(a, b)
+    )
     assert torch.allclose(tiny_elpips(dropout_only, seed=1)(a, a), torch.zeros(2), atol=1e-7)
 
 
@@ -446,4 +482,5 @@ def test_backbones_feature_channels() -> None:
         feats = net(x, lambda t: t)
         assert tuple(f.shape[1] for f in feats) == net.channels
     assert {"features.0.weight", "features.12.expand3x3.bias"} <= set(
-        L.SqueezeNetFeatures().state_dict())
+        L.SqueezeNetFeatures().state_dict()
+    )

@@ -7,16 +7,20 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-
 from gdpt.reconstruct import ngpt
 from gdpt.reconstruct.dense_unet import DenseUNet, ModelConfig, build_model
 from gdpt.reconstruct.ngpt import CheckpointMismatchError, NGPTReconstructor
+
 from gdpt.training.checkpoint import save_checkpoint
 
 #: A small dense config (radius 28 px) so that tiles are cut well inside the test images.
-TINY = ModelConfig(growth_rates=(8, 12, 12), unit_counts=(2, 1, 1),
-                   decoder_unit_counts=(2, 1, 1), pool_features=(16, 16),
-                   unpool_features=(8, 16))
+TINY = ModelConfig(
+    growth_rates=(8, 12, 12),
+    unit_counts=(2, 1, 1),
+    decoder_unit_counts=(2, 1, 1),
+    pool_features=(16, 16),
+    unpool_features=(8, 16),
+)
 
 
 def _model(config: ModelConfig | str, seed: int = 0) -> DenseUNet:
@@ -37,16 +41,18 @@ def _buffers(h: int, w: int, seed: int = 0) -> dict[str, torch.Tensor]:
     dy[:-1] = image[1:] - image[:-1]
     return {
         "primal": image + 0.3 * torch.randn(h, w, 3, generator=gen),
-        "dx": dx, "dy": dy,
+        "dx": dx,
+        "dy": dy,
         "albedo": torch.rand(h, w, 3, generator=gen),
         "normal": torch.rand(h, w, 3, generator=gen) * 2 - 1,
         "depth": torch.rand(h, w, 1, generator=gen) * 10,
     }
 
 
-@pytest.mark.parametrize(("config", "size", "tile"),
-                         [(TINY, (97, 121), 24), ("fast_xs", (100, 90), 56)])
-def test01_tiled_equals_untiled(config, size, tile):
+@pytest.mark.parametrize(
+    ("config", "size", "tile"), [(TINY, (97, 121), 24), ("fast_xs", (100, 90), 56)]
+)
+def test_tiled_equals_untiled(config, size, tile):
     model = _model(config)
     bufs = _buffers(*size)
     untiled = NGPTReconstructor(model, tile_size=None)(bufs)
@@ -58,7 +64,7 @@ def test01_tiled_equals_untiled(config, size, tile):
     torch.testing.assert_close(tiled, untiled, rtol=1e-4, atol=1e-4)
 
 
-def test02_tiny_images_batches_and_nonfinite_inputs():
+def test_tiny_images_batches_and_nonfinite_inputs():
     rec = NGPTReconstructor(_model("fast_xs"))
     bufs = _buffers(3, 5)
     bufs["primal"][1, 1] = float("nan")
@@ -74,7 +80,7 @@ def test02_tiny_images_batches_and_nonfinite_inputs():
     torch.testing.assert_close(rec(SimpleNamespace(**single, var_primal=None)), rec(single))
 
 
-def test03_missing_and_malformed_buffers():
+def test_missing_and_malformed_buffers():
     rec = NGPTReconstructor(_model(TINY))
     bufs = _buffers(16, 16)
     del bufs["dy"], bufs["albedo"]
@@ -85,10 +91,13 @@ def test03_missing_and_malformed_buffers():
         rec(bad)
 
 
-def test04_checkpoint_round_trip(tmp_path):
+def test_checkpoint_round_trip(tmp_path):
     model = _model("nograd")
-    card = {"training": {"scenes": ["cbox"], "spp": [2, 1024]}, "steps": 12,
-            "validation": {"relmse": 0.125}}
+    card = {
+        "training": {"scenes": ["cbox"], "spp": [2, 1024]},
+        "steps": 12,
+        "validation": {"relmse": 0.125},
+    }
     weights, card_path = save_checkpoint(model, tmp_path / "ckpt" / "model.pt", card)
     assert weights.suffix == ".safetensors" and card_path.suffix == ".json"
     stored = json.loads(card_path.read_text())
@@ -104,7 +113,7 @@ def test04_checkpoint_round_trip(tmp_path):
         save_checkpoint(model, tmp_path / "x", {"config": 1})
 
 
-def test05_checkpoint_mismatch_errors(tmp_path):
+def test_checkpoint_mismatch_errors(tmp_path):
     model = _model(TINY)
     model.name = "fast"  # pretend a registered name with a different config
     _, card_path = save_checkpoint(model, tmp_path / "m")

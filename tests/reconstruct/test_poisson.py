@@ -18,10 +18,9 @@ import scipy.optimize
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
+from gdpt.reconstruct import poisson
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-from gdpt.reconstruct import poisson
 
 ALPHA = 0.2
 

@@ -5,10 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from gdpt.reconstruct import transforms as T
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from gdpt.reconstruct import transforms as T
 
 
 def _forward_dx(image: torch.Tensor) -> torch.Tensor:
@@ -38,12 +37,13 @@ def _buffer_set(h: int, w: int, batch: tuple[int, ...] = (), seed: int = 0):
     }
 
 
-def test01_transform_inverses_exact():
+def test_transform_inverses_exact():
     x = torch.cat([torch.zeros(1), torch.logspace(-6, 4, 500, dtype=torch.float64)])
     torch.testing.assert_close(T.Log1p().inverse(T.Log1p().forward(x)), x, rtol=1e-12, atol=0)
     g = torch.cat([-x, x])
-    torch.testing.assert_close(T.SignedLog1p().inverse(T.SignedLog1p().forward(g)), g,
-                               rtol=1e-12, atol=0)
+    torch.testing.assert_close(
+        T.SignedLog1p().inverse(T.SignedLog1p().forward(g)), g, rtol=1e-12, atol=0
+    )
     y = torch.linspace(0, 8, 101, dtype=torch.float64)  # outputs >= 0 round-trip
     torch.testing.assert_close(T.OUTPUT_TRANSFORM.forward(T.OUTPUT_TRANSFORM.inverse(y)), y)
     assert torch.equal(T.Log1p().forward(torch.tensor([-3.0])), torch.tensor([0.0]))
@@ -60,7 +60,7 @@ def test01b_output_transform_never_overflows():
 
 @settings(max_examples=50, deadline=None)
 @given(st.floats(-1e6, 1e6, allow_nan=False), st.floats(0.1, 1.1))
-def test02_signed_log_and_depth_properties(value, scale):
+def test_signed_log_and_depth_properties(value, scale):
     t = torch.tensor([value], dtype=torch.float64)
     f = T.SignedLog1p().forward(t)
     assert torch.equal(T.SignedLog1p().forward(-t), -f)  # odd: commutes with antisym padding
@@ -72,7 +72,7 @@ def test02_signed_log_and_depth_properties(value, scale):
     torch.testing.assert_close(dn.inverse(y, depth.max()), depth)
 
 
-def test03_nonfinite_inputs_become_zero():
+def test_nonfinite_inputs_become_zero():
     bufs = {k: v.float() for k, v in _buffer_set(6, 7).items()}
     bufs["primal"][0, 0] = float("nan")
     bufs["dx"][1, 1] = float("inf")
@@ -83,25 +83,28 @@ def test03_nonfinite_inputs_become_zero():
     assert out["depth"].max() <= 1
 
 
-def test04_input_assembly_and_errors():
+def test_input_assembly_and_errors():
     bufs = {k: v.float() for k, v in _buffer_set(5, 9).items()}
-    x = T.stack_input(T.transform_buffers(bufs, T.FEATURES_WITH_GRADIENTS),
-                      T.FEATURES_WITH_GRADIENTS)
+    x = T.stack_input(
+        T.transform_buffers(bufs, T.FEATURES_WITH_GRADIENTS), T.FEATURES_WITH_GRADIENTS
+    )
     assert x.shape == (1, 16, 5, 9)
     torch.testing.assert_close(x[0, 3:6].permute(1, 2, 0), T.SignedLog1p().forward(bufs["dx"]))
     torch.testing.assert_close(x[0, 15], bufs["depth"][..., 0] / (1e-10 + bufs["depth"].max()))
     assert x.is_contiguous(memory_format=torch.channels_last)
     with pytest.raises(KeyError, match=r"\['dx', 'depth'\]"):
-        T.transform_buffers({k: v for k, v in bufs.items() if k not in ("dx", "depth")},
-                            T.FEATURES_WITH_GRADIENTS)
+        T.transform_buffers(
+            {k: v for k, v in bufs.items() if k not in ("dx", "depth")}, T.FEATURES_WITH_GRADIENTS
+        )
     with pytest.raises(ValueError, match=r"'albedo' must have shape \(H, W, 3\)"):
-        T.transform_buffers({**bufs, "albedo": bufs["albedo"][..., :2]},
-                            T.FEATURES_WITHOUT_GRADIENTS)
+        T.transform_buffers(
+            {**bufs, "albedo": bufs["albedo"][..., :2]}, T.FEATURES_WITHOUT_GRADIENTS
+        )
     with pytest.raises(ValueError, match="'normal' has shape"):
         T.transform_buffers({**bufs, "normal": bufs["normal"][:4]}, T.FEATURES_WITH_GRADIENTS)
 
 
-def test05_padding_for():
+def test_padding_for():
     assert T.padding_for(720, 1280, 8) == T.Padding(8, 8, 8, 8)
     assert T.padding_for(9, 13, 8, margin=0) == T.Padding(0, 7, 0, 3)
     p = T.padding_for(3, 5, 16)
@@ -109,16 +112,19 @@ def test05_padding_for():
 
 
 @pytest.mark.parametrize("pad", [(1, 2, 3, 0), (8, 8, 8, 8), (4, 7, 2, 5)])
-def test06_reflect_and_odd_match_numpy(pad):
+def test_reflect_and_odd_match_numpy(pad):
     bufs = _buffer_set(11, 10)
     padding = T.Padding(*pad)
     out = T.pad_buffers(bufs, padding)
     width = ((pad[0], pad[1]), (pad[2], pad[3]), (0, 0))
-    np.testing.assert_array_equal(out["primal"].numpy(),
-                                  np.pad(bufs["primal"].numpy(), width, "reflect"))
-    np.testing.assert_allclose(out["depth"].numpy(),
-                               np.pad(bufs["depth"].numpy(), width, "reflect",
-                                      reflect_type="odd"), rtol=1e-12)
+    np.testing.assert_array_equal(
+        out["primal"].numpy(), np.pad(bufs["primal"].numpy(), width, "reflect")
+    )
+    np.testing.assert_allclose(
+        out["depth"].numpy(),
+        np.pad(bufs["depth"].numpy(), width, "reflect", reflect_type="odd"),
+        rtol=1e-12,
+    )
     for name in ("primal", "albedo", "normal", "depth"):  # gradients: see test07
         assert torch.equal(T.crop(out[name], padding), bufs[name]), name
 
@@ -126,16 +132,16 @@ def test06_reflect_and_odd_match_numpy(pad):
 def _reference_pad_dx(dx: np.ndarray, pad_x: tuple[int, int], pad_y: tuple[int, int]):
     """The reference's antisymmetric dx padding (HWC), written from its description."""
     d = dx[:, :-1]
-    parts = [-d[:, pad_x[0] - 1::-1]] if pad_x[0] else []
+    parts = [-d[:, pad_x[0] - 1 :: -1]] if pad_x[0] else []
     parts += [d]
-    parts += [-d[:, -1:-pad_x[1] - 1:-1]] if pad_x[1] else []
+    parts += [-d[:, -1 : -pad_x[1] - 1 : -1]] if pad_x[1] else []
     parts += [np.zeros_like(d[:, :1])]
     return np.pad(np.concatenate(parts, axis=1), (pad_y, (0, 0), (0, 0)), "reflect")
 
 
 @pytest.mark.parametrize("shape", [(11, 10), (7, 13), (2, 3), (1, 1)])
 @pytest.mark.parametrize("pad", [(1, 2, 3, 1), (8, 8, 8, 8), (0, 5, 0, 6)])
-def test07_antisymmetric_padding_is_difference_of_reflect_padding(shape, pad):
+def test_antisymmetric_padding_is_difference_of_reflect_padding(shape, pad):
     bufs = _buffer_set(*shape)
     padding = T.Padding(*pad)
     out = T.pad_buffers(bufs, padding)
@@ -149,21 +155,25 @@ def test07_antisymmetric_padding_is_difference_of_reflect_padding(shape, pad):
         np.testing.assert_array_equal(out["dx"].numpy(), ref)
     for name, t in out.items():
         if name in ("primal", "dx", "dy"):
-            assert torch.equal(T.crop(t, padding)[..., : h - 1, : w - 1, :],
-                               bufs[name][..., : h - 1, : w - 1, :]), name
+            assert torch.equal(
+                T.crop(t, padding)[..., : h - 1, : w - 1, :], bufs[name][..., : h - 1, : w - 1, :]
+            ), name
 
 
 @pytest.mark.parametrize("batch", [(), (2,)])
 @pytest.mark.parametrize("op", ["flip_x", "flip_y", "transpose"])
-def test08_geometry_ops_map_gradients_to_gradients(op, batch):
+def test_geometry_ops_map_gradients_to_gradients(op, batch):
     bufs = _buffer_set(6, 9, batch)
     out = T.AUGMENTATIONS[op](bufs)
     image = out["primal"]
     torch.testing.assert_close(out["dx"], _forward_dx(image), rtol=0, atol=1e-12)
     torch.testing.assert_close(out["dy"], _forward_dy(image), rtol=0, atol=1e-12)
-    torch.testing.assert_close(out["var_dx" if op != "transpose" else "var_dy"],
-                               (_forward_dx if op != "transpose" else _forward_dy)(image).abs(),
-                               rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        out["var_dx" if op != "transpose" else "var_dy"],
+        (_forward_dx if op != "transpose" else _forward_dy)(image).abs(),
+        rtol=0,
+        atol=1e-12,
+    )
     n, nn_ = bufs["normal"], out["normal"]
     if op == "flip_x":
         torch.testing.assert_close(nn_, n.flip(-2) * torch.tensor([-1.0, 1, 1], dtype=n.dtype))
