@@ -22,7 +22,8 @@ names the channel ranges (``primal``, ``dx``, ``dy``, ``albedo``, ``normal``, ``
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -47,6 +48,8 @@ class PathSamples:
     albedo: mi.Spectrum | None = None
     normal: mi.Vector3f | None = None
     depth: mi.Float | None = None
+    #: Per-sample counts (mi.UInt32) of numerical guards that fired inside ``sample_paths``.
+    guards: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -119,20 +122,34 @@ def safe_div(a, b):
     return dr.select((b != 0) & dr.isfinite(q), q, 0)
 
 
-def finite(x):
-    """Replace non-finite entries by 0 (last line of defence before splatting)."""
-    return dr.select(dr.isfinite(x), x, 0)
-
-
 #: Plugin classes the shift mappings handle (Mitsuba ``class_name()``), tested in the suite.
+#: Nested BSDFs (inside masks, bump and normal maps, blends, two-sided) are checked too.
 SUPPORTED_BSDFS = frozenset({
     "SmoothDiffuse", "RoughConductor", "SmoothConductor", "RoughPlastic", "SmoothPlastic",
     "SmoothDielectric", "RoughDielectric", "ThinDielectric", "TwoSidedBRDF", "Principled",
+    "MaskBSDF", "BumpMap", "NormalMap", "BlendBSDF",
 })
 SUPPORTED_EMITTERS = frozenset({
-    "AreaLight", "PointLight", "ConstantBackgroundEmitter", "EnvironmentMapEmitter",
-    "SunskyEmitter",
+    "AreaLight", "PointLight", "SpotLight", "DirectionalEmitter", "ConstantBackgroundEmitter",
+    "EnvironmentMapEmitter", "SunskyEmitter",
 })
+
+
+def _bsdf_tree(bsdf: mi.BSDF) -> list[mi.BSDF]:
+    """``bsdf`` and every BSDF nested in it (depth first), found through ``traverse()``."""
+
+    class Children(mi.TraversalCallback):
+        def __init__(self):
+            super().__init__()
+            self.found = []
+
+        def put(self, name, value, *flags):
+            if isinstance(value, mi.BSDF):
+                self.found.append(value)
+
+    children = Children()
+    bsdf.traverse(children)
+    return [bsdf, *(b for child in children.found for b in _bsdf_tree(child))]
 
 
 def check_scene(scene: mi.Scene, plugin: str) -> None:
@@ -145,12 +162,21 @@ def check_scene(scene: mi.Scene, plugin: str) -> None:
         name = shape.id() or shape.class_name()
         if shape.is_medium_transition():
             raise ValueError(f"{plugin}: participating media are not supported (shape '{name}')")
-        bsdf = shape.bsdf().class_name()
-        if bsdf not in SUPPORTED_BSDFS:
-            raise ValueError(
-                f"{plugin}: BSDF '{bsdf}' on shape '{name}' is not supported; supported: "
-                f"{', '.join(sorted(SUPPORTED_BSDFS))}"
-            )
+        for bsdf in _bsdf_tree(shape.bsdf()):
+            kind = bsdf.class_name()
+            if kind not in SUPPORTED_BSDFS:
+                raise ValueError(
+                    f"{plugin}: BSDF '{kind}' on shape '{name}' is not supported; supported: "
+                    f"{', '.join(sorted(SUPPORTED_BSDFS))}"
+                )
+            # A blend picks its component with the sample's random number, so an offset could
+            # not follow a delta lobe of the base deterministically (no invertible shift).
+            if kind == "BlendBSDF" and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta):
+                raise ValueError(
+                    f"{plugin}: BSDF 'BlendBSDF' on shape '{name}' blends a delta (smooth) "
+                    "component, which has no invertible shift; blend rough components only "
+                    "(e.g. roughconductor / roughdielectric with a small alpha)"
+                )
     for emitter in scene.emitters():
         if emitter.class_name() not in SUPPORTED_EMITTERS:
             raise ValueError(
@@ -195,6 +221,12 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             raise ValueError(f"{self.plugin_name}: 'hide_emitters' is not supported")
         #: Optional ``callable(spp_done, spp_total)`` called after every pass (progress bars).
         self.pass_callback = None
+        #: How often each numerical guard fired in the last ``render()``: ``sample_nonfinite``
+        #: (per-sample outputs that were not finite and were dropped before accumulation) and
+        #: the integrator's own counts (``gdpt``: ``shift_nonfinite``, shifts failed because
+        #: their throughput or MIS ratio was not finite; ``term_nonfinite``, gradient terms
+        #: dropped). Nonzero counts also raise a ``RuntimeWarning``.
+        self.guard_counts: dict[str, int] = {}
 
     plugin_name = "gradient integrator"
 
@@ -255,6 +287,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         passes = plan_passes(n_pix, spp, self.samples_per_pass)
 
         acc = _Accumulator(n_pix, self.gradients, self.features, self.variance)
+        self.guard_counts = acc.guard_counts
         done = 0
         for index, spp_pass in enumerate(passes):
             sampler = sensor.sampler().clone()
@@ -269,6 +302,12 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             done += spp_pass
             if self.pass_callback is not None:
                 self.pass_callback(done, spp)
+        fired = {k: v for k, v in self.guard_counts.items() if v}
+        if fired:
+            warnings.warn(
+                f"{self.plugin_name}: numerical guards fired ({fired}); the affected samples or "
+                "shifts were dropped (see guard_counts)", RuntimeWarning, stacklevel=2,
+            )
         return acc.finish(width, height, self.channels())
 
     def _primary_rays(self, sensor: mi.Sensor, sampler: mi.Sampler, spp: int):
@@ -313,6 +352,7 @@ class _Accumulator:
     def __init__(self, n_pix: int, gradients: bool, features: bool, variance: bool):
         z = lambda c: [dr.zeros(mi.Float64, n_pix) for _ in range(c)]  # noqa: E731
         self.n = 0
+        self.guard_counts: dict[str, int] = {"sample_nonfinite": 0}
         self.sums = {"primal": z(3)}
         if gradients:
             self.sums.update({f"g{k}": z(3) for k in range(4)})
@@ -330,21 +370,26 @@ class _Accumulator:
             values[f"g{k}"] = g
         if s.albedo is not None:
             values.update(albedo=s.albedo, normal=s.normal, depth=[s.depth])
+        # A sample whose buffer is not finite contributes 0 to that buffer (counted).
+        bad = mi.UInt32(0)
+        for name, v in values.items():
+            comps = v if isinstance(v, list) else [v[i] for i in range(dr.size_v(v))]
+            ok = dr.isfinite(sum(comps[1:], comps[0]))
+            bad += dr.select(ok, 0, 1)
+            values[name] = [dr.select(ok, c, 0) for c in comps]
         if self.variance:
-            values["sq_primal"] = [dr.square(dr.mean(s.primal))]
-            for k, g in enumerate(s.gradients):
-                values[f"sq_g{k}"] = [dr.square(dr.mean(g))]
+            for name in ["primal"] + [f"g{k}" for k in range(len(s.gradients))]:
+                values[f"sq_{name}"] = [dr.square(sum(values[name]) / 3)]
+        counts = {"sample_nonfinite": dr.sum(bad)}
+        counts.update({k: dr.sum(c) for k, c in s.guards.items()})
         # One kernel for all outputs: evaluating them one by one would re-run the path loop.
-        dr.eval(values)
+        dr.eval(values, counts)
         for name, sums in self.sums.items():
-            if name.startswith("sq_"):
-                comps = values[name]
-            else:
-                v = values[name]
-                comps = v if isinstance(v, list) else [v[i] for i in range(len(sums))]
-            for i, c in enumerate(comps):
-                sums[i] += mi.Float64(dr.block_sum(finite(c), spp))
+            for i, c in enumerate(values[name]):
+                sums[i] += mi.Float64(dr.block_sum(c, spp))
         dr.eval(self.sums)
+        for k, c in counts.items():
+            self.guard_counts[k] = self.guard_counts.get(k, 0) + int(c[0])
         self.n += spp
 
     def finish(self, width: int, height: int, channels) -> mi.TensorXf:
@@ -407,7 +452,6 @@ __all__ = [
     "FeatureState",
     "update_features",
     "safe_div",
-    "finite",
     "plan_passes",
     "camera_transform",
 ]

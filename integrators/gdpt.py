@@ -12,12 +12,14 @@ from .common import (
     GradientIntegratorBase,
     PathSamples,
     camera_transform,
-    finite,
     safe_div,
     update_features,
 )
 
-NOT_CONNECTED, RECENTLY_CONNECTED, CONNECTED = 0, 1, 2
+#: Offset status. RECENTLY_CONNECTED: y_{i-1} was reconnected to x_i; CONNECTING: one vertex
+#: later, the offset shares x_i but its pdf of the segment into x_i is its own; CONNECTED: from
+#: here on its throughput and MIS ratio change exactly like the base's (two-phase fold).
+NOT_CONNECTED, RECENTLY_CONNECTED, CONNECTING, CONNECTED = 0, 1, 2, 3
 
 
 @dataclass
@@ -34,6 +36,8 @@ class BaseState:
     depth: mi.UInt32
     active: mi.Bool
     L: mi.Spectrum  # primal radiance
+    bad_shift: mi.UInt32  # shifts failed because their throughput or MIS ratio was not finite
+    bad_term: mi.UInt32  # gradient terms dropped because they were not finite
 
 
 @dataclass
@@ -46,12 +50,13 @@ class OffsetState:
 
     si: mi.SurfaceInteraction3f  # own vertex y_i (while NOT_CONNECTED)
     prev: mi.Interaction3f  # own previous vertex y_{i-1}
-    status: mi.UInt32  # NOT_CONNECTED / RECENTLY_CONNECTED / CONNECTED
+    status: mi.UInt32  # NOT_CONNECTED / RECENTLY_CONNECTED / CONNECTING / CONNECTED
     alive: mi.Bool  # False once the shift failed: the base then takes full MIS weight
     escaped: mi.Bool  # left the scene while the base continues (dies after its emission)
     q: mi.Spectrum
     r: mi.Float
     pb_prev: mi.Float  # MIS pdf of the segment y_{i-1} -> y_i
+    bsdf_only: mi.Bool  # that segment left a near-specular pair: no light technique (see NEE)
     s: mi.Float  # after a reconnection y_{i-1} -> x_i: r_{i-1} / p̃(x_{i-1} -> x_i)
     sJ: mi.Float  # ... and the same times the reconnection Jacobian
     G: mi.Spectrum  # half-gradient accumulator
@@ -123,10 +128,15 @@ class GDPTIntegrator(GradientIntegratorBase):
     #: shift_threshold if the scene may have glossy lobes at or below it, else None (no
     #: per-vertex roughness look-ups); set by prepare().
     _active_threshold: float | None = None
+    #: Whether some BSDF of the scene has a null lobe (opacity masks); set by prepare().
+    _has_null: bool = False
 
     def prepare(self, scene: mi.Scene) -> None:
         near = _may_have_near_specular_glossy(scene, self.shift_threshold)
         self._active_threshold = self.shift_threshold if near else None
+        self._has_null = any(
+            mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Null) for shape in scene.shapes()
+        )
 
     def sample_paths(self, scene, sensor, sampler, rays, weights, active) -> PathSamples:
         n = dr.width(rays[0].d)
@@ -138,6 +148,7 @@ class GDPTIntegrator(GradientIntegratorBase):
         to_camera = camera_transform(sensor)
         n_off = len(rays) - 1
         threshold = self._active_threshold
+        has_null = self._has_null
 
         def near_glossy(si, bsdf, active):
             """Glossy vertex with roughness <= shift_threshold (half-vector copy, features pass)."""
@@ -156,6 +167,8 @@ class GDPTIntegrator(GradientIntegratorBase):
             depth=mi.UInt32(0),
             active=mi.Bool(active),
             L=dr.zeros(mi.Spectrum, n),
+            bad_shift=dr.zeros(mi.UInt32, n),
+            bad_term=dr.zeros(mi.UInt32, n),
         )
         base_hit = base.si.is_valid()
         offsets = []
@@ -170,6 +183,7 @@ class GDPTIntegrator(GradientIntegratorBase):
                 q=mi.Spectrum(weights[k]),
                 r=mi.Float(1.0),
                 pb_prev=mi.Float(1.0),
+                bsdf_only=mi.Bool(False),
                 s=mi.Float(0.0),
                 sJ=mi.Float(0.0),
                 G=dr.zeros(mi.Spectrum, n),
@@ -193,16 +207,26 @@ class GDPTIntegrator(GradientIntegratorBase):
             base.L += base.beta * Le_x / (1 + ratio_x)
             c_main_num = base.beta * Le_x
 
+            def add_term(o, term, active):
+                """o.G += term where active; a non-finite term is dropped and counted."""
+                ok = dr.isfinite(dr.sum(term))
+                o.G += dr.select(active & ok, term, 0)
+                base.bad_term += dr.select(active & ~ok, 1, 0)
+
             # The offset's current vertex: its own y_i (NOT_CONNECTED), or the base's x_i seen
             # from the offset's previous vertex (RECENTLY_CONNECTED: o.si holds x_i, only wi
             # differs; CONNECTED: unused). Merging both halves the virtual calls below.
-            views = []
+            views, near_ys = [], []
             for o in offsets:
                 recent = o.status == RECENTLY_CONNECTED
                 view = dr.copy(o.si)
                 turn = recent & si.is_valid()
                 view.wi = dr.select(turn, si.to_local(dr.normalize(o.prev.p - si.p)), view.wi)
                 views.append(view)
+                # Own y_i glossy at or below shift_threshold (read once for NEE and the shift)
+                own_next = (o.status == NOT_CONNECTED) & o.alive & active
+                near_ys.append(near_glossy(o.si, o.si.bsdf(), own_next)
+                               if threshold is not None else mi.Bool(False))
 
             for o, view in zip(offsets, views, strict=True):
                 own = o.status == NOT_CONNECTED
@@ -211,17 +235,21 @@ class GDPTIntegrator(GradientIntegratorBase):
                 ds_y = mi.DirectionSample3f(scene, view, o.prev)
                 pn_y = scene.pdf_emitter_direction(o.prev, ds_y, act & ~base.delta_prev)
                 Le_y = dr.select(own | recent, ds_y.emitter.eval(view, act), Le_x)
-                # r' (1 + p_light(y) / p_bsdf(y)) without 0 * inf at grazing y: after a
-                # reconnection J p_light(y) = p_light(x) for area-sampled emitters (see NEE).
-                Jpn_rec = dr.select(cone, o.sJ * pn_y, o.s * pn_x)
-                extra = dr.select(
+                # The offset's light technique relative to the base's BSDF pdf, r p_light(y) /
+                # p_bsdf(y), without 0 * inf at grazing y: after a reconnection J p_light(y) =
+                # p_light(x) for area-sampled emitters (see NEE). Once connected, the segment
+                # pdf is the offset's own (pb_prev) for one more vertex (CONNECTING).
+                light_y = dr.select(
                     own,
-                    o.r * (1 + pn_y / dr.select(o.pb_prev > 0, o.pb_prev, 1)),
-                    dr.select(recent, o.r + Jpn_rec, o.r * (1 + ratio_x)),
+                    o.r * pn_y / dr.select(o.pb_prev > 0, o.pb_prev, 1),
+                    dr.select(recent, dr.select(cone, o.sJ * pn_y, o.s * pn_x),
+                              o.r * pn_x / dr.select(o.pb_prev > 0, o.pb_prev, 1)),
                 )
-                den = 1 + ratio_x + dr.select(o.alive, extra, 0)
+                # A segment sampled at a near-specular pair is estimated by BSDF sampling alone.
+                den = 1 + dr.select(o.bsdf_only, 0, ratio_x + dr.select(o.alive, light_y, 0))
+                den += dr.select(o.alive, o.r, 0)
                 c_shift = dr.select(o.alive, o.q * Le_y, 0)
-                o.G += dr.select(active, finite((c_shift - c_main_num) / den), 0)
+                add_term(o, (c_shift - c_main_num) / den, active)
                 o.alive &= ~o.escaped
 
             # --------------------- Next-event estimation --------------------
@@ -246,8 +274,17 @@ class GDPTIntegrator(GradientIntegratorBase):
             is_infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
             cone = _is_cone_sampled(ds.emitter)
             fixed_point = is_infinite | ds.delta  # light "vertex" shared exactly: J = 1
+            near_x = near_glossy(si, bsdf, active_next)
 
-            for o, view in zip(offsets, views, strict=True):
+            # Light samples join the MIS of a pixel pair only where the BSDF shift of the same
+            # path exists in both directions, so that the four techniques (base / offset x
+            # BSDF / light) see the same set of shifted paths: the light point visible from x_i
+            # and y_i, nonzero BSDF pdfs at both (delta lights have no BSDF technique), and a
+            # reconnection as the BSDF shift's mapping. At a near-specular pair (x_i or y_i at
+            # or below shift_threshold) the BSDF shift copies the half vector instead, so there
+            # the gradient takes the segment from BSDF sampling alone (bsdf_only) and drops the
+            # light technique of both paths; the primal keeps its own MIS.
+            for o, view, near_y in zip(offsets, views, near_ys, strict=True):
                 own = o.status == NOT_CONNECTED
                 recent = o.status == RECENTLY_CONNECTED
                 act = active_em & o.alive
@@ -285,17 +322,22 @@ class GDPTIntegrator(GradientIntegratorBase):
                     pn_cone = scene.pdf_emitter_direction(y, ds_y, act_own & cone & front)
                     Jpn = dr.select(cone, J * pn_cone, pn_x)
                     f, pb = bsdf_y.eval_pdf(ctx, y, y.to_local(dir_y), act_own)
+                    pair = act_own & (ds.delta | (visible & (pb > 0)))
                     pb = dr.select(ds.delta, 0, pb)
-                    return f, em, J, dr.select(act_own, Jpn, 0) + J * pb
+                    return f, em, J, dr.select(act_own, Jpn, 0) + J * pb, pair
 
                 def nee_follow(recent=recent, f_r=f_r, pb_r=pb_r):
                     f = dr.select(recent, f_r, f_x)
-                    return f, em_val, mi.Float(1.0), pn_x + dr.select(recent, pb_r, pb_x)
+                    pair = ~recent | ds.delta | (pb_r > 0)
+                    return f, em_val, mi.Float(1.0), pn_x + dr.select(recent, pb_r, pb_x), pair
 
-                f_y, e_y, J, Jp_y = dr.if_stmt((), act & own, nee_own, nee_follow)
-                den = pn_x + pb_x + dr.select(o.alive, o.r * Jp_y, 0)
-                c_shift = dr.select(o.alive, o.q * f_y * e_y * J, 0)
-                o.G += dr.select(active_em, finite((c_shift - nee_main) / den), 0)
+                f_y, e_y, J, Jp_y, pair = dr.if_stmt((), act & own, nee_own, nee_follow)
+                # Connected offsets always pair (the two-phase fold relies on it).
+                pair &= o.alive & ((o.status >= CONNECTING) | ds.delta | (visible_x & (pb_x > 0)))
+                den = pn_x + pb_x + dr.select(pair, o.r * Jp_y, 0)
+                c_shift = dr.select(pair, o.q * f_y * e_y * J, 0)
+                bsdf_only = own & o.alive & (near_x | near_y) & ~ds.delta
+                add_term(o, (c_shift - nee_main) / den, active_em & ~bsdf_only)
 
             # ------------------------ BSDF sampling -------------------------
             delta_x = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
@@ -308,12 +350,13 @@ class GDPTIntegrator(GradientIntegratorBase):
                 | near_glossy(si_next, bsdf_next, hit_next & active_next)
             )
             reflect = mi.has_flag(bs.sampled_type, mi.BSDFFlags.DeltaReflection)
+            null_x = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null) if has_null else mi.Bool(False)
             # A non-delta sample at a near-specular glossy x_i: offsets copy its half vector.
-            half_x = ~delta_x & near_glossy(si, bsdf, active_next)
+            half_x = ~delta_x & near_x
 
             inv_p = safe_div(1.0, bs.pdf)
             pb_next = dr.select(delta_x, 1.0, bs.pdf)  # MIS pdf of the segment x_i -> x_{i+1}
-            for o, view in zip(offsets, views, strict=True):
+            for o, view, near_y in zip(offsets, views, near_ys, strict=True):
                 act = active_next & o.alive
                 own = o.status == NOT_CONNECTED
                 recent = o.status == RECENTLY_CONNECTED
@@ -321,13 +364,13 @@ class GDPTIntegrator(GradientIntegratorBase):
                 # arriving from y_{i-1}.
                 f_r, p_r = bsdf.eval_pdf(ctx, view, bs.wo, act & recent)
 
-                def shift_own(o=o, act=act):
+                def shift_own(o=o, act=act, near_y=near_y):
                     """Own vertex y_i: reconnect, follow a delta lobe, copy the half vector, or
                     replay the numbers."""
                     y = o.si
                     bsdf_y = y.bsdf()
                     y_smooth = mi.has_flag(bsdf_y.flags(), mi.BSDFFlags.Smooth)
-                    half_y = near_glossy(y, bsdf_y, act & ~delta_x)
+                    half_y = near_y & ~delta_x
                     reconnect = ~delta_x & ~half_x & rough_next & y_smooth & ~half_y
 
                     # Reconnection y_i -> x_{i+1} (or environment shift: copy the direction)
@@ -344,14 +387,27 @@ class GDPTIntegrator(GradientIntegratorBase):
                     )
                     f_rc, p_rc = bsdf_y.eval_pdf(ctx, y, y.to_local(dir_rc), act_rc)
 
-                    # Delta lobe: sample the offset's lobe of the same kind
-                    act_d = act & delta_x
+                    # Delta lobe: sample the offset's lobe of the same kind; f_d is its delta
+                    # coefficient (weight x pdf of the restricted sample).
+                    act_d = act & delta_x & ~null_x
                     bs_r, w_r = bsdf_y.sample(ctx_refl, y, u1, u2, act_d & reflect)
                     bs_t, w_t = bsdf_y.sample(ctx_trans, y, u1, u2, act_d & ~reflect)
                     bs_d = dr.select(reflect, bs_r, bs_t)
-                    w_d = dr.select(reflect, w_r, w_t)
-                    ok_d = (bs_d.pdf > 0) & (dr.max(w_d) > 0)
-                    ok_d &= mi.has_flag(bs_d.sampled_type, mi.BSDFFlags.Delta)
+                    f_d = dr.select(reflect, w_r, w_t) * bs_d.pdf
+                    # The sample must be of the requested kind: a mask BSDF answers a restricted
+                    # context with its null lobe.
+                    kind = mi.has_flag(bs_d.sampled_type, mi.BSDFFlags.DeltaReflection)
+                    kind = dr.select(reflect, kind, mi.has_flag(bs_d.sampled_type,
+                                                                mi.BSDFFlags.DeltaTransmission))
+                    ok_d = (bs_d.pdf > 0) & (dr.max(f_d) > 0) & kind
+                    if has_null:
+                        # Null lobe (opacity masks): straight on, f = the null transmission
+                        wo_d = dr.select(null_x, -y.wi, bs_d.wo)
+                        f_null = bsdf_y.eval_null_transmission(y, act & null_x)
+                        f_d = dr.select(null_x, f_null, f_d)
+                        ok_d = dr.select(null_x, dr.max(f_null) > 0, ok_d)
+                    else:
+                        wo_d = bs_d.wo
 
                     # Near-specular glossy x_i and y_i: copy the base's half vector
                     act_h = act & half_x
@@ -369,7 +425,7 @@ class GDPTIntegrator(GradientIntegratorBase):
                     trace = act & ~reconnect
                     # Shadow test (any hit) for a reconnection; closest hit for a new vertex
                     visible = ~scene.ray_test(ray_rc, act_rc)
-                    wo_y = dr.select(delta_x, bs_d.wo, dr.select(half_x, wo_h, bs_s.wo))
+                    wo_y = dr.select(delta_x, wo_d, dr.select(half_x, wo_h, bs_s.wo))
                     si_y = scene.ray_intersect(y.spawn_ray(y.to_world(wo_y)), trace)
                     hit_y = si_y.is_valid()
                     bsdf_ny = si_y.bsdf()
@@ -389,16 +445,18 @@ class GDPTIntegrator(GradientIntegratorBase):
                     q = dr.select(
                         mapped,
                         o.q * f_m * (J_m * inv_p),
-                        dr.select(delta_x, o.q * w_d * (bs_d.pdf * inv_p), o.q * w_s),
+                        dr.select(delta_x, o.q * f_d * inv_p, o.q * w_s),
                     )
                     r = dr.select(mapped, o.r * p_m * J_m * inv_p, o.r)
-                    ok = dr.select(reconnect, visible & (p_rc > 0), ok_s)
-                    ok = dr.select(half_x, ok_h, dr.select(delta_x, ok_d, ok))
+                    # A mapping whose Jacobian is 0 or not finite (grazing, coincident vertices)
+                    # fails (safe_div returns 0 there).
+                    ok = dr.select(reconnect, visible & (p_rc > 0) & (J_rc > 0), ok_s)
+                    ok = dr.select(half_x, ok_h & (J_h > 0), dr.select(delta_x, ok_d, ok))
                     pb = dr.select(mapped, p_m, dr.select(delta_x, 1.0, bs_s.pdf))
                     s_rc = dr.select(reconnect, o.r * inv_p, 0)
                     status = dr.select(reconnect, mi.UInt32(RECENTLY_CONNECTED), NOT_CONNECTED)
                     return (q, r, ok, pb, s_rc, s_rc * J_rc, trace & ~hit_y & hit_next,
-                            trace, si_y, status)
+                            trace, si_y, status, act & (near_x | near_y))
 
                 def follow(o=o, recent=recent, f_r=f_r, p_r=p_r):
                     """Recently connected or connected: the offset shares the base's next vertex."""
@@ -406,16 +464,21 @@ class GDPTIntegrator(GradientIntegratorBase):
                     r = dr.select(recent, o.r * p_r * inv_p, o.r)
                     pb = dr.select(recent, p_r, pb_next)
                     zero = dr.zeros(mi.Float, n)
+                    status = dr.select(recent, mi.UInt32(CONNECTING), mi.UInt32(CONNECTED))
                     return (q, r, ~recent | (p_r > 0), pb, zero, zero, mi.Bool(False),
-                            mi.Bool(False), dr.zeros(mi.SurfaceInteraction3f, n),
-                            mi.UInt32(CONNECTED))
+                            mi.Bool(False), dr.zeros(mi.SurfaceInteraction3f, n), status,
+                            mi.Bool(False))
 
-                q, r, ok, o.pb_prev, o.s, o.sJ, o.escaped, trace, si_y, o.status = dr.if_stmt(
-                    (), act & own, shift_own, follow
-                )
-                o.q = finite(q)
-                o.r = dr.minimum(finite(r), 1e30)
-                o.alive = act & ok
+                (q, r, ok, o.pb_prev, o.s, o.sJ, o.escaped, trace, si_y, o.status,
+                 o.bsdf_only) = dr.if_stmt((), act & own, shift_own, follow)
+                # A throughput or MIS ratio that is not finite fails the shift (counted). An
+                # overflowing r (+inf: the offset's pdf dwarfs the base's) is capped, so that the
+                # base's weight goes to 0, its correct limit.
+                numeric = dr.isfinite(dr.sum(q)) & ~dr.isnan(r)
+                base.bad_shift += dr.select(act & ok & ~numeric, 1, 0)
+                o.q = dr.select(numeric, q, 0)
+                o.r = dr.select(numeric, dr.minimum(r, 1e30), 0)
+                o.alive = act & ok & numeric
                 # Selected here, not in the branches: returning the outer si_next from one branch
                 # of dr.if_stmt corrupted the base path's copy of it (Dr.Jit 1.5).
                 o.si = dr.select(trace, si_y, si_next)
@@ -476,16 +539,16 @@ class GDPTIntegrator(GradientIntegratorBase):
         )
         tail = base.L
         gradients = [
-            finite(o.G + (dr.select(o.alive, o.q, 0) - head_beta) * tail
-                   / (1 + dr.select(o.alive, o.r, 0)))
+            o.G + (dr.select(o.alive, o.q, 0) - head_beta) * tail / (1 + dr.select(o.alive, o.r, 0))
             for o in offsets
         ]
         return PathSamples(
-            primal=finite(head_L + head_beta * tail),
+            primal=head_L + head_beta * tail,
             gradients=gradients,
             albedo=feat.albedo if feat is not None else None,
             normal=feat.normal if feat is not None else None,
             depth=feat.depth if feat is not None else None,
+            guards={"shift_nonfinite": base.bad_shift, "term_nonfinite": base.bad_term},
         )
 
 

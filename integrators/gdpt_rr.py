@@ -12,7 +12,6 @@ from .common import (
     GradientIntegratorBase,
     PathSamples,
     camera_transform,
-    finite,
     safe_div,
     update_features,
 )
@@ -115,10 +114,10 @@ class GDPTReplayIntegrator(GradientIntegratorBase):
             (sampler, paths, feat, depth), cond, body,
             labels=("sampler", "paths", "features", "depth"), label="gdpt_rr",
         )
-        L0 = finite(paths[0].L)
+        L0 = paths[0].L
         return PathSamples(
             primal=L0,
-            gradients=[0.5 * (finite(p.L) - L0) for p in paths[1:]],
+            gradients=[0.5 * (p.L - L0) for p in paths[1:]],
             albedo=feat.albedo if feat is not None else None,
             normal=feat.normal if feat is not None else None,
             depth=feat.depth if feat is not None else None,

@@ -151,18 +151,31 @@ def test06b_albedo_is_bounded_on_glossy_surfaces(variant, name):
     assert albedo.max() > 0.05  # some rough surface is seen
 
 
+#: Share of samples whose outputs may be dropped as non-finite, per hard case: only
+#: ``degenerate``, whose flattened cube has zero-area faces with NaN shading frames in Mitsuba's
+#: intersection code (Mitsuba's ``path`` yields NaN there too and its image block drops them).
+GUARD_BOUNDS = {"degenerate": 0.02}
+
+
 @pytest.mark.parametrize("integrator", ["gdpt", "gdpt_rr"])
 @pytest.mark.parametrize("name", HARD_CASES)
 def test07_hard_cases_stay_finite(variant, name, integrator):
+    """Finite buffers, and the numerical guards inside the loop never fire (counted): a
+    non-finite throughput, MIS ratio or gradient term would be a failure, not a fix."""
     import gdpt
     from gdpt.scenes import builtin_scene
 
+    spp, res = 16, 16
     b = gdpt.render(
-        builtin_scene(name, resolution=(16, 16)), spp=16, integrator=integrator, max_depth=64,
-        variance=True,
+        builtin_scene(name, resolution=(res, res)), spp=spp, integrator=integrator,
+        max_depth=64, variance=True,
     )
     assert b.nonfinite_counts() == {n: 0 for n in b.present()}, name
     assert float(b.primal.sum()) > 0
+    counts = b.metadata["guard_counts"]
+    dropped = counts.pop("sample_nonfinite")
+    assert dropped <= GUARD_BOUNDS.get(name, 0.0) * res * res * spp, (name, dropped)
+    assert all(v == 0 for v in counts.values()), (name, counts)
 
 
 @pytest.mark.parametrize("name", ["near-specular", "principled", "plastic", "tiny-bright-light",
@@ -194,16 +207,27 @@ def test08_passes_split_the_work(variant):
     assert not np.array_equal(one.primal.numpy(), many.primal.numpy())  # different seeds
 
 
-def test09_unsupported_plugins_are_named(variant):
-    import gdpt
+def test09_unsupported_plugins_are_named(variant, tmp_path):
+    """Unsupported plugins, also nested ones, are refused by name with their shape; a blend
+    with a delta component has no invertible shift and says so."""
     import mitsuba as mi
 
+    import gdpt
+
     for old, new, expected in [
+        ('<bsdf type="diffuse"/>', '<bsdf type="hair"/>', "BSDF 'Hair' on shape"),
+        ('<bsdf type="diffuse"/>', '<bsdf type="mask"><bsdf type="pplastic"/></bsdf>',
+         "BSDF 'PolarizedPlastic' on shape"),
         ('<bsdf type="diffuse"/>', '<bsdf type="blendbsdf"><float name="weight" value="0.5"/>'
-         '<bsdf type="diffuse"/><bsdf type="conductor"/></bsdf>', "BSDF 'BlendBSDF'"),
-        ('<emitter type="constant"/>', '<emitter type="directional"><vector name="direction" '
-         'value="0,-1,0"/></emitter>', "emitter 'DirectionalEmitter'"),
+         '<bsdf type="diffuse"/><bsdf type="conductor"/></bsdf>', "blends a delta"),
+        ('<emitter type="constant"/>', '<emitter type="projector"><texture type="bitmap" '
+         'name="irradiance"><string name="filename" value="{png}"/></texture></emitter>',
+         "emitter 'Projector'"),
     ]:
+        if "{png}" in new:
+            image = tmp_path / "white.exr"
+            mi.Bitmap(np.ones((4, 4, 3), dtype=np.float32)).write(str(image))
+            new = new.replace("{png}", str(image))
         scene = mi.load_string(_xml("gdpt").replace(old, new))
         with pytest.raises(ValueError, match=expected):
             gdpt.render(scene, spp=1)
