@@ -300,6 +300,19 @@ def _add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--spp-min", type=int, default=2, help="lowest input spp (default: 2)")
     parser.add_argument("--spp-max", type=int, default=256, help="highest input spp (default: 256)")
     parser.add_argument("--target-spp", type=int, default=4096, help="target spp (default: 4096)")
+    parser.add_argument(
+        "--target",
+        choices=["l1", "pt"],
+        default="l1",
+        help="target: G-PT + L1 Poisson (l1, the paper's) or path tracing (pt; default: l1)",
+    )
+    parser.add_argument("--levels", type=int, default=5, help="noisy inputs per crop (default: 5)")
+    parser.add_argument(
+        "--pt-factor",
+        type=float,
+        default=2.5,
+        help="path-traced input spp / G-PT input spp, the equal-time ratio (default: 2.5)",
+    )
     parser.add_argument("--max-depth", type=int, default=6, help="longest path (default: 6)")
     parser.add_argument("--seed", type=int, default=0, help="dataset seed (default: 0)")
     parser.add_argument(
@@ -328,6 +341,9 @@ def _run_dataset(args: argparse.Namespace) -> int:
         spp_min=args.spp_min,
         spp_max=args.spp_max,
         target_spp=args.target_spp,
+        target=args.target,
+        levels=args.levels,
+        pt_factor=args.pt_factor,
         max_depth=args.max_depth,
         seed=args.seed,
     )
@@ -348,7 +364,9 @@ def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
         required=True,
         metavar="NAME",
         help="model config, a key of "
-        "gdpt.reconstruct.dense_unet.CONFIGS (paper, nograd, fast, fast_xs, ...)",
+        "gdpt.reconstruct.dense_unet.CONFIGS (paper, nograd, fast, fast_xs, ...), or a design "
+        "of gdpt.reconstruct.oidn_ngpt.DESIGNS (oidn-grad, oidn-grad-l1, oidn-nograd: OIDN's "
+        "U-Net fine-tuned)",
     )
     parser.add_argument("--data", required=True, help="dataset directory (gdpt dataset)")
     parser.add_argument("--out", required=True, help="run directory")
@@ -360,10 +378,11 @@ def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--holdout-every", type=int, default=10, help="default: 10")
     parser.add_argument(
         "--loss",
-        choices=["flip", "flip_rel", "flip_log", "flip_hdr", "l1", "elpips"],
+        choices=["flip", "flip_rel", "flip_log", "flip_hdr", "l1", "elpips", "l1_rel"],
         default="flip",
         help="training loss (default: flip; flip_rel / flip_log "
-        "add a relative / log-space L1, see gdpt.reconstruct.losses)",
+        "add a relative / log-space L1, see gdpt.reconstruct.losses; fine-tuning OIDN "
+        "(--config oidn-*): l1 (PU space) or l1_rel (+ relative MSE)",
     )
     parser.add_argument("--steps", type=int, default=1000, help="updates (default: 1000)")
     parser.add_argument("--batch", type=int, default=8, help="crops per update and process")

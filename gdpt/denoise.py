@@ -7,8 +7,10 @@ those. Registered:
 * ``'l2'`` / ``'l1'`` / ``'l1-fast'``: screened Poisson reconstruction
   (:mod:`gdpt.reconstruct.poisson`, same names): the closed-form L2 solution, the reference
   IRLS L1 preset and the accelerated L1 solver (same or lower L1 energy, fewer CG iterations).
-* ``'ngpt'`` / ``'ngpt-nograd'``: the dense U-Net (:mod:`gdpt.reconstruct.ngpt`) with a
-  checkpoint given as ``model=PATH``, ``$GDPT_NGPT_MODEL``, or shipped in ``gdpt/models/``.
+* ``'ngpt'`` / ``'ngpt-nograd'``: a trained network with a checkpoint given as ``model=PATH``,
+  ``$GDPT_NGPT_MODEL``, or shipped in ``gdpt/models/``: a dense U-Net
+  (:mod:`gdpt.reconstruct.ngpt`) or OIDN's U-Net fine-tuned with gradient inputs
+  (:mod:`gdpt.reconstruct.oidn_ngpt`, a delta to Intel's weights read from ``pyoidn``).
 
 To add a method, write ``f(buffers, *, alpha, **options) -> (H, W, 3) tensor`` and
 ``METHODS.register(name, Method(f, gradients=..., features=...))``; the CLI, the API and the
@@ -17,6 +19,7 @@ study (:mod:`gdpt.study.methods`) offer every registered name.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -94,7 +97,14 @@ def model_path(name: str, model: str | os.PathLike | None = None) -> Path:
 
 
 @lru_cache(maxsize=4)
-def _reconstructor(path: Path) -> Any:
+def load_reconstructor(path: Path) -> Any:
+    """The reconstructor of a checkpoint (cached): a fine-tuned OIDN network (delta card of
+    :mod:`gdpt.reconstruct.oidn_ngpt`) or a dense U-Net (:mod:`gdpt.reconstruct.ngpt`); both
+    are called with a buffer mapping or ``GradientBuffers`` and expose ``features``."""
+    from gdpt.reconstruct.oidn_ngpt import OIDNReconstructor, is_delta_card
+
+    if is_delta_card(path):
+        return OIDNReconstructor.from_checkpoint(path)
     from gdpt.reconstruct.ngpt import NGPTReconstructor
 
     return NGPTReconstructor.from_checkpoint(path)
@@ -103,17 +113,47 @@ def _reconstructor(path: Path) -> Any:
 def _ngpt(
     buffers: GradientBuffers, *, name: str, alpha: float, model: str | None = None, **_: Any
 ) -> torch.Tensor:
-    """Neural reconstruction with a trained dense U-Net (``alpha`` does not apply)."""
-    return _reconstructor(model_path(name, model).resolve())(buffers)
+    """Neural reconstruction with a trained network (``alpha`` does not apply).
+
+    Raises:
+        KeyError: the buffers lack one the model reads (named).
+        RuntimeError: the model builds on OIDN's weights and ``pyoidn`` (whose library holds
+            them) is not installed or its weights are not recognised.
+    """
+    path = model_path(name, model).resolve()
+    if reason := _oidn_weights_missing(name, path):
+        raise RuntimeError(reason)
+    return load_reconstructor(path)(buffers)
+
+
+def _oidn_weights_missing(name: str, path: Path) -> str | None:
+    """Why the fine-tuned OIDN model at ``path`` cannot load its base weights, or ``None``."""
+    from gdpt.reconstruct.oidn_ngpt import is_delta_card
+
+    if not is_delta_card(path):
+        return None
+    if importlib.util.find_spec("pyoidn") is None:
+        return (
+            f"method {name!r} fine-tunes Intel Open Image Denoise, whose weights are read from "
+            "the 'pyoidn' package at run time: pip install pyoidn"
+        )
+    from gdpt.reconstruct.tza import OIDNWeightsError, builtin_weights
+
+    try:
+        builtin_weights()
+    except OIDNWeightsError as err:
+        return f"method {name!r}: {err}"
+    return None
 
 
 def _ngpt_check(name: str) -> str | None:
-    """``None`` when the NGPT model ``name`` can be found, else why not."""
+    """``None`` when the NGPT model ``name`` (and what it builds on) can be found, else why
+    not."""
     try:
-        model_path(name)
+        path = model_path(name)
     except FileNotFoundError as err:
         return str(err)
-    return None
+    return _oidn_weights_missing(name, path)
 
 
 #: Method name -> :class:`Method`, in registration order.

@@ -41,6 +41,17 @@ def save_checkpoint(
         TypeError: ``card`` is not JSON-serialisable.
     """
     weights, text = encode_checkpoint(model, card, features=features)
+    return write_checkpoint(path, weights, text)
+
+
+def write_checkpoint(path: str | Path, weights: bytes, text: str) -> tuple[Path, Path]:
+    """Write encoded checkpoint files: ``weights`` to ``<path>.safetensors`` first, then the
+    card ``text`` to ``<path>.json``, each atomically (any encoder: DenseUNet checkpoints, the
+    OIDN deltas of :mod:`gdpt.reconstruct.oidn_ngpt`).
+
+    Returns:
+        ``(weights_path, card_path)``.
+    """
     weights_path, card_path = checkpoint_paths(path)
     weights_path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(weights_path, weights)

@@ -10,7 +10,9 @@ one *crop* (a small image, 128x128 by default) as in Kettunen et al. 2019 (secti
 * for each of them a path-traced input (``gradients=False``, features on) at ``pt_factor``
   (2.5) times the samples, the equal-time input of the no-gradient baselines;
 * a target: ``target_spp`` samples of ``gdpt``, reconstructed with L1 screened Poisson
-  (``alpha = 0.2``), as the paper does.
+  (``alpha = 0.2``), as the paper does (``target="l1"``); or ``target="pt"``: ``target_spp``
+  path-traced samples (``gradients=False``), unbiased and cheaper per sample, the choice for
+  losses that tolerate zero-mean target noise.
 
 Everything (scene seed, sample counts, render seeds) is a pure function of ``(seed, scene,
 view)`` (:func:`plan_crop`), so a dataset can be extended with more scenes or views later and
@@ -24,6 +26,7 @@ On-disk layout (one EXR per crop element, written by :func:`gdpt.io.exr.save_buf
     DIR/crops/s00012-v003/pt0.exr     path-traced input at 2.5x the samples of in0 (pt0 .. pt4)
     DIR/crops/s00012-v003/target.exr  target: ``primal`` = L1 Poisson reconstruction of the
                                       high-spp render; dx, dy and features of that render
+                                      (``target="pt"``: the path-traced render, no dx/dy)
 
 The crop id is ``s<scene:05d>-v<view:03d>``. A manifest line holds ``crop``, ``scene``,
 ``view``, ``scene_seed``, ``resolution`` ``[width, height]``, ``spp`` (list), ``pt_spp``,
@@ -82,6 +85,9 @@ INPUT_KINDS: dict[str, tuple[str, tuple[str, ...]]] = {
     "pt": ("pt", ("primal", "albedo", "normal", "depth")),
 }
 
+#: Target kinds (:attr:`DatasetConfig.target`).
+TARGET_KINDS = ("l1", "pt")
+
 #: Salt separating the render-seed stream of a crop from the scene-seed stream.
 _CROP_SALT = 0xC409
 
@@ -102,6 +108,7 @@ class DatasetConfig:
         pt_factor: path-traced input samples = ``round(pt_factor * spp)`` (equal time).
         max_depth: longest path (integrator ``max_depth``).
         alpha: screened-Poisson data weight of the L1 target reconstruction.
+        target: ``"l1"`` (G-PT + L1 Poisson, the paper's) or ``"pt"`` (path tracing).
         seed: dataset seed; everything rendered is a function of ``(seed, scene, view)``.
         scene_config: knobs of the scene generator (``None``: its defaults).
     """
@@ -116,6 +123,7 @@ class DatasetConfig:
     pt_factor: float = 2.5
     max_depth: int = 6
     alpha: float = 0.2
+    target: str = "l1"
     seed: int = 0
     scene_config: RandomSceneConfig | None = None
 
@@ -137,6 +145,8 @@ class DatasetConfig:
             raise ValueError("pt_factor and alpha must be > 0")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if self.target not in TARGET_KINDS:
+            raise ValueError(f"target must be one of {TARGET_KINDS}, got {self.target!r}")
 
     def content(self) -> dict[str, Any]:
         """The settings that define the pixels (everything but ``scenes`` and ``views``).
@@ -146,6 +156,8 @@ class DatasetConfig:
         """
         data = dataclasses.asdict(self)
         del data["scenes"], data["views"]
+        if data["target"] == "l1":  # the original kind: datasets written before it existed
+            del data["target"]
         if self.scene_config is None:
             from gdpt.scenes import RandomSceneConfig
 
@@ -300,17 +312,22 @@ def render_crop(
         store(f"in{k}", draw(spp, seed, True))
     for k, (spp, seed) in enumerate(zip(plan.pt_spp, plan.pt_seeds, strict=True)):
         store(f"pt{k}", draw(spp, seed, False))
-    target = draw(int(content["target_spp"]), plan.target_seed, True)
-    start = time.perf_counter()
-    image = reconstruct(target, method="l1", alpha=float(content["alpha"]))
-    solve = time.perf_counter() - start
-    store(
-        "target",
-        target.replace(primal=image.float().contiguous()),
-        primal="l1_poisson",
-        alpha=float(content["alpha"]),
-        solve_seconds=round(solve, 4),
-    )
+    path_traced = content.get("target", "l1") == "pt"
+    target = draw(int(content["target_spp"]), plan.target_seed, not path_traced)
+    solve = 0.0
+    if path_traced:
+        store("target", target, primal="path_traced")
+    else:
+        start = time.perf_counter()
+        image = reconstruct(target, method="l1", alpha=float(content["alpha"]))
+        solve = time.perf_counter() - start
+        store(
+            "target",
+            target.replace(primal=image.float().contiguous()),
+            primal="l1_poisson",
+            alpha=float(content["alpha"]),
+            solve_seconds=round(solve, 4),
+        )
     seconds["total"] = round(sum(seconds.values()) + solve, 4)
     return {
         "crop": plan.crop_id,

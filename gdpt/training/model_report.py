@@ -129,8 +129,8 @@ def compare_models(
     """
     from tqdm.auto import tqdm
 
+    from gdpt.denoise import load_reconstructor
     from gdpt.metrics import flip_ldr, relmse
-    from gdpt.reconstruct.ngpt import NGPTReconstructor
     from gdpt.reconstruct.poisson import reconstruct as poisson
     from gdpt.study.methods import oidn_check, oidn_denoise
     from gdpt.training.dataset import CropDataset
@@ -139,7 +139,7 @@ def compare_models(
     sets = {kind: CropDataset(data, kind=kind, scenes=held) for kind in ("gdpt", "pt")}
     nets = {}
     for label, path in models.items():
-        rec = NGPTReconstructor.from_checkpoint(path)
+        rec = load_reconstructor(Path(path).resolve())
         nets[label] = (rec, "gdpt" if "dx" in rec.features else "pt")
     methods: dict[str, tuple[str, Any]] = {
         label: (kind, rec) for label, (rec, kind) in nets.items()
@@ -271,11 +271,16 @@ def ship_model(
         FileNotFoundError: the run has no final model.
     """
     from gdpt.denoise import MODEL_DIR
+    from gdpt.reconstruct import oidn_ngpt
     from gdpt.reconstruct.ngpt import load_checkpoint
-    from gdpt.training.checkpoint import save_checkpoint
+    from gdpt.training.checkpoint import save_checkpoint, write_checkpoint
 
     run = Path(run)
-    model, card = load_checkpoint(run / "model.safetensors")
+    delta = oidn_ngpt.is_delta_card(run / "model.json")
+    if delta:  # fine-tuned OIDN: shipped as the difference to Intel's weights
+        model, _, card = oidn_ngpt.load_model(run / "model.safetensors")
+    else:
+        model, card = load_checkpoint(run / "model.safetensors")
     log = _read_jsonl(run / "log.jsonl")
     config = json.loads((run / "config.json").read_text())
     data = Path(config["data"]) / "dataset.json"
@@ -283,6 +288,7 @@ def ship_model(
     scenes = sorted({row["scene"] for row in manifest if "scene" in row})
     holdout = config.get("holdout_every") or HOLDOUT_EVERY
     reserved = {"format", "config_name", "config", "features", "parameter_count"}
+    reserved |= {"design", "description", "base_weights"}
     extra = {k: v for k, v in card.items() if k not in reserved}
     extra.update(
         name=name,
@@ -305,5 +311,9 @@ def ship_model(
             f"{run}: a {size:.1f} MiB network exceeds the {MAX_SHIPPED_MIB} MiB "
             "limit of shipped models"
         )
-    weights, _ = save_checkpoint(model, Path(dest or MODEL_DIR) / name, extra)
+    target = Path(dest or MODEL_DIR) / name
+    if delta:
+        weights, _ = write_checkpoint(target, *oidn_ngpt.encode_delta(model, card["design"], extra))
+    else:
+        weights, _ = save_checkpoint(model, target, extra)
     return weights

@@ -110,6 +110,9 @@ class TrainConfig:
     Attributes:
         model: registered model configuration (``gdpt.reconstruct.dense_unet.CONFIGS``); models
             with 16 input channels read the ``gdpt`` inputs, 10-channel ones the path-traced.
+            A design of :data:`gdpt.reconstruct.oidn_ngpt.DESIGNS` (``oidn-grad``, ...)
+            fine-tunes OIDN's U-Net instead (:mod:`gdpt.training.finetune`; ``pad`` and
+            ``vary_padding`` do not apply there).
         data: training dataset directory (:mod:`gdpt.training.dataset`).
         out: run directory.
         val_data: validation dataset directory; ``None`` holds out every ``holdout_every``-th
@@ -605,7 +608,7 @@ def _save(
     card: dict[str, Any],
     world: int,
 ) -> None:
-    base = run / "checkpoints" / f"{_CKPT_PREFIX}{step:07d}"
+    base = checkpoint_base(run, step)
     save_checkpoint(model, base, card)
     state = {
         "step": step,
@@ -615,8 +618,18 @@ def _save(
     }
     with atomic_path(base.with_suffix(".pt")) as tmp:
         torch.save(state, tmp)
+    prune_checkpoints(run, config.keep_checkpoints)
+
+
+def checkpoint_base(run: Path, step: int) -> Path:
+    """``RUN_DIR/checkpoints/ckpt-<step:07d>`` (no suffix)."""
+    return run / "checkpoints" / f"{_CKPT_PREFIX}{step:07d}"
+
+
+def prune_checkpoints(run: Path, keep: int) -> None:
+    """Delete all but the newest ``keep`` checkpoints (``.pt``, ``.safetensors``, ``.json``)."""
     states = sorted((run / "checkpoints").glob(f"{_CKPT_PREFIX}*.pt"))
-    for old in states[: -config.keep_checkpoints]:
+    for old in states[:-keep]:
         for suffix in (".pt", ".safetensors", ".json"):
             old.with_suffix(suffix).unlink(missing_ok=True)
 
@@ -666,6 +679,12 @@ def train(config: TrainConfig, *, resume: bool = False, progress: bool = True) -
     import torch.distributed as dist
     from tqdm.auto import tqdm
 
+    from gdpt.reconstruct.oidn_ngpt import DESIGNS
+
+    if config.model in DESIGNS:  # OIDN's U-Net fine-tuned (gdpt.training.finetune)
+        from gdpt.training.finetune import finetune
+
+        return finetune(config, resume=resume, progress=progress)
     rank, local_rank, world = _distributed()
     if config.device is not None:
         device = torch.device(config.device)

@@ -1,0 +1,334 @@
+"""Fine-tuning OIDN's U-Net with gradient inputs (:mod:`gdpt.reconstruct.oidn_ngpt`) on a
+:mod:`gdpt.training.dataset`.
+
+``gdpt train --config oidn-grad`` (or ``oidn-grad-l1``, ``oidn-nograd``) lands here through
+:func:`gdpt.training.train.train`. The run uses the same :class:`~gdpt.training.train.TrainConfig`,
+run directory, learning-rate schedule, augmentations (sub-crop, flips, transposition, RGB
+permutation, colour and brightness multipliers), per-step seeding (exact resume) and held-out
+split as the dense U-Net trainer; what differs:
+
+* the network starts as OIDN (Intel's ``rt_hdr_alb_nrm`` weights, the extra inputs with zero
+  weights), so step 0 reproduces OIDN exactly;
+* inputs are OIDN's encoding (:func:`~gdpt.reconstruct.oidn_ngpt.assemble`); sub-crops
+  (``crop``) must be multiples of 16; there is no mirror padding (``pad`` and
+  ``vary_padding`` are ignored: OIDN's convolutions zero-pad, as at inference);
+* loss (``config.loss``, :data:`FINETUNE_LOSSES`): ``l1`` is OIDN's own L1 in its PU space,
+  ``l1_rel`` adds the Noise2Noise relative MSE (:func:`~gdpt.reconstruct.oidn_ngpt
+  .finetune_loss`), unbiased under the zero-mean noise of path-traced targets
+  (``gdpt dataset --target pt``);
+* the ``oidn-grad-l1`` design's L1 Poisson input is solved once per dataset element
+  ('l1-fast', alpha 0.2) and augmented like the primal (flips and scalings commute with the
+  solve; a sub-crop of the solution stands in for the solution of the sub-crop);
+* checkpoints store the difference to OIDN's weights (:func:`~gdpt.reconstruct.oidn_ngpt
+  .encode_delta`); the exact weights and the Adam state go to the ``.pt`` file of the run
+  (never committed), which resume reads;
+* validation (``val.jsonl``) scores the network, OIDN on the same input (step 0), OIDN on the
+  path-traced input of the same crop and level (``pt+oidn`` at equal time) and L1 Poisson on
+  the G-PT input: ``relmse``, ``flip``, ``oidn_*``, ``pt_oidn_*``, ``l1_*``;
+* one process only (no ``torchrun``).
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gdpt.io.atomic import atomic_path
+from gdpt.reconstruct.losses import FLIPLoss
+from gdpt.reconstruct.oidn_ngpt import (
+    DESIGNS,
+    Design,
+    assemble,
+    base_model,
+    encode_delta,
+    finetune_loss,
+    predict,
+)
+from gdpt.reconstruct.oidn_unet import OIDNUNet
+from gdpt.training.checkpoint import write_checkpoint
+from gdpt.training.dataset import CropDataset, DatasetWarning
+from gdpt.training.train import (
+    TrainConfig,
+    _append_jsonl,
+    _datasets,
+    _metrics,
+    _truncate_jsonl,
+    _write_json,
+    augment,
+    checkpoint_base,
+    latest_checkpoint,
+    learning_rate,
+    make_optimizer,
+    prepare_run,
+    prune_checkpoints,
+    sample_augmentation,
+    step_seed,
+)
+
+__all__ = [
+    "FINETUNE_LOSSES",
+    "FinetuneBatch",
+    "finetune",
+    "make_finetune_batch",
+    "validate_finetune",
+]
+
+#: ``config.loss`` -> weight of the relative-MSE term of ``finetune_loss``.
+FINETUNE_LOSSES = {"l1": 0.0, "l1_rel": 1.0}
+
+
+@dataclass
+class FinetuneBatch:
+    """One training batch.
+
+    Attributes:
+        x: ``(N, 9 + extra, h, w)`` encoded inputs (:func:`assemble`), CPU float32.
+        target: ``(N, 3, h, w)`` linear targets.
+        scale: ``(N,)`` OIDN input scales.
+    """
+
+    x: torch.Tensor
+    target: torch.Tensor
+    scale: torch.Tensor
+
+
+class L1Cache:
+    """L1 Poisson solutions of dataset elements ('l1-fast', alpha 0.2), solved on first use."""
+
+    def __init__(self) -> None:
+        self._cache: dict[int, torch.Tensor] = {}
+
+    def __call__(self, index: int, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``(H, W, 3)`` solution for element ``index`` with buffers ``inputs``."""
+        if index not in self._cache:
+            from gdpt.reconstruct.poisson import reconstruct
+
+            p, dx, dy = inputs["primal"], inputs["dx"], inputs["dy"]
+            self._cache[index] = reconstruct(p, dx, dy, method="l1-fast", alpha=0.2)
+        return self._cache[index]
+
+
+def _sample(
+    item: dict, design: Design, params, l1: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(x (C, h, w), target (3, h, w), scale)`` of one augmented element."""
+    buffers = augment({**item["inputs"], "target": item["target"]}, params)
+    target = buffers.pop("target")
+    l1_aug = None if l1 is None else augment({"primal": l1}, params)["primal"]
+    x, scale = assemble(buffers, design, l1=l1_aug)
+    h, w = target.shape[:2]
+    return x[0, :, :h, :w], target.permute(2, 0, 1), scale
+
+
+def make_finetune_batch(
+    dataset: CropDataset,
+    config: TrainConfig,
+    design: Design,
+    step: int,
+    l1_cache: L1Cache | None = None,
+) -> FinetuneBatch:
+    """The batch of update ``step`` (a pure function of ``config.seed`` and ``step``).
+
+    Sub-crop sides (``config.crop`` or the dataset crop) must be multiples of 16.
+    """
+    generator = torch.Generator().manual_seed(step_seed(config.seed, step, 0))
+    indices = torch.randint(len(dataset), (config.batch,), generator=generator).tolist()
+    shape = (dataset.resolution[1], dataset.resolution[0])
+    xs, targets, scales = [], [], []
+    for index in indices:
+        params = sample_augmentation(generator, config, shape)
+        item = dataset[index]
+        l1 = l1_cache(index, item["inputs"]) if design.l1 and l1_cache is not None else None
+        x, target, scale = _sample(item, design, params, l1)
+        xs.append(x)
+        targets.append(target)
+        scales.append(scale)
+    return FinetuneBatch(torch.stack(xs), torch.stack(targets), torch.stack(scales))
+
+
+@dataclass
+class _ValElement:
+    """A held-out element: network inputs, target and the baselines' scores."""
+
+    inputs: dict[str, torch.Tensor]
+    l1: torch.Tensor | None
+    target: torch.Tensor
+    baselines: dict[str, float]
+
+
+def load_finetune_validation(
+    dataset: CropDataset, design: Design, count: int, device: torch.device
+) -> list[_ValElement]:
+    """Up to ``count`` evenly spaced held-out elements with the baselines' scores: OIDN on the
+    same input (``oidn_``), OIDN on the equal-time path-traced input (``pt_oidn_``) and L1
+    Poisson on the equal-time G-PT input (``l1_``)."""
+    from gdpt.io.exr import load_buffers
+    from gdpt.reconstruct.oidn_unet import denoise
+    from gdpt.reconstruct.poisson import reconstruct
+
+    flip = FLIPLoss("ldr")
+    picks = sorted({round(float(i)) for i in np.linspace(0, len(dataset) - 1, count)})
+    elements = []
+    for index in picks:
+        record, level = dataset.element(index)
+        try:
+            item = dataset.load(index)
+            g = load_buffers(dataset.root / record["files"][f"in{level}"]).to(device)
+            pt = load_buffers(dataset.root / record["files"][f"pt{level}"]).to(device)
+        except (ValueError, OSError) as error:
+            warnings.warn(f"validation element {index} skipped: {error}", DatasetWarning, 2)
+            continue
+        target = item["target"].to(device)
+        inputs = {k: v.to(device) for k, v in item["inputs"].items()}
+        l1 = reconstruct(g.primal, g.dx, g.dy, method="l1", alpha=0.2)
+        l1_fast = None
+        if design.l1:
+            l1_fast = reconstruct(g.primal, g.dx, g.dy, method="l1-fast", alpha=0.2)
+        with torch.no_grad():
+            same = denoise(inputs["primal"], inputs["albedo"], inputs["normal"])
+            pt_oidn = denoise(pt.primal, pt.albedo, pt.normal)
+        baselines = {}
+        for prefix, image in (("oidn_", same), ("pt_oidn_", pt_oidn), ("l1_", l1)):
+            baselines.update({prefix + k: v for k, v in _metrics(image, target, flip).items()})
+        elements.append(_ValElement(inputs, l1_fast, target, baselines))
+    if not elements:
+        raise ValueError(f"{dataset.root}: no readable validation element")
+    return elements
+
+
+@torch.no_grad()
+def validate_finetune(
+    net: OIDNUNet, design: Design, elements: list[_ValElement]
+) -> dict[str, float]:
+    """Mean scores of the network and of the baselines over ``elements``."""
+    flip = FLIPLoss("ldr")
+    totals: dict[str, float] = {}
+    was_training = net.training
+    net.eval()
+    for element in elements:
+        x, scale = assemble(element.inputs, design, l1=element.l1)
+        h, w = element.target.shape[:2]
+        scores = _metrics(predict(net, x, h, w, scale), element.target, flip)
+        for key, value in {**scores, **element.baselines}.items():
+            totals[key] = totals.get(key, 0.0) + value
+    net.train(was_training)
+    return {k: v / len(elements) for k, v in totals.items()} | {"count": len(elements)}
+
+
+def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True) -> Path:
+    """Fine-tune (or continue fine-tuning) the design ``config.model``; see the module docstring.
+
+    Returns:
+        Path of the final network (``RUN_DIR/model.safetensors``, a delta checkpoint).
+
+    Raises:
+        FileExistsError: ``config.out`` holds a run and ``resume`` is false.
+        ConfigMismatchError: resuming with other training settings.
+        ValueError: unusable dataset, or a crop that is not a multiple of 16.
+    """
+    from tqdm.auto import tqdm
+
+    design = DESIGNS[config.model]
+    if config.loss not in FINETUNE_LOSSES:
+        raise ValueError(
+            f"loss {config.loss!r} does not apply to fine-tuning OIDN; use one of "
+            f"{', '.join(FINETUNE_LOSSES)}"
+        )
+    relative = FINETUNE_LOSSES[config.loss]
+    device = torch.device(config.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    run = Path(config.out)
+    config = prepare_run(config, resume)
+    kind = "gdpt" if design.gradients else "pt"
+    train_set, val_set = _datasets(config, kind)
+    side = config.crop or min(train_set.resolution)
+    if side > min(train_set.resolution) or side % 16:
+        raise ValueError(
+            f"crop {side} must fit the {train_set.resolution} dataset crops and be a multiple "
+            "of 16 (OIDN's alignment)"
+        )
+    (run / "checkpoints").mkdir(parents=True, exist_ok=True)
+    _write_json(run / "config.json", config.to_dict())
+    base = base_model(design)
+    net = base_model(design).to(device).train()
+    optimizer = make_optimizer(net, config)
+    start, elapsed = 0, 0.0
+    found = latest_checkpoint(run) if resume else None
+    if found is not None:
+        state = torch.load(found[1].with_suffix(".pt"), map_location=device, weights_only=True)
+        net.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        start, elapsed = int(state["step"]), float(state["elapsed"])
+    for name in ("log.jsonl", "val.jsonl"):
+        _truncate_jsonl(run / name, start)
+    val_elements = (
+        load_finetune_validation(val_set, design, config.val_crops, device)
+        if config.val_every
+        else []
+    )
+    l1_cache = L1Cache() if design.l1 else None
+    card = {
+        "training": {
+            "data": config.data,
+            "crops": len(train_set.crops),
+            "validation_crops": len(val_set.crops),
+            "loss": f"{config.loss}: PU-L1 + {relative} x Noise2Noise relMSE (finetune_loss)",
+            "batch": config.batch,
+            "crop": side,
+            "lr": config.lr,
+        }
+    }
+
+    def save(base_path: Path, done: int, last_val: dict[str, float], exact: bool) -> None:
+        info = {**card, "steps": done, "train_seconds": round(elapsed, 1), "validation": last_val}
+        write_checkpoint(base_path, *encode_delta(net, config.model, info, base=base))
+        if exact:
+            payload = {
+                "step": done,
+                "elapsed": elapsed,
+                "world_size": 1,
+                "model": net.state_dict(),
+                "optimizer": optimizer.state_dict(),
+            }
+            with atomic_path(base_path.with_suffix(".pt")) as tmp:
+                torch.save(payload, tmp)
+
+    last_val: dict[str, float] = {}
+    bar = tqdm(total=config.steps, initial=start, unit="step", desc="finetune",
+               disable=not progress, dynamic_ncols=True)  # fmt: skip
+    for step in range(start, config.steps):
+        t0 = time.perf_counter()
+        batch = make_finetune_batch(train_set, config, design, step, l1_cache)
+        lr = learning_rate(step, config)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        optimizer.zero_grad(set_to_none=True)
+        y = net(batch.x.to(device))
+        loss = finetune_loss(y, batch.target.to(device), batch.scale.to(device), relative=relative)
+        loss.backward()
+        finite = all(bool(torch.isfinite(p.grad).all()) for p in net.parameters())
+        if finite:
+            optimizer.step()
+        seconds = time.perf_counter() - t0
+        elapsed += seconds
+        done = step + 1
+        record = {"step": done, "loss": float(loss.detach()), "lr": lr,
+                  "time": round(elapsed, 3), "step_seconds": round(seconds, 4)}  # fmt: skip
+        _append_jsonl(run / "log.jsonl", record | ({} if finite else {"skipped": True}))
+        bar.update(1)
+        bar.set_postfix(loss=f"{record['loss']:.4g}", lr=f"{lr:.2e}")
+        final = done == config.steps
+        if config.val_every and (done % config.val_every == 0 or final):
+            last_val = validate_finetune(net, design, val_elements)
+            _append_jsonl(run / "val.jsonl", {"step": done, "time": round(elapsed, 3), **last_val})
+        if done % config.ckpt_every == 0 or final:
+            save(checkpoint_base(run, done), done, last_val, exact=True)
+            prune_checkpoints(run, config.keep_checkpoints)
+        if final:
+            save(run / "model", done, last_val, exact=False)
+    bar.close()
+    return run / "model.safetensors"

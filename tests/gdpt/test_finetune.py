@@ -1,0 +1,117 @@
+"""gdpt.training.finetune: OIDN fine-tuning learns, writes its run directory, resumes exactly."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from gdpt.reconstruct.oidn_ngpt import DESIGNS, base_model, finetune_loss, load_model
+
+from gdpt.training.dataset import CropDataset, DatasetConfig, build_dataset
+from gdpt.training.finetune import make_finetune_batch
+from gdpt.training.train import TrainConfig, make_optimizer, train
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    """Two rendered 32x32 crops of a one-object scene, path-traced targets."""
+    from gdpt.scenes import RandomSceneConfig
+
+    scene = RandomSceneConfig(
+        num_objects=(1, 1), p_extra_light=0.0, p_window=0.0, p_bitmap_env=0.0, p_thinlens=0.0
+    )
+    root = tmp_path_factory.mktemp("finetune") / "data"
+    config = DatasetConfig(
+        scenes=1,
+        views=2,
+        resolution=32,
+        spp_min=1,
+        spp_max=4,
+        levels=2,
+        target_spp=16,
+        target="pt",
+        max_depth=4,
+        scene_config=scene,
+    )
+    build_dataset(config, root, progress=False)
+    return root
+
+
+def tiny(data: Path, out: Path, **changes) -> TrainConfig:
+    settings = dict(
+        model="oidn-grad",
+        data=str(data),
+        val_data=str(data),
+        out=str(out),
+        loss="l1_rel",
+        steps=3,
+        batch=2,
+        crop=16,
+        lr=1e-4,
+        warmup_steps=0,
+        decay_start=1,
+        half_life=2,
+        val_every=2,
+        val_crops=2,
+        ckpt_every=1,
+    )
+    return TrainConfig(**{**settings, **changes})
+
+
+def read_jsonl(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def test_path_traced_targets_are_written(data):
+    record = json.loads((data / "manifest.jsonl").read_text().splitlines()[0])
+    assert len(record["spp"]) == 2 and record["target_spp"] == 16
+    assert json.loads((data / "dataset.json").read_text())["config"]["target"] == "pt"
+
+
+@pytest.mark.parametrize("name", ["oidn-grad", "oidn-grad-l1"])
+def test_three_steps_on_a_fixed_batch_reduce_the_loss(data, tmp_path, name):
+    config = tiny(data, tmp_path, model=name)
+    design = DESIGNS[name]
+    batch = make_finetune_batch(CropDataset(data), config, design, step=0)
+    assert batch.x.shape == (2, 9 + design.extra_channels, 16, 16)
+    net = base_model(design).train()
+    optimizer = make_optimizer(net, config)
+    losses = []
+    for _ in range(4):
+        optimizer.zero_grad()
+        loss = finetune_loss(net(batch.x), batch.target, batch.scale)
+        loss.backward()
+        optimizer.step()
+        losses.append(float(loss.detach()))
+    assert losses[3] < losses[2] < losses[1] < losses[0], losses
+
+
+def test_run_directory_and_exact_resume(data, tmp_path):
+    run = tmp_path / "run"
+    config = tiny(data, run)
+    train(config, progress=False)
+    log = read_jsonl(run / "log.jsonl")
+    assert [r["step"] for r in log] == [1, 2, 3]
+    val = read_jsonl(run / "val.jsonl")
+    assert [r["step"] for r in val] == [2, 3]
+    assert set(val[0]) >= {"relmse", "flip", "oidn_relmse", "pt_oidn_relmse", "l1_relmse"}
+    net, design, card = load_model(run / "model.safetensors")
+    assert design == DESIGNS["oidn-grad"] and card["steps"] == 3 and card["validation"]
+
+    for suffix in (".pt", ".safetensors", ".json"):  # killed before the checkpoint of step 3
+        (run / "checkpoints" / f"ckpt-0000003{suffix}").unlink()
+    train(config, resume=True, progress=False)
+    resumed = read_jsonl(run / "log.jsonl")
+    assert [r["step"] for r in resumed] == [1, 2, 3]
+    assert resumed[2]["loss"] == log[2]["loss"]
+    again, _, _ = load_model(run / "model.safetensors")
+    for k, v in net.state_dict().items():
+        assert torch.equal(again.state_dict()[k], v), k
+
+
+def test_nograd_design_trains_on_path_traced_inputs(data, tmp_path):
+    train(tiny(data, tmp_path / "run", model="oidn-nograd", steps=1, val_every=0), progress=False)
+    _, design, card = load_model(tmp_path / "run" / "model.json")
+    assert not design.gradients and card["steps"] == 1

@@ -1,0 +1,93 @@
+"""gdpt.reconstruct.oidn_ngpt: step 0 is OIDN, delta checkpoints round-trip, bad input."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from gdpt.reconstruct.oidn_ngpt import (
+    DESIGNS,
+    OIDNReconstructor,
+    assemble,
+    base_model,
+    encode_delta,
+    finetune_loss,
+    load_model,
+    predict,
+)
+from gdpt.reconstruct.oidn_unet import denoise
+
+
+def buffers(h: int = 20, w: int = 27, seed: int = 0) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    primal = torch.rand(h, w, 3, generator=g) * 2
+    normal = torch.nn.functional.normalize(torch.randn(h, w, 3, generator=g), dim=-1)
+    return {
+        "primal": primal,
+        "albedo": torch.rand(h, w, 3, generator=g),
+        "normal": normal,
+        "dx": torch.randn(h, w, 3, generator=g),
+        "dy": torch.randn(h, w, 3, generator=g),
+    }
+
+
+@pytest.mark.parametrize("name", list(DESIGNS))
+def test_untrained_design_is_oidn_on_an_odd_size(name):
+    b = buffers()
+    net = base_model(DESIGNS[name])
+    with torch.no_grad():
+        x, scale = assemble(b, DESIGNS[name])
+        out = predict(net, x, 20, 27, scale)
+        oidn = denoise(b["primal"], b["albedo"], b["normal"])
+    assert out.shape == (20, 27, 3)
+    assert torch.equal(out, oidn)
+
+
+def test_delta_checkpoint_round_trips_and_stores_no_oidn_weights(tmp_path):
+    design = DESIGNS["oidn-grad"]
+    net = base_model(design)
+    with torch.no_grad():
+        net.enc_conv0.weight[:, 9:] += 0.01  # a "fine-tuned" gradient input
+        net.dec_conv0.bias += 0.001
+    weights, text = encode_delta(net, "oidn-grad", {"steps": 1})
+    (tmp_path / "m.safetensors").write_bytes(weights)
+    (tmp_path / "m.json").write_text(text)
+    from safetensors.torch import load_file
+
+    delta = load_file(str(tmp_path / "m.safetensors"))
+    assert float(delta["enc_conv1.weight"].abs().max()) == 0.0  # untouched layers: zero delta
+    loaded, loaded_design, card = load_model(tmp_path / "m.json")
+    assert loaded_design == design and card["steps"] == 1
+    for k, v in net.state_dict().items():
+        torch.testing.assert_close(loaded.state_dict()[k], v, rtol=1e-6, atol=1e-7)
+    rec = OIDNReconstructor(loaded, design)
+    b = buffers(seed=1)
+    with torch.no_grad():
+        ref = denoise(b["primal"], b["albedo"], b["normal"])
+    assert not torch.allclose(rec(b), ref)  # the gradient inputs now matter
+
+
+def test_missing_gradient_buffer_is_named():
+    b = buffers()
+    del b["dy"]
+    with pytest.raises(KeyError, match="dy"):
+        assemble(b, DESIGNS["oidn-grad"])
+
+
+def test_non_finite_inputs_give_a_finite_output():
+    b = buffers()
+    for name in ("primal", "dx", "albedo"):
+        b[name][3, 4] = float("nan")
+        b[name][5, 6] = float("inf")
+    rec = OIDNReconstructor(base_model(DESIGNS["oidn-grad-l1"]), DESIGNS["oidn-grad-l1"])
+    out = rec(b)
+    assert torch.isfinite(out).all() and (out >= 0).all()
+
+
+def test_finetune_loss_is_zero_at_the_target_and_grows_away_from_it():
+    from gdpt.reconstruct.oidn_unet import pu_forward
+
+    target = torch.rand(2, 3, 8, 8) + 0.1
+    scale = torch.tensor([1.0, 0.5])
+    y = pu_forward(scale.reshape(-1, 1, 1, 1) * target)
+    assert float(finetune_loss(y, target, scale)) < 1e-5
+    assert float(finetune_loss(y + 0.05, target, scale)) > 0.05
