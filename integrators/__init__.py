@@ -10,7 +10,7 @@ from __future__ import annotations
 import importlib
 import sys
 
-_MODULES = ("common", "gdpt", "gdpt_rr")
+_MODULES = ("common", "shifts", "gdpt", "gdpt_rr")
 _registered_variant: str | None = None
 
 #: Names of the plugins this package provides.
@@ -23,7 +23,7 @@ def register() -> None:
     Raises:
         RuntimeError: no variant is set, or it is not a JIT (``llvm_*``/``cuda_*``) variant.
     """
-    global _registered_variant
+    global _registered_variant  # noqa: PLW0603 (one registration per variant)
     import mitsuba as mi
 
     variant = mi.variant()

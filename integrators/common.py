@@ -124,15 +124,35 @@ def safe_div(a, b):
 
 #: Plugin classes the shift mappings handle (Mitsuba ``class_name()``), tested in the suite.
 #: Nested BSDFs (inside masks, bump and normal maps, blends, two-sided) are checked too.
-SUPPORTED_BSDFS = frozenset({
-    "SmoothDiffuse", "RoughConductor", "SmoothConductor", "RoughPlastic", "SmoothPlastic",
-    "SmoothDielectric", "RoughDielectric", "ThinDielectric", "TwoSidedBRDF", "Principled",
-    "MaskBSDF", "BumpMap", "NormalMap", "BlendBSDF",
-})
-SUPPORTED_EMITTERS = frozenset({
-    "AreaLight", "PointLight", "SpotLight", "DirectionalEmitter", "ConstantBackgroundEmitter",
-    "EnvironmentMapEmitter", "SunskyEmitter",
-})
+SUPPORTED_BSDFS = frozenset(
+    {
+        "SmoothDiffuse",
+        "RoughConductor",
+        "SmoothConductor",
+        "RoughPlastic",
+        "SmoothPlastic",
+        "SmoothDielectric",
+        "RoughDielectric",
+        "ThinDielectric",
+        "TwoSidedBRDF",
+        "Principled",
+        "MaskBSDF",
+        "BumpMap",
+        "NormalMap",
+        "BlendBSDF",
+    }
+)
+SUPPORTED_EMITTERS = frozenset(
+    {
+        "AreaLight",
+        "PointLight",
+        "SpotLight",
+        "DirectionalEmitter",
+        "ConstantBackgroundEmitter",
+        "EnvironmentMapEmitter",
+        "SunskyEmitter",
+    }
+)
 
 
 def _bsdf_tree(bsdf: mi.BSDF) -> list[mi.BSDF]:
@@ -306,7 +326,9 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         if fired:
             warnings.warn(
                 f"{self.plugin_name}: numerical guards fired ({fired}); the affected samples or "
-                "shifts were dropped (see guard_counts)", RuntimeWarning, stacklevel=2,
+                "shifts were dropped (see guard_counts)",
+                RuntimeWarning,
+                stacklevel=2,
             )
         return acc.finish(width, height, self.channels())
 
@@ -380,14 +402,15 @@ class _Accumulator:
         if self.variance:
             for name in ["primal"] + [f"g{k}" for k in range(len(s.gradients))]:
                 values[f"sq_{name}"] = [dr.square(sum(values[name]) / 3)]
-        counts = {"sample_nonfinite": dr.sum(bad)}
-        counts.update({k: dr.sum(c) for k, c in s.guards.items()})
-        # One kernel for all outputs: evaluating them one by one would re-run the path loop.
-        dr.eval(values, counts)
+        guards = {"sample_nonfinite": bad, **s.guards}
+        # One kernel for all outputs: evaluating them one by one (a reduction evaluates its
+        # input) would re-run the path loop for each.
+        dr.eval(values, guards)
+        counts = {k: dr.sum(c) for k, c in guards.items()}
         for name, sums in self.sums.items():
             for i, c in enumerate(values[name]):
                 sums[i] += mi.Float64(dr.block_sum(c, spp))
-        dr.eval(self.sums)
+        dr.eval(self.sums, counts)
         for k, c in counts.items():
             self.guard_counts[k] = self.guard_counts.get(k, 0) + int(c[0])
         self.n += spp

@@ -15,6 +15,7 @@ from .common import (
     safe_div,
     update_features,
 )
+from .shifts import half_vector_shift, reconnection_jacobian
 
 #: Offset status. RECENTLY_CONNECTED: y_{i-1} was reconnected to x_i; CONNECTING: one vertex
 #: later, the offset shares x_i but its pdf of the segment into x_i is its own; CONNECTED: from
@@ -104,9 +105,12 @@ class GDPTIntegrator(GradientIntegratorBase):
     rough vertices whose successor is near-specular, and reconnect to the base at the first pair
     of consecutive rough vertices (the reconnection Jacobian is the ratio of
     solid-angle-to-area factors). Next-event estimation on an offset reconnects to the base's
-    light point (so sphere and point lights are exact). The two shift directions of every pixel pair are combined with the balance
-    heuristic over base/offset BSDF and light sampling, computed in a ratio form. Failed shifts
-    give the base full weight.
+    light point (so sphere and point lights are exact). The two shift directions of every pixel
+    pair are combined with the balance heuristic over base/offset BSDF and light sampling,
+    computed in a ratio form; a light sample joins that MIS only where the BSDF shift of the
+    same path exists in both directions, and segments leaving a near-specular pair are
+    estimated by BSDF sampling alone (see the NEE section of ``sample_paths``). Failed shifts
+    give the base full weight. Numerical guards are counted in ``guard_counts``.
 
     Cost: the loop runs in two phases. While some offset still has vertices of its own it runs
     the full shift (per-offset work for own vertices sits in ``dr.if_stmt`` blocks, which skip
@@ -174,20 +178,22 @@ class GDPTIntegrator(GradientIntegratorBase):
         offsets = []
         for k in range(1, n_off + 1):
             si_k = _primary_hit(scene, rays[k], active)
-            offsets.append(OffsetState(
-                si=si_k,
-                prev=dr.zeros(mi.Interaction3f, n),
-                status=mi.UInt32(NOT_CONNECTED),
-                alive=mi.Bool(active),
-                escaped=base_hit & ~si_k.is_valid(),
-                q=mi.Spectrum(weights[k]),
-                r=mi.Float(1.0),
-                pb_prev=mi.Float(1.0),
-                bsdf_only=mi.Bool(False),
-                s=mi.Float(0.0),
-                sJ=mi.Float(0.0),
-                G=dr.zeros(mi.Spectrum, n),
-            ))
+            offsets.append(
+                OffsetState(
+                    si=si_k,
+                    prev=dr.zeros(mi.Interaction3f, n),
+                    status=mi.UInt32(NOT_CONNECTED),
+                    alive=mi.Bool(active),
+                    escaped=base_hit & ~si_k.is_valid(),
+                    q=mi.Spectrum(weights[k]),
+                    r=mi.Float(1.0),
+                    pb_prev=mi.Float(1.0),
+                    bsdf_only=mi.Bool(False),
+                    s=mi.Float(0.0),
+                    sJ=mi.Float(0.0),
+                    G=dr.zeros(mi.Spectrum, n),
+                )
+            )
         feat = FeatureState.zeros(n) if self.features else None
 
         def body(sampler, base, offsets, feat, beta_scale=None):
@@ -225,8 +231,11 @@ class GDPTIntegrator(GradientIntegratorBase):
                 views.append(view)
                 # Own y_i glossy at or below shift_threshold (read once for NEE and the shift)
                 own_next = (o.status == NOT_CONNECTED) & o.alive & active
-                near_ys.append(near_glossy(o.si, o.si.bsdf(), own_next)
-                               if threshold is not None else mi.Bool(False))
+                near_ys.append(
+                    near_glossy(o.si, o.si.bsdf(), own_next)
+                    if threshold is not None
+                    else mi.Bool(False)
+                )
 
             for o, view in zip(offsets, views, strict=True):
                 own = o.status == NOT_CONNECTED
@@ -242,8 +251,11 @@ class GDPTIntegrator(GradientIntegratorBase):
                 light_y = dr.select(
                     own,
                     o.r * pn_y / dr.select(o.pb_prev > 0, o.pb_prev, 1),
-                    dr.select(recent, dr.select(cone, o.sJ * pn_y, o.s * pn_x),
-                              o.r * pn_x / dr.select(o.pb_prev > 0, o.pb_prev, 1)),
+                    dr.select(
+                        recent,
+                        dr.select(cone, o.sJ * pn_y, o.s * pn_x),
+                        o.r * pn_x / dr.select(o.pb_prev > 0, o.pb_prev, 1),
+                    ),
                 )
                 # A segment sampled at a near-specular pair is estimated by BSDF sampling alone.
                 den = 1 + dr.select(o.bsdf_only, 0, ratio_x + dr.select(o.alive, light_y, 0))
@@ -309,9 +321,11 @@ class GDPTIntegrator(GradientIntegratorBase):
                     visible = ~scene.ray_test(ray_y, act_own)
                     em = dr.select(visible, scene.eval_emitter_direction(y, ds_y, act_own), 0)
                     J = dr.select(
-                        fixed_point, 1.0,
-                        _reconnection_jacobian(ds.n, ds.d, dr.square(ds.dist), dir_y,
-                                               dr.square(dist_y)),
+                        fixed_point,
+                        1.0,
+                        reconnection_jacobian(
+                            ds.n, ds.d, dr.square(ds.dist), dir_y, dr.square(dist_y)
+                        ),
                     )
                     # J p_light(y). Area-sampled emitters and fixed points: exactly p_light(x),
                     # also when the light turns its back to y (Mitsuba samples such points with
@@ -381,8 +395,9 @@ class GDPTIntegrator(GradientIntegratorBase):
                     ray_rc = dr.select(hit_next, y.spawn_ray_to(si_next.p), y.spawn_ray(dir_rc))
                     J_rc = dr.select(
                         hit_next,
-                        _reconnection_jacobian(si_next.n, ray_next.d, dr.square(si_next.t),
-                                               dir_rc, d_y2),
+                        reconnection_jacobian(
+                            si_next.n, ray_next.d, dr.square(si_next.t), dir_rc, d_y2
+                        ),
                         1.0,
                     )
                     f_rc, p_rc = bsdf_y.eval_pdf(ctx, y, y.to_local(dir_rc), act_rc)
@@ -397,8 +412,11 @@ class GDPTIntegrator(GradientIntegratorBase):
                     # The sample must be of the requested kind: a mask BSDF answers a restricted
                     # context with its null lobe.
                     kind = mi.has_flag(bs_d.sampled_type, mi.BSDFFlags.DeltaReflection)
-                    kind = dr.select(reflect, kind, mi.has_flag(bs_d.sampled_type,
-                                                                mi.BSDFFlags.DeltaTransmission))
+                    kind = dr.select(
+                        reflect,
+                        kind,
+                        mi.has_flag(bs_d.sampled_type, mi.BSDFFlags.DeltaTransmission),
+                    )
                     ok_d = (bs_d.pdf > 0) & (dr.max(f_d) > 0) & kind
                     if has_null:
                         # Null lobe (opacity masks): straight on, f = the null transmission
@@ -411,7 +429,7 @@ class GDPTIntegrator(GradientIntegratorBase):
 
                     # Near-specular glossy x_i and y_i: copy the base's half vector
                     act_h = act & half_x
-                    wo_h, J_h, ok_h = _half_vector_shift(si.wi, bs.wo, bs.eta, y.wi)
+                    wo_h, J_h, ok_h = half_vector_shift(si.wi, bs.wo, bs.eta, y.wi)
                     ok_h &= half_y & ((bs.eta == 1) | (bsdf_y == bsdf))  # refraction: same IOR
                     f_h, p_h = bsdf_y.eval_pdf(ctx, y, wo_h, act_h & ok_h)
                     ok_h &= p_h > 0
@@ -419,7 +437,9 @@ class GDPTIntegrator(GradientIntegratorBase):
                     # Rough x_i before a near-specular x_{i+1}: replay the base's random numbers
                     act_s = act & ~delta_x & ~half_x & ~reconnect
                     bs_s, w_s = bsdf_y.sample(ctx, y, u1, u2, act_s)
-                    ok_s = y_smooth & (bs_s.pdf > 0)
+                    # A near-specular y_i under a rough x_i fails: from y the shift would copy
+                    # the half vector, so replay would not be the inverse of the reverse shift.
+                    ok_s = y_smooth & (bs_s.pdf > 0) & ~half_y
                     ok_s &= ~mi.has_flag(bs_s.sampled_type, mi.BSDFFlags.Delta)
 
                     trace = act & ~reconnect
@@ -455,8 +475,19 @@ class GDPTIntegrator(GradientIntegratorBase):
                     pb = dr.select(mapped, p_m, dr.select(delta_x, 1.0, bs_s.pdf))
                     s_rc = dr.select(reconnect, o.r * inv_p, 0)
                     status = dr.select(reconnect, mi.UInt32(RECENTLY_CONNECTED), NOT_CONNECTED)
-                    return (q, r, ok, pb, s_rc, s_rc * J_rc, trace & ~hit_y & hit_next,
-                            trace, si_y, status, act & (near_x | near_y))
+                    return (
+                        q,
+                        r,
+                        ok,
+                        pb,
+                        s_rc,
+                        s_rc * J_rc,
+                        trace & ~hit_y & hit_next,
+                        trace,
+                        si_y,
+                        status,
+                        act & (near_x | near_y),
+                    )
 
                 def follow(o=o, recent=recent, f_r=f_r, p_r=p_r):
                     """Recently connected or connected: the offset shares the base's next vertex."""
@@ -465,12 +496,23 @@ class GDPTIntegrator(GradientIntegratorBase):
                     pb = dr.select(recent, p_r, pb_next)
                     zero = dr.zeros(mi.Float, n)
                     status = dr.select(recent, mi.UInt32(CONNECTING), mi.UInt32(CONNECTED))
-                    return (q, r, ~recent | (p_r > 0), pb, zero, zero, mi.Bool(False),
-                            mi.Bool(False), dr.zeros(mi.SurfaceInteraction3f, n), status,
-                            mi.Bool(False))
+                    return (
+                        q,
+                        r,
+                        ~recent | (p_r > 0),
+                        pb,
+                        zero,
+                        zero,
+                        mi.Bool(False),
+                        mi.Bool(False),
+                        dr.zeros(mi.SurfaceInteraction3f, n),
+                        status,
+                        mi.Bool(False),
+                    )
 
-                (q, r, ok, o.pb_prev, o.s, o.sJ, o.escaped, trace, si_y, o.status,
-                 o.bsdf_only) = dr.if_stmt((), act & own, shift_own, follow)
+                (q, r, ok, o.pb_prev, o.s, o.sJ, o.escaped, trace, si_y, o.status, o.bsdf_only) = (
+                    dr.if_stmt((), act & own, shift_own, follow)
+                )
                 # A throughput or MIS ratio that is not finite fails the shift (counted). An
                 # overflowing r (+inf: the offset's pdf dwarfs the base's) is capped, so that the
                 # base's weight goes to 0, its correct limit.
@@ -513,11 +555,18 @@ class GDPTIntegrator(GradientIntegratorBase):
                 own = mi.Bool(False)
                 for o in offsets:
                     own |= o.alive & (o.status != CONNECTED)
+                    if threshold is not None:
+                        # The next emission of a segment from a near-specular pair has its own
+                        # MIS (BSDF sampling alone), also when that shift failed.
+                        own |= o.bsdf_only
                 return base.active & own
 
             sampler, base, offsets, feat = dr.while_loop(
-                (sampler, base, offsets, feat), pending, body,
-                labels=("sampler", "base", "offsets", "features"), label="gdpt_shift",
+                (sampler, base, offsets, feat),
+                pending,
+                body,
+                labels=("sampler", "base", "offsets", "features"),
+                label="gdpt_shift",
             )
 
         # Phase 2: every offset is connected (it shares all further vertices with the base) or
@@ -534,8 +583,11 @@ class GDPTIntegrator(GradientIntegratorBase):
             return sampler, base, feat
 
         sampler, base, feat = dr.while_loop(
-            (sampler, base, feat), lambda sampler, base, feat: base.active, tail_body,
-            labels=("sampler", "base", "features"), label="gdpt_tail",
+            (sampler, base, feat),
+            lambda sampler, base, feat: base.active,
+            tail_body,
+            labels=("sampler", "base", "features"),
+            label="gdpt_tail",
         )
         tail = base.L
         gradients = [
@@ -594,47 +646,6 @@ def _may_have_near_specular_glossy(scene: mi.Scene, threshold: float) -> bool:
             if 0 < alpha <= threshold:
                 return True
     return False
-
-
-def _reconnection_jacobian(n: mi.Normal3f, d_x: mi.Vector3f, dist2_x: mi.Float,
-                           d_y: mi.Vector3f, dist2_y: mi.Float) -> mi.Float:
-    """|d w_y / d w_x| of a reconnection to the vertex z with normal ``n``: the base arrives
-    along the unit direction ``d_x`` over squared distance ``dist2_x``, the offset along ``d_y``
-    over ``dist2_y``. The ratio of the solid-angle-to-area factors, |n.d_y| d_x^2 / (|n.d_x| d_y^2),
-    0 where it is not finite."""
-    return safe_div(dr.abs(dr.dot(n, d_y)) * dist2_x, dr.abs(dr.dot(n, d_x)) * dist2_y)
-
-
-def _half_vector_shift(wi_x: mi.Vector3f, wo_x: mi.Vector3f, eta_x: mi.Float,
-                       wi_y: mi.Vector3f) -> tuple[mi.Vector3f, mi.Float, mi.Bool]:
-    """Copy the base's half vector to the offset (Kettunen et al. 2015; the refraction
-    Jacobian follows from Walter et al. 2007's d omega_h / d omega_o).
-
-    ``wi_x, wo_x``: the base's local directions at x_i, ``eta_x``: its sample's relative IOR
-    (``bs.eta``, 1 for reflection), ``wi_y``: the offset's local incident direction. Returns the
-    offset's local outgoing direction, the Jacobian |d wo_y / d wo_x| and a validity mask
-    (refraction: eta != 1, both on the same side, no total internal reflection of the offset).
-    """
-    reflect = mi.Frame3f.cos_theta(wi_x) * mi.Frame3f.cos_theta(wo_x) > 0
-    eta = dr.select(reflect, 1.0, eta_x)
-    # Mitsuba's generalised half vector wi + eta wo, turned into the upper hemisphere
-    h = dr.normalize(wi_x + eta * wo_x)
-    h = dr.mulsign(h, mi.Frame3f.cos_theta(h))
-    cos_xi, cos_xo, cos_yi = dr.dot(wi_x, h), dr.dot(wo_x, h), dr.dot(wi_y, h)
-    # The offset refracts through the same interface: fresnel() takes the interior / exterior
-    # IOR and orients itself by the sign of cos_yi, which must match the base's side.
-    eta_int = dr.select(mi.Frame3f.cos_theta(wi_x) > 0, eta, dr.rcp(eta))
-    F, cos_t, _, eta_ti = mi.fresnel(cos_yi, eta_int)
-    wo_y = dr.select(reflect, mi.reflect(wi_y, h), mi.refract(wi_y, h, cos_t, eta_ti))
-    cos_yo = dr.dot(wo_y, h)
-    J_reflect = safe_div(dr.abs(cos_yo), dr.abs(cos_xo))
-    J_refract = safe_div(dr.square(cos_yi + eta * cos_yo) * dr.abs(cos_xo),
-                         dr.square(cos_xi + eta * cos_xo) * dr.abs(cos_yo))
-    same_side = (cos_xi * cos_yi > 0) & (
-        mi.Frame3f.cos_theta(wi_x) * mi.Frame3f.cos_theta(wi_y) > 0
-    )
-    ok = reflect | ((eta != 1) & same_side & (F < 1))
-    return wo_y, dr.select(reflect, J_reflect, J_refract), ok
 
 
 def _primary_hit(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool) -> mi.SurfaceInteraction3f:

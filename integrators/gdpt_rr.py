@@ -77,8 +77,12 @@ class GDPTReplayIntegrator(GradientIntegratorBase):
 
         def body(sampler, paths, feat, depth):
             # One set of random numbers per depth, shared by all five paths.
-            u_em, u1, u2, u_rr = sampler.next_2d(), sampler.next_1d(), sampler.next_2d(), \
-                sampler.next_1d()
+            u_em, u1, u2, u_rr = (
+                sampler.next_2d(),
+                sampler.next_1d(),
+                sampler.next_2d(),
+                sampler.next_1d(),
+            )
             for i, p in enumerate(paths):
                 bsdf = p.si.bsdf()
                 if i == 0 and feat is not None:
@@ -111,8 +115,11 @@ class GDPTReplayIntegrator(GradientIntegratorBase):
             return sampler, paths, feat, depth + 1
 
         sampler, paths, feat, depth = dr.while_loop(
-            (sampler, paths, feat, depth), cond, body,
-            labels=("sampler", "paths", "features", "depth"), label="gdpt_rr",
+            (sampler, paths, feat, depth),
+            cond,
+            body,
+            labels=("sampler", "paths", "features", "depth"),
+            label="gdpt_rr",
         )
         L0 = paths[0].L
         return PathSamples(

@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import mitsuba as mi
+import numpy as np
 
 from gdpt.scenes.elements import (
     _GREEN,
@@ -27,6 +28,7 @@ from gdpt.scenes.elements import (
     _shape,
     _sky_image,
     _sphere,
+    _twosided,
 )
 
 # --------------------------------------------------------------------------------------------
@@ -384,4 +386,125 @@ def _principled(res: tuple[int, int]) -> SceneDict:
             },
             angle=-25,
         ),
+    )
+
+
+def _height_field(size: int = 32, waves: float = 3.0) -> mi.Bitmap:
+    """A smooth, tileable height field (sum of two sines) for ``bumpmap`` scenes."""
+    u = (np.arange(size) + 0.5) / size
+    h = (
+        0.5
+        + 0.25 * np.sin(2 * np.pi * waves * u)[None, :]
+        + 0.25 * np.sin(2 * np.pi * waves * u)[:, None]
+    )
+    return mi.Bitmap(h[..., None].astype(np.float32))
+
+
+def _normal_field(size: int = 32, waves: float = 2.0, tilt: float = 0.4) -> mi.Bitmap:
+    """A tangent-space normal map (encoded as n * 0.5 + 0.5) of rolling bumps."""
+    u = (np.arange(size) + 0.5) / size
+    nx = tilt * np.sin(2 * np.pi * waves * u)[None, :].repeat(size, 0)
+    ny = tilt * np.cos(2 * np.pi * waves * u)[:, None].repeat(size, 1)
+    n = np.stack([nx, ny, np.ones_like(nx)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return mi.Bitmap((n * 0.5 + 0.5).astype(np.float32))
+
+
+@_builtin("alpha-mask")
+def _alpha_mask(res: tuple[int, int]) -> SceneDict:
+    """Opacity masks (``mask``, the null lobe): a checkerboard-cut screen (opacity 1 / 0.15)
+    in front of the back wall, and a horizontal cut-out under the ceiling light casting a
+    patterned shadow, in the Cornell shell."""
+
+    def masked(color: Vec3, cells: int) -> dict:
+        opacity = {
+            "type": "checkerboard",
+            "color0": 1.0,
+            "color1": 0.15,
+            "to_uv": mi.ScalarTransform4f().scale([float(cells), float(cells), 1.0]),
+        }
+        return {"type": "mask", "opacity": opacity, "nested": _twosided(_diffuse(color))}
+
+    return _scene(
+        _box_camera(res),
+        **_box_walls(light_size=0.7),
+        screen=_rectangle([0.15, -0.35, 0.1], [0.2, 0, 1], [1.1, 1.2], masked((0.8, 0.7, 0.3), 4)),
+        lattice=_rectangle([0, 0.6, 0], [0, -1, 0], [1.2, 1.2], masked((0.6, 0.6, 0.7), 5)),
+    )
+
+
+@_builtin("bump-map")
+def _bump_map(res: tuple[int, int]) -> SceneDict:
+    """Perturbed shading frames: a ``bumpmap`` (sine height field) over rough plastic on a
+    sphere, a ``normalmap`` over rough conductor on the floor, a blend (``blendbsdf``) of
+    diffuse and rough conductor on the back wall, in the Cornell shell."""
+    bump = {
+        "type": "bumpmap",
+        "arbitrary": {"type": "bitmap", "bitmap": _height_field(), "raw": True},
+        "scale": 0.5,
+        "bsdf": {"type": "roughplastic", "alpha": 0.15, "diffuse_reflectance": _rgb(0.5)},
+    }
+    normal = {
+        "type": "normalmap",
+        "normalmap": {"type": "bitmap", "bitmap": _normal_field(), "raw": True},
+        "bsdf": {"type": "roughconductor", "material": "Al", "alpha": 0.2},
+    }
+    blend = {
+        "type": "blendbsdf",
+        "weight": {
+            "type": "checkerboard",
+            "color0": 0.2,
+            "color1": 0.8,
+            "to_uv": mi.ScalarTransform4f().scale([3.0, 3.0, 1.0]),
+        },
+        "bsdf_0": _diffuse(_WHITE),
+        "bsdf_1": {"type": "roughconductor", "material": "Cu", "alpha": 0.25},
+    }
+    walls = _box_walls()
+    walls["floor"] = _rectangle([0, -1, 0], [0, 1, 0], [2, 2], normal)
+    walls["back"] = _rectangle([0, 0, -1], [0, 0, 1], [2, 2], blend)
+    return _scene(_box_camera(res), **walls, ball=_sphere([0, -0.5, 0], 0.45, bump))
+
+
+@_builtin("spot-directional")
+def _spot_directional(res: tuple[int, int]) -> SceneDict:
+    """Delta lights other than points: a ``spot`` (cutoff 25 deg, soft falloff) and a low
+    ``directional`` light over the ground with objects."""
+    return _scene(
+        _sensor([0.5, 1.3, 3.5], [0, 0.4, 0], res, fov=50),
+        **_ground_with_objects(),
+        spot={
+            "type": "spot",
+            "to_world": mi.ScalarTransform4f().look_at(
+                origin=[-1.5, 3.0, 1.0], target=[0, 0, 0], up=[0, 1, 0]
+            ),
+            "cutoff_angle": 25.0,
+            "beam_width": 15.0,
+            "intensity": _rgb(25.0),
+        },
+        sun={"type": "directional", "direction": [0.6, -0.5, -0.4], "irradiance": _rgb(1.5)},
+    )
+
+
+@_builtin("textured-roughness")
+def _textured_roughness(res: tuple[int, int]) -> SceneDict:
+    """Roughness from a texture: a roughconductor sphere and a roughdielectric slab whose
+    ``alpha`` is a checkerboard of 0.02 and 0.3 (near-specular and rough cells side by side
+    at a ``shift_threshold`` between them), in the Cornell shell."""
+
+    def alpha(cells: float) -> dict:
+        return {
+            "type": "checkerboard",
+            "color0": 0.02,
+            "color1": 0.3,
+            "to_uv": mi.ScalarTransform4f().scale([cells, cells, 1.0]),
+        }
+
+    metal = {"type": "roughconductor", "material": "Au", "alpha": alpha(4.0)}
+    glass = {"type": "roughdielectric", "int_ior": 1.5, "alpha": alpha(3.0)}
+    return _scene(
+        _box_camera(res),
+        **_box_walls(),
+        ball=_sphere([-0.4, -0.55, -0.2], 0.45, metal),
+        slab=_cube([0.45, -0.6, 0.3], [0.5, 0.8, 0.15], glass, angle=20),
     )

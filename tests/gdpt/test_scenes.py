@@ -48,6 +48,14 @@ ALLOWED_TYPES = GENERATOR_TYPES | {
     "rgb",
     "principled",
     "roughdielectric",
+    # the plugin coverage of the built-in integrator test scenes
+    "mask",
+    "bumpmap",
+    "normalmap",
+    "blendbsdf",
+    "bitmap",
+    "spot",
+    "directional",
 }
 
 

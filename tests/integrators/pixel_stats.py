@@ -46,8 +46,7 @@ class PixelZ:
     def where(self, k: int = 5) -> list[tuple[int, int, int, float]]:
         """The ``k`` largest ``|z|`` as (row, column, channel, z), for failure messages."""
         flat = np.argsort(np.abs(self.z), axis=None)[::-1][:k]
-        return [(*map(int, np.unravel_index(i, self.z.shape)), float(self.z.flat[i]))
-                for i in flat]
+        return [(*map(int, np.unravel_index(i, self.z.shape)), float(self.z.flat[i])) for i in flat]
 
     def __str__(self) -> str:
         return f"{100 * self.share:.2f}% |z|>{Z_OUTLIER}, max |z| {self.max_abs:.1f}"
@@ -99,7 +98,7 @@ def render_runs(scene, integrator, runs: int, spp: int, seed: int) -> dict[str, 
         start = 0
         for name, c in channels:
             if name in ("primal", "dx", "dy"):
-                out.setdefault(name, []).append(image[..., start:start + c])
+                out.setdefault(name, []).append(image[..., start : start + c])
             start += c
     return {name: np.stack(v) for name, v in out.items()}
 

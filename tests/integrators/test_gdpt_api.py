@@ -12,7 +12,8 @@ def _xml(integrator: str, rfilter: str = "box", extra: str = "") -> str:
     return f"""<scene version="3.0.0">
         <integrator type="{integrator}"><integer name="max_depth" value="3"/>{extra}</integrator>
         <sensor type="perspective">
-            <transform name="to_world"><lookat origin="0,0,4" target="0,0,0" up="0,1,0"/></transform>
+            <transform name="to_world">
+                <lookat origin="0,0,4" target="0,0,0" up="0,1,0"/></transform>
             <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="6"/>
                 <rfilter type="{rfilter}"/></film>
         </sensor>
@@ -89,8 +90,7 @@ def test03c_features_pass_near_specular_glossy_vertices(variant):
     scene = builtin_scene("near-specular", resolution=(12, 12))
     for gradients in (True, False):
         low, high = (
-            gdpt.render(scene, spp=8, seed=4, max_depth=4, gradients=gradients,
-                        shift_threshold=t)
+            gdpt.render(scene, spp=8, seed=4, max_depth=4, gradients=gradients, shift_threshold=t)
             for t in (0.001, 0.05)
         )
         deeper = high.depth.numpy() > low.depth.numpy() + 0.1
@@ -106,7 +106,15 @@ def test04_compute_only_what_is_requested(variant):
     assert plain.present() == ["primal"]
     full = gdpt.render(scene, spp=2, variance=True)
     assert full.present() == [
-        "primal", "dx", "dy", "albedo", "normal", "depth", "var_primal", "var_dx", "var_dy"
+        "primal",
+        "dx",
+        "dy",
+        "albedo",
+        "normal",
+        "depth",
+        "var_primal",
+        "var_dx",
+        "var_dy",
     ]
     # All buffers are views of the integrator's one output tensor (no copies).
     storage = full.primal.untyped_storage().data_ptr()
@@ -167,8 +175,11 @@ def test07_hard_cases_stay_finite(variant, name, integrator):
 
     spp, res = 16, 16
     b = gdpt.render(
-        builtin_scene(name, resolution=(res, res)), spp=spp, integrator=integrator,
-        max_depth=64, variance=True,
+        builtin_scene(name, resolution=(res, res)),
+        spp=spp,
+        integrator=integrator,
+        max_depth=64,
+        variance=True,
     )
     assert b.nonfinite_counts() == {n: 0 for n in b.present()}, name
     assert float(b.primal.sum()) > 0
@@ -178,15 +189,19 @@ def test07_hard_cases_stay_finite(variant, name, integrator):
     assert all(v == 0 for v in counts.values()), (name, counts)
 
 
-@pytest.mark.parametrize("name", ["near-specular", "principled", "plastic", "tiny-bright-light",
-                                  "grazing"])
+@pytest.mark.parametrize(
+    "name", ["near-specular", "principled", "plastic", "tiny-bright-light", "grazing"]
+)
 def test07b_half_vector_shift_everywhere_stays_finite(variant, name):
     """shift_threshold 1 sends every glossy vertex through the half-vector copy."""
     import gdpt
     from gdpt.scenes import builtin_scene
 
     b = gdpt.render(
-        builtin_scene(name, resolution=(16, 16)), spp=16, max_depth=64, variance=True,
+        builtin_scene(name, resolution=(16, 16)),
+        spp=16,
+        max_depth=64,
+        variance=True,
         shift_threshold=1.0,
     )
     assert b.nonfinite_counts() == {n: 0 for n in b.present()}, name
@@ -216,13 +231,23 @@ def test09_unsupported_plugins_are_named(variant, tmp_path):
 
     for old, new, expected in [
         ('<bsdf type="diffuse"/>', '<bsdf type="hair"/>', "BSDF 'Hair' on shape"),
-        ('<bsdf type="diffuse"/>', '<bsdf type="mask"><bsdf type="pplastic"/></bsdf>',
-         "BSDF 'PolarizedPlastic' on shape"),
-        ('<bsdf type="diffuse"/>', '<bsdf type="blendbsdf"><float name="weight" value="0.5"/>'
-         '<bsdf type="diffuse"/><bsdf type="conductor"/></bsdf>', "blends a delta"),
-        ('<emitter type="constant"/>', '<emitter type="projector"><texture type="bitmap" '
-         'name="irradiance"><string name="filename" value="{png}"/></texture></emitter>',
-         "emitter 'Projector'"),
+        (
+            '<bsdf type="diffuse"/>',
+            '<bsdf type="mask"><bsdf type="pplastic"/></bsdf>',
+            "BSDF 'PolarizedPlastic' on shape",
+        ),
+        (
+            '<bsdf type="diffuse"/>',
+            '<bsdf type="blendbsdf"><float name="weight" value="0.5"/>'
+            '<bsdf type="diffuse"/><bsdf type="conductor"/></bsdf>',
+            "blends a delta",
+        ),
+        (
+            '<emitter type="constant"/>',
+            '<emitter type="projector"><texture type="bitmap" '
+            'name="irradiance"><string name="filename" value="{png}"/></texture></emitter>',
+            "emitter 'Projector'",
+        ),
     ]:
         if "{png}" in new:
             image = tmp_path / "white.exr"

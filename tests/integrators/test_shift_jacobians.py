@@ -55,13 +55,13 @@ def _configurations(kind: str, n: int = 256, seed: int = 7):
 @pytest.mark.parametrize("kind", ["reflect", "refract-outside", "refract-inside"])
 def test_half_vector_jacobian_matches_finite_differences(variant, kind):
     import mitsuba as mi
-    from gdpt.integrators.gdpt import _half_vector_shift
+    from gdpt.integrators.shifts import half_vector_shift
 
     wi, wo, eta, wi_y = _configurations(kind)
     t1, t2 = _tangents(wo)
 
     def shift(d):
-        out, J, ok = _half_vector_shift(
+        out, J, ok = half_vector_shift(
             mi.Vector3f(wi.T), mi.Vector3f(_unit(d).T), mi.Float(eta), mi.Vector3f(wi_y.T)
         )
         return np.array(out).T.astype(np.float64), np.array(J), np.array(ok)
@@ -83,11 +83,11 @@ def test_half_vector_jacobian_matches_finite_differences(variant, kind):
 def test_half_vector_shift_is_identity_on_the_base(variant):
     """wi_y = wi_x maps wo_x to itself with Jacobian 1 (the base is its own offset)."""
     import mitsuba as mi
-    from gdpt.integrators.gdpt import _half_vector_shift
+    from gdpt.integrators.shifts import half_vector_shift
 
     for kind in ("reflect", "refract-outside", "refract-inside"):
         wi, wo, eta, _ = _configurations(kind)
-        wo_y, J, ok = _half_vector_shift(
+        wo_y, J, ok = half_vector_shift(
             mi.Vector3f(wi.T), mi.Vector3f(wo.T), mi.Float(eta), mi.Vector3f(wi.T)
         )
         ok = np.array(ok)
@@ -100,7 +100,7 @@ def test_reconnection_jacobian_matches_finite_differences(variant):
     """Base x and offset y see the vertex z on a plane; moving the base direction moves z and
     with it the reconnected direction z - y."""
     import mitsuba as mi
-    from gdpt.integrators.gdpt import _reconnection_jacobian
+    from gdpt.integrators.shifts import reconnection_jacobian
 
     rng = np.random.default_rng(11)
     n_cases = 256
@@ -129,9 +129,14 @@ def test_reconnection_jacobian_matches_finite_differences(variant):
 
     zz, t = hit(wo)
     to_z = zz - y
-    J = np.array(_reconnection_jacobian(
-        mi.Normal3f(normal.T), mi.Vector3f(wo.T), mi.Float(t * t), mi.Vector3f(_unit(to_z).T),
-        mi.Float(np.sum(to_z * to_z, -1)),
-    ))
+    J = np.array(
+        reconnection_jacobian(
+            mi.Normal3f(normal.T),
+            mi.Vector3f(wo.T),
+            mi.Float(t * t),
+            mi.Vector3f(_unit(to_z).T),
+            mi.Float(np.sum(to_z * to_z, -1)),
+        )
+    )
     assert len(J) > n_cases // 4
     np.testing.assert_allclose(J, J_fd, rtol=RTOL)
