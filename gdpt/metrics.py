@@ -30,17 +30,16 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from gdpt.reconstruct.losses import (
+from gdpt.reconstruct.colour import reinhard, srgb_encode
+from gdpt.reconstruct.elpips import (
     ELPIPS,
     ELPIPS_WEIGHTS_ENV,
-    FLIP_DEFAULT_PPD,
     ELPIPSConfig,
-    ELPIPSLoss,
     ELPIPSWeightsError,
     load_elpips_weights,
-    reinhard,
-    srgb_encode,
 )
+from gdpt.reconstruct.flip import FLIP_DEFAULT_PPD
+from gdpt.reconstruct.losses import ELPIPSLoss
 from gdpt.reconstruct.registry import Registry
 
 __all__ = [
@@ -305,7 +304,7 @@ def elpips(
     Args:
         image_test: ``(H, W, 3)`` float linear image (torch, any device, or numpy), H, W >= 64.
         image_ref: ``(H, W, 3)`` float linear reference.
-        weights: weight file (see ``gdpt.reconstruct.losses.load_elpips_weights``); default: the
+        weights: weight file (see ``gdpt.reconstruct.elpips.load_elpips_weights``); default: the
             ``GDPT_ELPIPS_WEIGHTS`` environment variable.
         samples: number of ensemble samples averaged.
         seed: seed of the ensemble draws (results are reproducible for equal seeds).

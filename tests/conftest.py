@@ -3,11 +3,13 @@
 * ``variant`` (session): Mitsuba's ``llvm_ad_rgb`` with the gdpt plugins registered (the same
   contract as ``tests/integrators/conftest.py``'s fixture of that name).
 * ``random_buffers``: a factory of random :class:`~gdpt.buffers.GradientBuffers` on the CPU.
+* ``single_thread``: one torch intra-op thread during the test (restored after), for tiny
+  workloads on shared CPUs (``pytestmark = pytest.mark.usefixtures("single_thread")``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 
 import pytest
 import torch
@@ -42,3 +44,12 @@ def make_random_buffers(
 def random_buffers() -> Callable[..., GradientBuffers]:
     """:func:`make_random_buffers`, as a fixture."""
     return make_random_buffers
+
+
+@pytest.fixture
+def single_thread() -> Iterator[None]:
+    """One torch intra-op thread during the test (the previous count is restored)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

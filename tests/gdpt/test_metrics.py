@@ -8,20 +8,14 @@ import flip_evaluator
 import numpy as np
 import pytest
 import torch
-from gdpt.reconstruct import losses as L
+from gdpt.reconstruct import elpips as E
+from gdpt.reconstruct.flip import hdr_flip
 from gdpt.reconstruct.registry import Registry
 from scipy.ndimage import gaussian_filter
 
 from gdpt import metrics as M
 
-
-@pytest.fixture(autouse=True)
-def _single_thread():
-    """Tiny workloads: avoid intra-op thread oversubscription on shared CPUs (restored after)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def const(*rgb: float, size: int = 16) -> np.ndarray:
@@ -110,7 +104,7 @@ def test_flip_metrics_match_tool_and_torch_flip() -> None:
     test, ref = hdr_pair()
     _, expected, _ = flip_evaluator.evaluate(ref, test, "HDR", applyMagma=False)
     assert M.flip_hdr(test, ref) == pytest.approx(expected, rel=1e-6)
-    torch_flip = L.hdr_flip(
+    torch_flip = hdr_flip(
         torch.from_numpy(test).permute(2, 0, 1)[None], torch.from_numpy(ref).permute(2, 0, 1)[None]
     )
     assert torch_flip.item() == pytest.approx(expected, rel=0.01)
@@ -177,7 +171,7 @@ def test_registry(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_compute_metrics_skips_unavailable(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv(L.ELPIPS_WEIGHTS_ENV, raising=False)
+    monkeypatch.delenv(E.ELPIPS_WEIGHTS_ENV, raising=False)
     monkeypatch.setitem(sys.modules, "flip_evaluator", None)  # import now raises ImportError
     test, ref = hdr_pair(16)
     result = M.compute_metrics(test, ref, options={"relmse": {"eps": 0.0}})
@@ -194,13 +188,13 @@ def test_compute_metrics_skips_unavailable(monkeypatch: pytest.MonkeyPatch) -> N
 
 def test_elpips_metric_with_local_weights(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
     torch.manual_seed(0)
-    state = dict(L.SqueezeNetFeatures().state_dict())
+    state = dict(E.SqueezeNetFeatures().state_dict())
     state.update(
-        {f"lin{i}.weight": torch.rand(c) for i, c in enumerate(L.SqueezeNetFeatures.channels)}
+        {f"lin{i}.weight": torch.rand(c) for i, c in enumerate(E.SqueezeNetFeatures.channels)}
     )
     path = tmp_path / "elpips.pt"
     torch.save(state, path)
-    monkeypatch.setenv(L.ELPIPS_WEIGHTS_ENV, str(path))
+    monkeypatch.setenv(E.ELPIPS_WEIGHTS_ENV, str(path))
     test, ref = hdr_pair(64)
     value = M.elpips(test, ref, samples=2)
     assert value > 0 and value == M.elpips(test, ref, samples=2)  # seeded: reproducible
