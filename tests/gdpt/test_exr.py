@@ -20,12 +20,6 @@ from gdpt.io.exr import channel_names, load_buffers, load_image, save_buffers, s
 OPTIONAL = [n for n in CHANNELS if n not in ("primal", "dx", "dy")]
 
 
-def make_buffers(h: int = 7, w: int = 5, *, names=tuple(CHANNELS), seed: int = 0, **kw):
-    g = torch.Generator().manual_seed(seed)
-    tensors = {n: torch.randn(h, w, CHANNELS[n], generator=g) * 10 for n in names}
-    return GradientBuffers(**tensors, **kw)
-
-
 def assert_same(a: GradientBuffers, b: GradientBuffers) -> None:
     assert a.present() == b.present()
     for name, t in a.items():
@@ -39,9 +33,9 @@ def write_raw(path: Path, channels: dict[str, np.ndarray]) -> Path:
     return path
 
 
-def test_float_round_trip_is_bit_exact(tmp_path):
+def test_float_round_trip_is_bit_exact(tmp_path, random_buffers):
     meta = {"integrator": "gdpt", "seed": 3, "timings": {"render": 1.5}, "tags": ["a", "b"]}
-    buffers = make_buffers(spp=64, metadata=meta)
+    buffers = random_buffers(spp=64, metadata=meta)
     buffers.primal[0, 0, 0] = float("nan")
     buffers.dx[1, 2, 1] = float("inf")
     buffers.dy[2, 1, 2] = -float("inf")
@@ -50,8 +44,8 @@ def test_float_round_trip_is_bit_exact(tmp_path):
     assert_same(buffers, load_buffers(path))
 
 
-def test_conventional_channel_names_and_header(tmp_path):
-    save_buffers(tmp_path / "r.exr", make_buffers(spp=4, metadata={"k": 1}))
+def test_conventional_channel_names_and_header(tmp_path, random_buffers):
+    save_buffers(tmp_path / "r.exr", random_buffers(spp=4, metadata={"k": 1}))
     f = OpenEXR.File(str(tmp_path / "r.exr"), separate_channels=True)
     assert len(f.parts) == 1
     expected = {
@@ -67,8 +61,8 @@ def test_conventional_channel_names_and_header(tmp_path):
     assert all(c.pixels.dtype == np.float32 for c in f.channels().values())
 
 
-def test_half_round_trip_within_half_precision(tmp_path):
-    buffers = make_buffers()
+def test_half_round_trip_within_half_precision(tmp_path, random_buffers):
+    buffers = random_buffers()
     path = save_buffers(tmp_path / "h.exr", buffers, half=True)
     f = OpenEXR.File(str(path), separate_channels=True)
     assert all(c.pixels.dtype == np.float16 for c in f.channels().values())
@@ -81,8 +75,8 @@ def test_half_round_trip_within_half_precision(tmp_path):
     assert path.stat().st_size < save_buffers(tmp_path / "f.exr", buffers).stat().st_size
 
 
-def test_primal_only_and_subsets(tmp_path):
-    buffers = make_buffers(names=("primal", "depth"))
+def test_primal_only_and_subsets(tmp_path, random_buffers):
+    buffers = random_buffers(names=("primal", "depth"), spp=0)
     loaded = load_buffers(save_buffers(tmp_path / "p.exr", buffers))
     assert loaded.present() == ["primal", "depth"] and not loaded.has_gradients
     assert (loaded.spp, loaded.metadata) == (0, {})
@@ -126,8 +120,8 @@ def test_not_an_exr(tmp_path):
 
 
 @pytest.mark.parametrize("fraction", [0.05, 0.5, 0.95])
-def test_truncated_file(tmp_path, fraction):
-    path = save_buffers(tmp_path / "full.exr", make_buffers(40, 30))
+def test_truncated_file(tmp_path, fraction, random_buffers):
+    path = save_buffers(tmp_path / "full.exr", random_buffers(40, 30))
     data = path.read_bytes()
     cut = tmp_path / "cut.exr"
     cut.write_bytes(data[: int(len(data) * fraction)])
@@ -140,20 +134,20 @@ def test_missing_file(tmp_path):
         load_buffers(tmp_path / "nothing.exr")
 
 
-def test_no_overwrite_without_force(tmp_path):
-    path = save_buffers(tmp_path / "r.exr", make_buffers(seed=1))
+def test_no_overwrite_without_force(tmp_path, random_buffers):
+    path = save_buffers(tmp_path / "r.exr", random_buffers(seed=1))
     before = path.read_bytes()
     with pytest.raises(FileExistsError, match=r"r\.exr"):
-        save_buffers(path, make_buffers(seed=2))
+        save_buffers(path, random_buffers(seed=2))
     with pytest.raises(FileExistsError, match=r"r\.exr"):
         save_image(path, torch.zeros(2, 2, 3))
     assert path.read_bytes() == before
-    save_buffers(path, make_buffers(seed=2), force=True)
-    assert_same(make_buffers(seed=2), load_buffers(path))
+    save_buffers(path, random_buffers(seed=2), force=True)
+    assert_same(random_buffers(seed=2), load_buffers(path))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.exr"]
 
 
-def test_failed_write_leaves_no_file(tmp_path, monkeypatch):
+def test_failed_write_leaves_no_file(tmp_path, monkeypatch, random_buffers):
     class BrokenFile:
         def __init__(self, header, channels):
             pass
@@ -164,13 +158,13 @@ def test_failed_write_leaves_no_file(tmp_path, monkeypatch):
 
     monkeypatch.setattr(exr.OpenEXR, "File", BrokenFile)
     with pytest.raises(OSError, match="disk full"):
-        save_buffers(tmp_path / "r.exr", make_buffers())
+        save_buffers(tmp_path / "r.exr", random_buffers())
     assert list(tmp_path.iterdir()) == []
 
 
-def test_unserialisable_metadata_writes_nothing(tmp_path):
+def test_unserialisable_metadata_writes_nothing(tmp_path, random_buffers):
     with pytest.raises(TypeError, match="JSON"):
-        save_buffers(tmp_path / "r.exr", make_buffers(metadata={"x": object()}))
+        save_buffers(tmp_path / "r.exr", random_buffers(metadata={"x": object()}))
     assert list(tmp_path.iterdir()) == []
 
 
@@ -187,8 +181,8 @@ def test_save_and_load_image(tmp_path):
         save_image(tmp_path / "bad.exr", np.zeros((4, 4)))
 
 
-def test_load_image_layers(tmp_path):
-    buffers = make_buffers()
+def test_load_image_layers(tmp_path, random_buffers):
+    buffers = random_buffers()
     path = save_buffers(tmp_path / "r.exr", buffers)
     assert torch.equal(load_image(path, "dx"), buffers.dx)
     assert torch.equal(load_image(path, "normal"), buffers.normal)
@@ -207,7 +201,7 @@ def test_channel_names():
 
 
 @st.composite
-def random_buffers(draw):
+def buffers_strategy(draw):
     h, w = draw(st.integers(1, 9)), draw(st.integers(1, 9))
     names = ["primal"]
     if draw(st.booleans()):
@@ -225,7 +219,7 @@ def random_buffers(draw):
 
 
 @settings(max_examples=30, deadline=None)
-@given(buffers=random_buffers(), half=st.booleans())
+@given(buffers=buffers_strategy(), half=st.booleans())
 def test_property_round_trip(buffers, half):
     with tempfile.TemporaryDirectory() as tmp:
         loaded = load_buffers(save_buffers(Path(tmp) / "r.exr", buffers, half=half))

@@ -4,18 +4,20 @@ from __future__ import annotations
 
 import pytest
 import torch
+from gdpt.reconstruct.transforms import FEATURES_WITH_GRADIENTS, FEATURES_WITHOUT_GRADIENTS
 
-from gdpt.buffers import GradientBuffers
 from gdpt.denoise import reconstruct
 
 
-def _buffers(h=13, w=17, gradients=True):
-    g = torch.Generator().manual_seed(0)
-    rand = lambda c: torch.rand(h, w, c, generator=g)  # noqa: E731
-    extra = {"dx": rand(3) - 0.5, "dy": rand(3) - 0.5} if gradients else {}
-    return GradientBuffers(
-        primal=rand(3), albedo=rand(3), normal=rand(3) * 2 - 1, depth=rand(1), spp=4, **extra
-    )
+@pytest.fixture
+def ngpt_buffers(random_buffers):
+    """``f(gradients=True)``: 13x17 random NGPT input buffers (with or without dx, dy)."""
+
+    def make(gradients: bool = True):
+        names = FEATURES_WITH_GRADIENTS if gradients else FEATURES_WITHOUT_GRADIENTS
+        return random_buffers(13, 17, names=names)
+
+    return make
 
 
 @pytest.fixture
@@ -30,23 +32,23 @@ def checkpoint(tmp_path):
     return path
 
 
-def test_ngpt_with_explicit_checkpoint(checkpoint):
-    image = reconstruct(_buffers(), method="ngpt", model=checkpoint)
+def test_ngpt_with_explicit_checkpoint(checkpoint, ngpt_buffers):
+    image = reconstruct(ngpt_buffers(), method="ngpt", model=checkpoint)
     assert image.shape == (13, 17, 3) and image.dtype == torch.float32
     assert torch.isfinite(image).all() and (image >= 0).all()  # radiance: clamped at 0
 
 
-def test_checkpoint_from_environment(checkpoint, monkeypatch):
+def test_checkpoint_from_environment(checkpoint, monkeypatch, ngpt_buffers):
     monkeypatch.setenv("GDPT_NGPT_MODEL", str(checkpoint))
-    assert reconstruct(_buffers(), method="ngpt").shape == (13, 17, 3)
+    assert reconstruct(ngpt_buffers(), method="ngpt").shape == (13, 17, 3)
 
 
-def test_missing_checkpoint_says_what_to_provide(tmp_path, monkeypatch):
+def test_missing_checkpoint_says_what_to_provide(tmp_path, monkeypatch, ngpt_buffers):
     monkeypatch.delenv("GDPT_NGPT_MODEL", raising=False)
     with pytest.raises(FileNotFoundError, match="model=PATH"):
-        reconstruct(_buffers(), method="ngpt", model=tmp_path / "none.safetensors")
+        reconstruct(ngpt_buffers(), method="ngpt", model=tmp_path / "none.safetensors")
 
 
-def test_missing_gradients_named(checkpoint):
+def test_missing_gradients_named(checkpoint, ngpt_buffers):
     with pytest.raises((KeyError, ValueError), match="dx"):
-        reconstruct(_buffers(gradients=False), method="ngpt", model=checkpoint)
+        reconstruct(ngpt_buffers(gradients=False), method="ngpt", model=checkpoint)
