@@ -10,9 +10,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-mi.set_variant("llvm_ad_rgb")
+from gdpt import scenes
 
-from gdpt import scenes  # noqa: E402  (needs a variant for the transform types)
+#: Scene dictionaries hold Mitsuba transforms and bitmaps: every test needs the variant.
+pytestmark = pytest.mark.usefixtures("variant")
 
 #: Seeds scanned (as dictionaries only) for generator coverage.
 COVERAGE_SEEDS = range(40)
