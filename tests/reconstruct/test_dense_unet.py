@@ -116,7 +116,7 @@ def test_inference_path_and_fuse_match_autograd_path(name):
     torch.testing.assert_close(fused, reference.detach(), rtol=1e-4, atol=1e-4)
 
 
-def test07b_residual_adds_the_input_primal():
+def test_residual_adds_the_input_primal():
     x = torch.randn(2, 16, 16, 24)
     residual = build_model("fast_xs_res")
     direct = _perturbed(build_model("fast_xs"), seed=2)

@@ -49,7 +49,7 @@ def test_transform_inverses_exact():
     assert torch.equal(T.Log1p().forward(torch.tensor([-3.0])), torch.tensor([0.0]))
 
 
-def test01b_output_transform_never_overflows():
+def test_output_transform_never_overflows():
     """A diverging network (log-radiance 100 or inf) must not produce inf or NaN radiance, nor a
     NaN in a squared loss."""
     y = torch.tensor([0.0, 30.0, 100.0, float("inf")])
