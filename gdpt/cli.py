@@ -3,8 +3,10 @@
 Every subcommand is a :class:`Command`: a name, a one-line help text, a function that adds its
 arguments to an argparse sub-parser and a function that runs it. To add a subcommand, write
 ``_add_<name>_arguments(parser)`` and ``_run_<name>(args) -> int`` and append a
-:class:`Command` to :data:`COMMANDS`. Heavy modules (torch, Mitsuba) are imported inside the
-``_run_*`` functions so that ``gdpt --help`` stays fast.
+:class:`Command` to :data:`COMMANDS`. Heavy modules (torch, Mitsuba) are imported inside these
+functions only: a sub-parser adds its arguments when it is used (:class:`_CommandParser`), so
+``gdpt --help`` and the light commands stay fast. Options of typed configurations
+(``TrainConfig``, ``DatasetConfig``) are generated from their fields (:mod:`gdpt.cli_config`).
 
 User errors (missing or malformed input, refusing to overwrite, invalid options) print one line
 ``gdpt <command>: error: <message>`` to stderr and exit with status 2, without a traceback.
@@ -22,6 +24,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from gdpt.cli_config import add_config_arguments, config_from_args
 from gdpt.denoise import METHODS
 from gdpt.version import __version__
 
@@ -292,29 +295,21 @@ def _run_evaluate(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------------ dataset
+#: DatasetConfig fields without an option: the generator knobs are a nested config.
+_DATASET_EXCLUDED = ("scene_config",)
+
+
 def _add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
+    from gdpt.training.dataset import TARGET_KINDS, DatasetConfig
+
     parser.add_argument("--out", type=Path, required=True, help="dataset directory")
-    parser.add_argument("--scenes", type=int, required=True, help="procedural scenes")
-    parser.add_argument("--views", type=int, required=True, help="camera views per scene")
-    parser.add_argument("--resolution", type=int, default=128, help="crop side (default: 128)")
-    parser.add_argument("--spp-min", type=int, default=2, help="lowest input spp (default: 2)")
-    parser.add_argument("--spp-max", type=int, default=256, help="highest input spp (default: 256)")
-    parser.add_argument("--target-spp", type=int, default=4096, help="target spp (default: 4096)")
-    parser.add_argument(
-        "--target",
-        choices=["l1", "pt"],
-        default="l1",
-        help="target: G-PT + L1 Poisson (l1, the paper's) or path tracing (pt; default: l1)",
+    add_config_arguments(
+        parser,
+        DatasetConfig,
+        exclude=_DATASET_EXCLUDED,
+        required=("scenes", "views"),
+        choices={"target": TARGET_KINDS},
     )
-    parser.add_argument("--levels", type=int, default=5, help="noisy inputs per crop (default: 5)")
-    parser.add_argument(
-        "--pt-factor",
-        type=float,
-        default=2.5,
-        help="path-traced input spp / G-PT input spp, the equal-time ratio (default: 2.5)",
-    )
-    parser.add_argument("--max-depth", type=int, default=6, help="longest path (default: 6)")
-    parser.add_argument("--seed", type=int, default=0, help="dataset seed (default: 0)")
     parser.add_argument(
         "--workers",
         type=int,
@@ -334,19 +329,7 @@ def _add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
 def _run_dataset(args: argparse.Namespace) -> int:
     from gdpt.training.dataset import DatasetConfig, build_dataset
 
-    config = DatasetConfig(
-        scenes=args.scenes,
-        views=args.views,
-        resolution=args.resolution,
-        spp_min=args.spp_min,
-        spp_max=args.spp_max,
-        target_spp=args.target_spp,
-        target=args.target,
-        levels=args.levels,
-        pt_factor=args.pt_factor,
-        max_depth=args.max_depth,
-        seed=args.seed,
-    )
+    config = config_from_args(DatasetConfig, args, exclude=_DATASET_EXCLUDED)
     summary = build_dataset(
         config, args.out, workers=args.workers, ray_address=args.ray, variant=args.variant
     )
@@ -359,66 +342,25 @@ def _run_dataset(args: argparse.Namespace) -> int:
 
 # -------------------------------------------------------------------------------------- train
 def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--config",
-        required=True,
-        metavar="NAME",
-        help="model config, a key of "
-        "gdpt.reconstruct.dense_unet.CONFIGS (paper, nograd, fast, fast_xs, ...), or a design "
-        "of gdpt.reconstruct.oidn_ngpt.DESIGNS (oidn-grad, oidn-grad-l1, oidn-nograd: OIDN's "
-        "U-Net fine-tuned)",
+    from gdpt.reconstruct.losses import LOSSES
+    from gdpt.training.finetune import FINETUNE_LOSSES
+    from gdpt.training.train import TrainConfig
+
+    losses = [*LOSSES, *(name for name in FINETUNE_LOSSES if name not in LOSSES)]
+    add_config_arguments(
+        parser,
+        TrainConfig,
+        names={"model": "--config"},
+        required=("model", "data", "out"),
+        choices={"loss": losses},
     )
-    parser.add_argument("--data", required=True, help="dataset directory (gdpt dataset)")
-    parser.add_argument("--out", required=True, help="run directory")
-    parser.add_argument(
-        "--val-data",
-        default=None,
-        help="validation dataset directory (default: every --holdout-every-th scene of --data)",
-    )
-    parser.add_argument("--holdout-every", type=int, default=10, help="default: 10")
-    parser.add_argument(
-        "--loss",
-        choices=["flip", "flip_rel", "flip_log", "flip_hdr", "l1", "elpips", "l1_rel"],
-        default="flip",
-        help="training loss (default: flip; flip_rel / flip_log "
-        "add a relative / log-space L1, see gdpt.reconstruct.losses; fine-tuning OIDN "
-        "(--config oidn-*): l1 (PU space) or l1_rel (+ relative MSE)",
-    )
-    parser.add_argument("--steps", type=int, default=1000, help="updates (default: 1000)")
-    parser.add_argument("--batch", type=int, default=8, help="crops per update and process")
-    parser.add_argument(
-        "--crop", type=int, default=None, help="random sub-crop side (default: the dataset crop)"
-    )
-    parser.add_argument("--lr", type=float, default=5e-4, help="base learning rate")
-    parser.add_argument("--seed", type=int, default=0, help="training seed (default: 0)")
-    parser.add_argument("--val-every", type=int, default=100, help="default: 100 (0: never)")
-    parser.add_argument("--val-crops", type=int, default=32, help="validation elements")
-    parser.add_argument("--ckpt-every", type=int, default=100, help="default: 100")
-    parser.add_argument("--device", default=None, help="torch device (default: automatic)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out")
 
 
 def _run_train(args: argparse.Namespace) -> int:
     from gdpt.training.train import TrainConfig, train
 
-    config = TrainConfig(
-        model=args.config,
-        data=args.data,
-        out=args.out,
-        val_data=args.val_data,
-        holdout_every=args.holdout_every,
-        loss=args.loss,
-        steps=args.steps,
-        batch=args.batch,
-        crop=args.crop,
-        lr=args.lr,
-        seed=args.seed,
-        val_every=args.val_every,
-        val_crops=args.val_crops,
-        ckpt_every=args.ckpt_every,
-        device=args.device,
-    )
-    path = train(config, resume=args.resume)
+    path = train(config_from_args(TrainConfig, args), resume=args.resume)
     if int(os.environ.get("RANK", "0")) == 0:
         print(f"wrote {path}")
     return 0
@@ -525,18 +467,47 @@ COMMANDS: tuple[Command, ...] = (
 )
 
 
+class _CommandParser(argparse.ArgumentParser):
+    """A sub-parser that adds its command's arguments on first use (parsing, help or usage).
+
+    Attributes:
+        add_arguments: the command's ``_add_<name>_arguments``; ``None`` once called.
+    """
+
+    add_arguments: Callable[[argparse.ArgumentParser], None] | None = None
+
+    def _add_arguments_once(self) -> None:
+        add, self.add_arguments = self.add_arguments, None
+        if add is not None:
+            add(self)
+
+    def parse_known_args(self, args=None, namespace=None):  # noqa: D102 (argparse's)
+        self._add_arguments_once()
+        return super().parse_known_args(args, namespace)
+
+    def format_usage(self) -> str:  # noqa: D102 (argparse's)
+        self._add_arguments_once()
+        return super().format_usage()
+
+    def format_help(self) -> str:  # noqa: D102 (argparse's)
+        self._add_arguments_once()
+        return super().format_help()
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The ``gdpt`` argument parser with one sub-parser per entry of :data:`COMMANDS`."""
+    """The ``gdpt`` argument parser with one (lazily filled) sub-parser per :data:`COMMANDS`."""
     parser = argparse.ArgumentParser(
         prog="gdpt",
         description="Gradient-domain path tracing for Mitsuba 3 with Poisson and neural "
         "reconstruction.",
     )
     parser.add_argument("--version", action="version", version=f"gdpt {__version__}")
-    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    subparsers = parser.add_subparsers(
+        dest="command", metavar="COMMAND", required=True, parser_class=_CommandParser
+    )
     for command in COMMANDS:
         sub = subparsers.add_parser(command.name, help=command.help, description=command.help)
-        command.add_arguments(sub)
+        sub.add_arguments = command.add_arguments
         sub.set_defaults(run=command.run)
     return parser
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import json
 import subprocess
 import sys
@@ -11,7 +13,8 @@ import pytest
 import torch
 
 from gdpt import denoise
-from gdpt.cli import COMMANDS, main
+from gdpt.cli import COMMANDS, build_parser, main
+from gdpt.cli_config import config_from_args
 from gdpt.io.exr import load_image, save_buffers
 
 
@@ -145,3 +148,47 @@ def test_reconstruct_end_to_end(render, tmp_path):
     assert image.shape == (12, 10, 3) and torch.isfinite(image).all()
     meta = json.loads(OpenEXR.File(str(out)).header()["gdpt.metadata"])
     assert meta["method"] == "l1" and meta["alpha"] == 0.2 and meta["render"]["seed"] == 7
+
+
+def test_config_options_expose_every_field_with_the_dataclass_defaults(monkeypatch):
+    from gdpt.reconstruct.losses import LOSSES
+
+    from gdpt.training.dataset import DatasetConfig
+    from gdpt.training.finetune import FINETUNE_LOSSES
+    from gdpt.training.train import TrainConfig
+
+    parser = build_parser()
+    args = parser.parse_args(["train", "--config", "fast_xs", "--data", "d", "--out", "o"])
+    assert {f.name for f in dataclasses.fields(TrainConfig)} <= set(vars(args))
+    assert config_from_args(TrainConfig, args) == TrainConfig(data="d", out="o")
+    args = parser.parse_args(["dataset", "--out", "x", "--scenes", "3", "--views", "2"])
+    assert {f.name for f in dataclasses.fields(DatasetConfig)} - set(vars(args)) == {"scene_config"}
+    config = config_from_args(DatasetConfig, args, exclude=("scene_config",))
+    assert config == DatasetConfig(scenes=3, views=2)
+    # the defaults are read from the dataclass, not re-typed
+    steps = next(f for f in dataclasses.fields(TrainConfig) if f.name == "steps")
+    monkeypatch.setattr(steps, "default", 7)
+    args = build_parser().parse_args(["train", "--config", "m", "--data", "d", "--out", "o"])
+    assert args.steps == 7
+    # --loss offers exactly the registered losses
+    train = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    loss = next(a for a in train.choices["train"]._actions if a.dest == "loss")
+    assert set(loss.choices) == set(LOSSES) | set(FINETUNE_LOSSES)
+
+
+def test_config_options_round_trip_and_help(capsys):
+    from gdpt.training.train import TrainConfig
+
+    argv = ["train", "--config", "fast_xs", "--data", "d", "--out", "o", "--no-augment"]
+    argv += ["--pad", "4", "--vary-padding", "2", "--loss", "l1_rel", "--crop", "32"]
+    config = config_from_args(TrainConfig, build_parser().parse_args(argv))
+    assert (config.augment, config.pad, config.vary_padding) == (False, 4, 2)
+    assert (config.loss, config.crop, config.warmup_steps) == ("l1_rel", 32, None)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", "--help"])
+    assert exit_info.value.code == 0
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "--beta2 BETA2 Adam beta2. (default: 0.99)" in help_text  # from the docstring
+    with pytest.raises(SystemExit) as exit_info:
+        build_parser().parse_args([*argv[:7], "--loss", "lpips"])
+    assert exit_info.value.code == 2
