@@ -197,7 +197,8 @@ class GDPTIntegrator(GradientIntegratorBase):
         feat = FeatureState.zeros(n) if self.features else None
 
         def body(sampler, base, offsets, feat, beta_scale=None):
-            """One vertex of the base path and of ``offsets`` (``beta_scale``: see phase 2)."""
+            """One vertex of the base path and of ``offsets`` (``beta_scale``: the tail's
+            throughput scale, see phase 2)."""
             si, active = base.si, base.active
             bsdf = si.bsdf()
             if feat is not None:
@@ -371,7 +372,8 @@ class GDPTIntegrator(GradientIntegratorBase):
             inv_p = safe_div(1.0, bs.pdf)
             pb_next = dr.select(delta_x, 1.0, bs.pdf)  # MIS pdf of the segment x_i -> x_{i+1}
             for o, view, near_y in zip(offsets, views, near_ys, strict=True):
-                act = active_next & o.alive
+                # No base sample, no shift (the reverse shift finds a zero pdf at x_i)
+                act = active_next & o.alive & (bs.pdf > 0)
                 own = o.status == NOT_CONNECTED
                 recent = o.status == RECENTLY_CONNECTED
                 # Recently connected: the base's BSDF at x_i towards the base's sample,
@@ -529,7 +531,13 @@ class GDPTIntegrator(GradientIntegratorBase):
             # ----------------------- Russian roulette -----------------------
             base.beta *= bsdf_weight
             base.eta *= bs.eta
-            beta_max = dr.max(base.beta if beta_scale is None else base.beta * beta_scale)
+            # Roulette and termination follow the largest throughput of the base and its live
+            # offsets: a base of zero throughput (a black surface) still carries offsets whose
+            # share of the pair's MIS is counted on this side only.
+            carried = base.beta if beta_scale is None else base.beta * beta_scale
+            for o in offsets:
+                carried = dr.maximum(carried, dr.select(o.alive, o.q, 0))
+            beta_max = dr.max(carried)
             rr_active = base.depth >= self.rr_depth
             rr_prob = dr.minimum(beta_max * dr.square(base.eta), 0.95)
             rr_scale = dr.select(rr_active, safe_div(1.0, rr_prob), 1.0)
@@ -577,9 +585,12 @@ class GDPTIntegrator(GradientIntegratorBase):
         head_beta, head_L = base.beta, base.L
         base.beta = dr.full(mi.Spectrum, 1.0, n)
         base.L = dr.zeros(mi.Spectrum, n)
+        carried = head_beta  # the tail's roulette scale (see the roulette in body)
+        for o in offsets:
+            carried = dr.maximum(carried, dr.select(o.alive, o.q, 0))
 
         def tail_body(sampler, base, feat):
-            sampler, base, _, feat = body(sampler, base, [], feat, head_beta)
+            sampler, base, _, feat = body(sampler, base, [], feat, carried)
             return sampler, base, feat
 
         sampler, base, feat = dr.while_loop(
