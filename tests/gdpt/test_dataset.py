@@ -29,26 +29,6 @@ from gdpt.training.dataset import (
 TIMING_FIELDS = ("render_seconds", "bytes")
 
 
-def tiny_config(**changes) -> DatasetConfig:
-    """16x16 crops of one-object scenes (fast kernels), a handful of samples."""
-    from gdpt.scenes import RandomSceneConfig
-
-    scene = RandomSceneConfig(
-        num_objects=(1, 1), p_extra_light=0.0, p_window=0.0, p_bitmap_env=0.0, p_thinlens=0.0
-    )
-    settings = dict(
-        scenes=1,
-        views=2,
-        resolution=16,
-        spp_min=1,
-        spp_max=4,
-        target_spp=8,
-        max_depth=4,
-        scene_config=scene,
-    )
-    return DatasetConfig(**{**settings, **changes})
-
-
 def content_of(root: Path) -> dict[str, dict]:
     records, problems = read_manifest(root)
     assert not problems
@@ -62,14 +42,6 @@ def assert_same_pixels(root_a: Path, root_b: Path, crop: str) -> None:
         assert a.present() == b.present()
         for (_, ta), (_, tb) in zip(a.items(), b.items(), strict=True):
             torch.testing.assert_close(ta, tb, rtol=1e-5, atol=1e-6)
-
-
-@pytest.fixture(scope="module")
-def tiny_dataset(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("dataset") / "tiny"
-    summary = build_dataset(tiny_config(), root, progress=False)
-    assert (summary.rendered, summary.skipped) == (2, 0)
-    return root
 
 
 @pytest.fixture
@@ -129,7 +101,9 @@ def test_dataset_layout_and_reader(tiny_dataset):
     assert item["target"].shape == (16, 16, 3) and torch.isfinite(item["target"]).all()
 
 
-def test_resume_after_kill_gives_the_same_dataset(tiny_dataset, tmp_path, monkeypatch):
+def test_resume_after_kill_gives_the_same_dataset(
+    tiny_dataset, tiny_dataset_config, tmp_path, monkeypatch
+):
     root = tmp_path / "resumed"
     real = dataset_module.render_crop
     calls = []
@@ -144,7 +118,7 @@ def test_resume_after_kill_gives_the_same_dataset(tiny_dataset, tmp_path, monkey
 
     monkeypatch.setattr(dataset_module, "render_crop", killed_on_second_crop)
     with pytest.raises(KeyboardInterrupt):
-        build_dataset(tiny_config(), root, progress=False)
+        build_dataset(tiny_dataset_config(), root, progress=False)
     monkeypatch.undo()
     # Out of disk while appending the next line: a torn line without newline.
     with (root / MANIFEST_FILE).open("ab") as f:
@@ -153,12 +127,12 @@ def test_resume_after_kill_gives_the_same_dataset(tiny_dataset, tmp_path, monkey
         assert len(CropDataset(root)) == 5
 
     with pytest.warns(DatasetWarning, match="repairing"):
-        summary = build_dataset(tiny_config(), root, progress=False)
+        summary = build_dataset(tiny_dataset_config(), root, progress=False)
     assert (summary.rendered, summary.skipped) == (1, 1)
     assert content_of(root) == content_of(tiny_dataset)
     assert_same_pixels(root, tiny_dataset, "s00000-v001")
     assert len(CropDataset(root)) == 10
-    assert build_dataset(tiny_config(), root, progress=False).rendered == 0
+    assert build_dataset(tiny_dataset_config(), root, progress=False).rendered == 0
 
 
 def test_corrupt_and_partial_shards_are_skipped_with_warning(copy_of):
@@ -196,27 +170,27 @@ def test_empty_missing_and_mismatched_datasets(copy_of, tmp_path):
         CropDataset(copy_of)
 
 
-def test_rerun_with_other_settings_is_refused(copy_of, capsys):
+def test_rerun_with_other_settings_is_refused(copy_of, tiny_dataset_config, capsys):
     with pytest.raises(ValueError, match="target_spp: 8 .* vs 16 requested"):
-        build_dataset(tiny_config(target_spp=16), copy_of, progress=False)
+        build_dataset(tiny_dataset_config(target_spp=16), copy_of, progress=False)
     status = main(["dataset", "--out", str(copy_of), "--scenes", "1", "--views", "1"])
     assert status == 2
     assert "gdpt dataset: error:" in capsys.readouterr().err
 
 
-def test_ray_local_mode(tiny_dataset, tmp_path):
+def test_ray_local_mode(tiny_dataset, tiny_dataset_config, tmp_path):
     pytest.importorskip("ray")
     root = tmp_path / "ray"
-    summary = build_dataset(tiny_config(views=1), root, ray_address="local", progress=False)
+    summary = build_dataset(tiny_dataset_config(views=1), root, ray_address="local", progress=False)
     assert summary.rendered == 1
     expected = content_of(tiny_dataset)
     assert content_of(root) == {"s00000-v000": expected["s00000-v000"]}
     assert_same_pixels(root, tiny_dataset, "s00000-v000")
 
 
-def test_local_worker_processes(tiny_dataset, tmp_path):
+def test_local_worker_processes(tiny_dataset, tiny_dataset_config, tmp_path):
     root = tmp_path / "workers"
-    summary = build_dataset(tiny_config(), root, workers=2, progress=False)
+    summary = build_dataset(tiny_dataset_config(), root, workers=2, progress=False)
     assert summary.rendered == 2
     assert content_of(root) == content_of(tiny_dataset)
     assert_same_pixels(root, tiny_dataset, "s00000-v001")

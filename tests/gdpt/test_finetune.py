@@ -3,61 +3,32 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import pytest
 import torch
 from gdpt.reconstruct.oidn_ngpt import DESIGNS, base_model, finetune_loss, load_model
 
-from gdpt.training.dataset import CropDataset, DatasetConfig, build_dataset
+from gdpt.training.dataset import CropDataset, build_dataset
 from gdpt.training.finetune import make_finetune_batch
 from gdpt.training.train import TrainConfig, make_optimizer, train
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory) -> Path:
-    """Two rendered 32x32 crops of a one-object scene, path-traced targets."""
-    from gdpt.scenes import RandomSceneConfig
-
-    scene = RandomSceneConfig(
-        num_objects=(1, 1), p_extra_light=0.0, p_window=0.0, p_bitmap_env=0.0, p_thinlens=0.0
-    )
+def data(tmp_path_factory, tiny_dataset_config) -> Path:
+    """Two rendered 32x32 crops of a one-object scene, 2 levels, 16-spp path-traced targets."""
     root = tmp_path_factory.mktemp("finetune") / "data"
-    config = DatasetConfig(
-        scenes=1,
-        views=2,
-        resolution=32,
-        spp_min=1,
-        spp_max=4,
-        levels=2,
-        target_spp=16,
-        target="pt",
-        max_depth=4,
-        scene_config=scene,
-    )
+    config = tiny_dataset_config(resolution=32, levels=2, target_spp=16, target="pt")
     build_dataset(config, root, progress=False)
     return root
 
 
-def tiny(data: Path, out: Path, **changes) -> TrainConfig:
-    settings = dict(
-        model="oidn-grad",
-        data=str(data),
-        val_data=str(data),
-        out=str(out),
-        loss="l1_rel",
-        steps=3,
-        batch=2,
-        crop=16,
-        lr=1e-4,
-        warmup_steps=0,
-        decay_start=1,
-        half_life=2,
-        val_every=2,
-        val_crops=2,
-        ckpt_every=1,
-    )
-    return TrainConfig(**{**settings, **changes})
+@pytest.fixture
+def tiny(tiny_run_config) -> Callable[..., TrainConfig]:
+    """``tiny_run_config(data, out, **changes)`` of ``oidn-grad`` (l1_rel, 16 px, lr 1e-4)."""
+    return partial(tiny_run_config, model="oidn-grad", loss="l1_rel", crop=16, lr=1e-4)
 
 
 def read_jsonl(path: Path) -> list[dict]:
@@ -71,7 +42,7 @@ def test_path_traced_targets_are_written(data):
 
 
 @pytest.mark.parametrize("name", ["oidn-grad", "oidn-grad-l1"])
-def test_three_steps_on_a_fixed_batch_reduce_the_loss(data, tmp_path, name):
+def test_three_steps_on_a_fixed_batch_reduce_the_loss(data, tiny, tmp_path, name):
     config = tiny(data, tmp_path, model=name)
     design = DESIGNS[name]
     batch = make_finetune_batch(CropDataset(data), config, design, step=0)
@@ -88,7 +59,7 @@ def test_three_steps_on_a_fixed_batch_reduce_the_loss(data, tmp_path, name):
     assert losses[3] < losses[2] < losses[1] < losses[0], losses
 
 
-def test_run_directory_and_exact_resume(data, tmp_path):
+def test_run_directory_and_exact_resume(data, tiny, tmp_path):
     run = tmp_path / "run"
     config = tiny(data, run)
     train(config, progress=False)
@@ -111,7 +82,7 @@ def test_run_directory_and_exact_resume(data, tmp_path):
         assert torch.equal(again.state_dict()[k], v), k
 
 
-def test_nograd_design_trains_on_path_traced_inputs(data, tmp_path):
+def test_nograd_design_trains_on_path_traced_inputs(data, tiny, tmp_path):
     train(tiny(data, tmp_path / "run", model="oidn-nograd", steps=1, val_every=0), progress=False)
     _, design, card = load_model(tmp_path / "run" / "model.json")
     assert not design.gradients and card["steps"] == 1

@@ -12,34 +12,15 @@ from gdpt.cli import main
 from gdpt.io.exr import load_buffers
 from gdpt.metrics import relmse
 from gdpt.training import model_report
-from gdpt.training.dataset import DatasetConfig, build_dataset, read_manifest
+from gdpt.training.dataset import read_manifest
 from gdpt.training.train import TrainConfig, train
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory) -> tuple[Path, dict[str, Path]]:
-    """A 2-crop dataset and two 2-step runs (G-PT and no-gradient networks) on it."""
-    from gdpt.scenes import RandomSceneConfig
-
+def runs(tmp_path_factory, tiny_dataset) -> tuple[Path, dict[str, Path]]:
+    """The shared 2-crop dataset and two 2-step runs (G-PT and no-gradient networks) on it."""
     root = tmp_path_factory.mktemp("report")
-    scene = RandomSceneConfig(
-        num_objects=(1, 1), p_extra_light=0.0, p_window=0.0, p_bitmap_env=0.0, p_thinlens=0.0
-    )
-    data = root / "data"
-    build_dataset(
-        DatasetConfig(
-            scenes=1,
-            views=2,
-            resolution=16,
-            spp_min=1,
-            spp_max=4,
-            target_spp=8,
-            max_depth=4,
-            scene_config=scene,
-        ),
-        data,
-        progress=False,
-    )
+    data = tiny_dataset
     out = {}
     for name, config in (("ngpt", "fast_xs"), ("ngpt-nograd", "fast_xs_nograd")):
         out[name] = root / name

@@ -9,6 +9,8 @@ import math
 import os
 import subprocess
 import sys
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import pytest
@@ -17,7 +19,7 @@ from gdpt.reconstruct.dense_unet import build_model
 from gdpt.reconstruct.losses import get_loss
 
 from gdpt.cli import main
-from gdpt.training.dataset import CropDataset, DatasetConfig, build_dataset
+from gdpt.training.dataset import CropDataset
 from gdpt.training.train import (
     AugmentParams,
     ConfigMismatchError,
@@ -34,47 +36,16 @@ from gdpt.training.train import (
 H = W = 8
 
 
-@pytest.fixture(scope="module")
-def data(tmp_path_factory) -> Path:
-    """Two rendered 16x16 crops of a one-object scene."""
-    from gdpt.scenes import RandomSceneConfig
-
-    scene = RandomSceneConfig(
-        num_objects=(1, 1), p_extra_light=0.0, p_window=0.0, p_bitmap_env=0.0, p_thinlens=0.0
-    )
-    root = tmp_path_factory.mktemp("train") / "data"
-    config = DatasetConfig(
-        scenes=1,
-        views=2,
-        resolution=16,
-        spp_min=1,
-        spp_max=4,
-        target_spp=8,
-        max_depth=4,
-        scene_config=scene,
-    )
-    build_dataset(config, root, progress=False)
-    return root
+@pytest.fixture
+def data(tiny_dataset: Path) -> Path:
+    """Two rendered 16x16 crops of a one-object scene (the shared ``tiny_dataset``)."""
+    return tiny_dataset
 
 
-def tiny(data: Path, out: Path, **changes) -> TrainConfig:
-    settings = dict(
-        model="fast_xs",
-        data=str(data),
-        val_data=str(data),
-        out=str(out),
-        loss="l1",
-        steps=3,
-        batch=2,
-        vary_padding=2,
-        warmup_steps=0,
-        decay_start=1,
-        half_life=2,
-        val_every=2,
-        val_crops=2,
-        ckpt_every=1,
-    )
-    return TrainConfig(**{**settings, **changes})
+@pytest.fixture
+def tiny(tiny_run_config) -> Callable[..., TrainConfig]:
+    """``tiny_run_config(data, out, **changes)`` of ``fast_xs`` (l1 loss, padding +-2)."""
+    return partial(tiny_run_config, model="fast_xs", loss="l1", vary_padding=2)
 
 
 def read_jsonl(path: Path) -> list[dict]:
@@ -196,7 +167,7 @@ def test_learning_rate_warms_up_geometrically_and_decays_exponentially():
 
 
 # ------------------------------------------------------------------------------------ training
-def test_three_steps_on_a_fixed_batch_reduce_the_loss(data, tmp_path):
+def test_three_steps_on_a_fixed_batch_reduce_the_loss(data, tiny, tmp_path):
     config = tiny(data, tmp_path)
     dataset = CropDataset(data)
     x, target = make_batch(dataset, config, step=0)
@@ -211,7 +182,7 @@ def test_three_steps_on_a_fixed_batch_reduce_the_loss(data, tmp_path):
     assert losses[3] < losses[2] < losses[1] < losses[0], losses
 
 
-def test_run_directory_and_exact_resume(data, tmp_path):
+def test_run_directory_and_exact_resume(data, tiny, tmp_path):
     run = tmp_path / "run"
     config = tiny(data, run)
     train(config, progress=False)
@@ -236,7 +207,7 @@ def test_run_directory_and_exact_resume(data, tmp_path):
     assert resumed[2]["lr"] == log[2]["lr"]
 
 
-def test_resume_with_another_config_is_refused(data, tmp_path, capsys):
+def test_resume_with_another_config_is_refused(data, tiny, tmp_path, capsys):
     run = tmp_path / "run"
     train(tiny(data, run, steps=1, val_every=0), progress=False)
     with pytest.raises(FileExistsError, match="--resume"):
@@ -262,7 +233,7 @@ def test_resume_with_another_config_is_refused(data, tmp_path, capsys):
     assert "gdpt train: error: cannot resume" in err and "loss: 'l1'" in err
 
 
-def test_nograd_model_trains_on_path_traced_inputs(data, tmp_path):
+def test_nograd_model_trains_on_path_traced_inputs(data, tiny, tmp_path):
     config = tiny(data, tmp_path / "nograd", model="nograd", steps=1, batch=1, val_every=1)
     train(config, progress=False)
     val = read_jsonl(tmp_path / "nograd" / "val.jsonl")[0]

@@ -1,0 +1,88 @@
+"""Fixtures of the dataset, training, fine-tuning and model-report tests.
+
+* ``tiny_dataset_config``: a factory of :class:`~gdpt.training.dataset.DatasetConfig` for
+  16x16 crops of one-object scenes (fast kernels): 1 scene, 2 views, 1-4 spp, 8-spp targets,
+  depth 4; keyword arguments override fields.
+* ``tiny_dataset``: that dataset (``tiny_dataset_config()``, 2 crops), rendered once per
+  session. Read-only: tests that change a dataset work on a copy.
+* ``tiny_run_config``: a factory ``(data, out, **changes)`` of
+  :class:`~gdpt.training.train.TrainConfig` with a tiny schedule: 3 steps of batch 2, no
+  warm-up, decay from step 1 with half-life 2, validation every 2 steps on 2 crops (so at
+  steps 2 and 3), a checkpoint every step; ``data`` also validates.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import pytest
+
+if TYPE_CHECKING:
+    from gdpt.training.dataset import DatasetConfig
+    from gdpt.training.train import TrainConfig
+
+
+def make_tiny_dataset_config(**changes) -> DatasetConfig:
+    """16x16 crops of one-object scenes (fast kernels), a handful of samples."""
+    from gdpt.scenes import RandomSceneConfig
+    from gdpt.training.dataset import DatasetConfig
+
+    scene = RandomSceneConfig(
+        num_objects=(1, 1), p_extra_light=0.0, p_window=0.0, p_bitmap_env=0.0, p_thinlens=0.0
+    )
+    settings = dict(
+        scenes=1,
+        views=2,
+        resolution=16,
+        spp_min=1,
+        spp_max=4,
+        target_spp=8,
+        max_depth=4,
+        scene_config=scene,
+    )
+    return DatasetConfig(**{**settings, **changes})
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset_config() -> Callable[..., DatasetConfig]:
+    """:func:`make_tiny_dataset_config`, as a fixture."""
+    return make_tiny_dataset_config
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory) -> Path:
+    """The two rendered crops of ``tiny_dataset_config()`` (do not modify)."""
+    from gdpt.training.dataset import build_dataset
+
+    root = tmp_path_factory.mktemp("dataset") / "tiny"
+    summary = build_dataset(make_tiny_dataset_config(), root, progress=False)
+    assert (summary.rendered, summary.skipped) == (2, 0)
+    return root
+
+
+def make_tiny_run_config(data: Path, out: Path, **changes) -> TrainConfig:
+    """A 3-step run on ``data`` (also the validation set) into ``out``; see the module doc."""
+    from gdpt.training.train import TrainConfig
+
+    settings = dict(
+        data=str(data),
+        val_data=str(data),
+        out=str(out),
+        steps=3,
+        batch=2,
+        warmup_steps=0,
+        decay_start=1,
+        half_life=2,
+        val_every=2,
+        val_crops=2,
+        ckpt_every=1,
+    )
+    return TrainConfig(**{**settings, **changes})
+
+
+@pytest.fixture(scope="session")
+def tiny_run_config() -> Callable[..., TrainConfig]:
+    """:func:`make_tiny_run_config`, as a fixture."""
+    return make_tiny_run_config
