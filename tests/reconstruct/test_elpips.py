@@ -12,6 +12,17 @@ from gdpt.reconstruct import elpips as E
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
+#: E-LPIPS without any randomness: no dropout, no ensemble transform (plain LPIPS).
+PLAIN = E.ELPIPSConfig(
+    enable_dropout=False,
+    enable_offset=False,
+    enable_flip=False,
+    enable_swap=False,
+    enable_color_permutation=False,
+    enable_color_multiplication=False,
+    enable_scale=False,
+)
+
 
 def test_ensemble_sampling_is_stratified() -> None:
     gen = torch.Generator().manual_seed(0)
@@ -52,13 +63,7 @@ def test_apply_ensemble_transforms() -> None:
     expected = torch.stack([e[p] for e, p in zip(expected, sample.permutations, strict=False)])
     expected = expected * torch.tensor([1.0, 0.5, 0.2]).view(1, 3, 1, 1)
     assert torch.equal(out, expected)
-    offsets_only = E.ELPIPSConfig(
-        enable_flip=False,
-        enable_swap=False,
-        enable_scale=False,
-        enable_color_permutation=False,
-        enable_color_multiplication=False,
-    )
+    offsets_only = replace(PLAIN, enable_dropout=True, enable_offset=True)
     padded = E.apply_ensemble(x, sample, offsets_only)
     assert padded.shape == (4, 3, 23, 19)
     assert torch.equal(padded[1, :, :16, :12], x[1])  # offset 7: all padding after the image
@@ -95,17 +100,8 @@ def test_elpips_average_over_and_dropout(image_pair, tiny_elpips) -> None:
     averaged = tiny_elpips(E.ELPIPSConfig(num_scales=2, average_over=3), seed=3)(a, b)
     assert torch.allclose(averaged, mean_of_three, rtol=1e-5)
     # Without any randomness it is plain LPIPS (on the tiny net), independent of the seed.
-    plain = E.ELPIPSConfig(
-        enable_dropout=False,
-        enable_offset=False,
-        enable_flip=False,
-        enable_swap=False,
-        enable_color_permutation=False,
-        enable_color_multiplication=False,
-        enable_scale=False,
-    )
-    assert torch.equal(tiny_elpips(plain, seed=1)(a, b), tiny_elpips(plain, seed=2)(a, b))
-    dropout_only = replace(plain, enable_dropout=True, dropout_keep_prob=0.5)
+    assert torch.equal(tiny_elpips(PLAIN, seed=1)(a, b), tiny_elpips(PLAIN, seed=2)(a, b))
+    dropout_only = replace(PLAIN, enable_dropout=True, dropout_keep_prob=0.5)
     assert not torch.equal(
         tiny_elpips(dropout_only, seed=1)(a, b), tiny_elpips(dropout_only, seed=2)(a, b)
     )
