@@ -497,7 +497,11 @@ class GDPTIntegrator(GradientIntegratorBase):
                     r = dr.select(recent, o.r * p_r * inv_p, o.r)
                     pb = dr.select(recent, p_r, pb_next)
                     zero = dr.zeros(mi.Float, n)
-                    status = dr.select(recent, mi.UInt32(CONNECTING), mi.UInt32(CONNECTED))
+                    # The offset's own segment pdf matters for one more vertex, unless it equals
+                    # the base's (diffuse x_i: the pdf does not depend on wi)
+                    status = dr.select(
+                        recent & (p_r != pb_next), mi.UInt32(CONNECTING), mi.UInt32(CONNECTED)
+                    )
                     return (
                         q,
                         r,
