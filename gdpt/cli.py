@@ -343,8 +343,8 @@ def _run_dataset(args: argparse.Namespace) -> int:
 # -------------------------------------------------------------------------------------- train
 def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
     from gdpt.reconstruct.losses import LOSSES
+    from gdpt.training.config import TrainConfig
     from gdpt.training.finetune import FINETUNE_LOSSES
-    from gdpt.training.train import TrainConfig
 
     losses = [*LOSSES, *(name for name in FINETUNE_LOSSES if name not in LOSSES)]
     add_config_arguments(
@@ -358,7 +358,8 @@ def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from gdpt.training.train import TrainConfig, train
+    from gdpt.training.config import TrainConfig
+    from gdpt.training.train import train
 
     path = train(config_from_args(TrainConfig, args), resume=args.resume)
     if int(os.environ.get("RANK", "0")) == 0:

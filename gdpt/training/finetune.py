@@ -2,10 +2,12 @@
 :mod:`gdpt.training.dataset`.
 
 ``gdpt train --config oidn-grad`` (or ``oidn-grad-l1``, ``oidn-nograd``) lands here through
-:func:`gdpt.training.train.train`. The run uses the same :class:`~gdpt.training.train.TrainConfig`,
-run directory, learning-rate schedule, augmentations (sub-crop, flips, transposition, RGB
-permutation, colour and brightness multipliers), per-step seeding (exact resume) and held-out
-split as the dense U-Net trainer; what differs:
+:func:`gdpt.training.train.train`. The run uses the same
+:class:`~gdpt.training.config.TrainConfig`, run directory (:mod:`gdpt.training.run_dir`),
+learning-rate schedule (:mod:`gdpt.training.schedule`), augmentations
+(:mod:`gdpt.training.augment`: sub-crop, flips, transposition, RGB permutation, colour and
+brightness multipliers), per-step seeding (exact resume) and held-out split
+(:mod:`gdpt.training.batches`) as the dense U-Net trainer; what differs:
 
 * the network starts as OIDN (Intel's ``rt_hdr_alb_nrm`` weights, the extra inputs with zero
   weights), so step 0 reproduces OIDN exactly;
@@ -50,25 +52,23 @@ from gdpt.reconstruct.oidn_ngpt import (
     predict,
 )
 from gdpt.reconstruct.oidn_unet import OIDNUNet
+from gdpt.training.augment import augment, sample_augmentation
+from gdpt.training.batches import split_datasets, step_seed
 from gdpt.training.checkpoint import write_checkpoint
+from gdpt.training.config import TrainConfig
 from gdpt.training.dataset import CropDataset, DatasetWarning
-from gdpt.training.train import (
-    TrainConfig,
-    _append_jsonl,
-    _datasets,
-    _metrics,
-    _truncate_jsonl,
-    _write_json,
-    augment,
+from gdpt.training.run_dir import (
+    append_jsonl,
     checkpoint_base,
     latest_checkpoint,
-    learning_rate,
-    make_optimizer,
     prepare_run,
     prune_checkpoints,
-    sample_augmentation,
-    step_seed,
+    truncate_jsonl,
+    write_json,
 )
+from gdpt.training.schedule import learning_rate
+from gdpt.training.step import make_optimizer
+from gdpt.training.validation import image_metrics
 
 __all__ = [
     "FINETUNE_LOSSES",
@@ -194,7 +194,7 @@ def load_finetune_validation(
             pt_oidn = denoise(pt.primal, pt.albedo, pt.normal)
         baselines = {}
         for prefix, image in (("oidn_", same), ("pt_oidn_", pt_oidn), ("l1_", l1)):
-            baselines.update({prefix + k: v for k, v in _metrics(image, target, flip).items()})
+            baselines.update({prefix + k: v for k, v in image_metrics(image, target, flip).items()})
         elements.append(_ValElement(inputs, l1_fast, target, baselines))
     if not elements:
         raise ValueError(f"{dataset.root}: no readable validation element")
@@ -213,7 +213,7 @@ def validate_finetune(
     for element in elements:
         x, scale = assemble(element.inputs, design, l1=element.l1)
         h, w = element.target.shape[:2]
-        scores = _metrics(predict(net, x, h, w, scale), element.target, flip)
+        scores = image_metrics(predict(net, x, h, w, scale), element.target, flip)
         for key, value in {**scores, **element.baselines}.items():
             totals[key] = totals.get(key, 0.0) + value
     net.train(was_training)
@@ -244,7 +244,7 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
     run = Path(config.out)
     config = prepare_run(config, resume)
     kind = "gdpt" if design.gradients else "pt"
-    train_set, val_set = _datasets(config, kind)
+    train_set, val_set = split_datasets(config, kind)
     side = config.crop or min(train_set.resolution)
     if side > min(train_set.resolution) or side % 16:
         raise ValueError(
@@ -252,7 +252,7 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
             "of 16 (OIDN's alignment)"
         )
     (run / "checkpoints").mkdir(parents=True, exist_ok=True)
-    _write_json(run / "config.json", config.to_dict())
+    write_json(run / "config.json", config.to_dict())
     base = base_model(design)
     net = base_model(design).to(device).train()
     optimizer = make_optimizer(net, config)
@@ -264,7 +264,7 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
         optimizer.load_state_dict(state["optimizer"])
         start, elapsed = int(state["step"]), float(state["elapsed"])
     for name in ("log.jsonl", "val.jsonl"):
-        _truncate_jsonl(run / name, start)
+        truncate_jsonl(run / name, start)
     val_elements = (
         load_finetune_validation(val_set, design, config.val_crops, device)
         if config.val_every
@@ -318,13 +318,13 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
         done = step + 1
         record = {"step": done, "loss": float(loss.detach()), "lr": lr,
                   "time": round(elapsed, 3), "step_seconds": round(seconds, 4)}  # fmt: skip
-        _append_jsonl(run / "log.jsonl", record | ({} if finite else {"skipped": True}))
+        append_jsonl(run / "log.jsonl", record | ({} if finite else {"skipped": True}))
         bar.update(1)
         bar.set_postfix(loss=f"{record['loss']:.4g}", lr=f"{lr:.2e}")
         final = done == config.steps
         if config.val_every and (done % config.val_every == 0 or final):
             last_val = validate_finetune(net, design, val_elements)
-            _append_jsonl(run / "val.jsonl", {"step": done, "time": round(elapsed, 3), **last_val})
+            append_jsonl(run / "val.jsonl", {"step": done, "time": round(elapsed, 3), **last_val})
         if done % config.ckpt_every == 0 or final:
             save(checkpoint_base(run, done), done, last_val, exact=True)
             prune_checkpoints(run, config.keep_checkpoints)
