@@ -6,7 +6,7 @@
 * ``tiny_dataset``: that dataset (``tiny_dataset_config()``, 2 crops), rendered once per
   session. Read-only: tests that change a dataset work on a copy.
 * ``tiny_run_config``: a factory ``(data, out, **changes)`` of
-  :class:`~gdpt.training.train.TrainConfig` with a tiny schedule: 3 steps of batch 2, no
+  :class:`~gdpt.training.config.TrainConfig` with a tiny schedule: 3 steps of batch 2, no
   warm-up, decay from step 1 with half-life 2, validation every 2 steps on 2 crops (so at
   steps 2 and 3), a checkpoint every step; ``data`` also validates.
 """
@@ -20,8 +20,8 @@ from typing import TYPE_CHECKING
 import pytest
 
 if TYPE_CHECKING:
+    from gdpt.training.config import TrainConfig
     from gdpt.training.dataset import DatasetConfig
-    from gdpt.training.train import TrainConfig
 
 
 def make_tiny_dataset_config(**changes) -> DatasetConfig:
@@ -64,7 +64,7 @@ def tiny_dataset(tmp_path_factory) -> Path:
 
 def make_tiny_run_config(data: Path, out: Path, **changes) -> TrainConfig:
     """A 3-step run on ``data`` (also the validation set) into ``out``; see the module doc."""
-    from gdpt.training.train import TrainConfig
+    from gdpt.training.config import TrainConfig
 
     settings = dict(
         data=str(data),

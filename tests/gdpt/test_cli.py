@@ -153,9 +153,9 @@ def test_reconstruct_end_to_end(render, tmp_path):
 def test_config_options_expose_every_field_with_the_dataclass_defaults(monkeypatch):
     from gdpt.reconstruct.losses import LOSSES
 
+    from gdpt.training.config import TrainConfig
     from gdpt.training.dataset import DatasetConfig
     from gdpt.training.finetune import FINETUNE_LOSSES
-    from gdpt.training.train import TrainConfig
 
     parser = build_parser()
     args = parser.parse_args(["train", "--config", "fast_xs", "--data", "d", "--out", "o"])
@@ -177,7 +177,7 @@ def test_config_options_expose_every_field_with_the_dataclass_defaults(monkeypat
 
 
 def test_config_options_round_trip_and_help(capsys):
-    from gdpt.training.train import TrainConfig
+    from gdpt.training.config import TrainConfig
 
     argv = ["train", "--config", "fast_xs", "--data", "d", "--out", "o", "--no-augment"]
     argv += ["--pad", "4", "--vary-padding", "2", "--loss", "l1_rel", "--crop", "32"]

@@ -11,9 +11,11 @@ import pytest
 import torch
 from gdpt.reconstruct.oidn_ngpt import DESIGNS, base_model, finetune_loss, load_model
 
+from gdpt.training.config import TrainConfig
 from gdpt.training.dataset import CropDataset, build_dataset
 from gdpt.training.finetune import make_finetune_batch
-from gdpt.training.train import TrainConfig, make_optimizer, train
+from gdpt.training.step import make_optimizer
+from gdpt.training.train import train
 
 
 @pytest.fixture(scope="module")

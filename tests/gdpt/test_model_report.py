@@ -12,8 +12,9 @@ from gdpt.cli import main
 from gdpt.io.exr import load_buffers
 from gdpt.metrics import relmse
 from gdpt.training import model_report
+from gdpt.training.config import TrainConfig
 from gdpt.training.dataset import read_manifest
-from gdpt.training.train import TrainConfig, train
+from gdpt.training.train import train
 
 
 @pytest.fixture(scope="module")

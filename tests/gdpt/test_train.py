@@ -1,5 +1,5 @@
-"""gdpt.training.train: gradient-correct augmentations, schedule, learning, exact resume, DDP,
-run dirs."""
+"""gdpt.training (augment, schedule, batches, step, config, run_dir, train): gradient-correct
+augmentations, schedule, learning, exact resume, DDP, run dirs."""
 
 from __future__ import annotations
 
@@ -19,19 +19,13 @@ from gdpt.reconstruct.dense_unet import build_model
 from gdpt.reconstruct.losses import get_loss
 
 from gdpt.cli import main
+from gdpt.training.augment import AugmentParams, augment, sample_augmentation
+from gdpt.training.batches import make_batch
+from gdpt.training.config import ConfigMismatchError, TrainConfig
 from gdpt.training.dataset import CropDataset
-from gdpt.training.train import (
-    AugmentParams,
-    ConfigMismatchError,
-    TrainConfig,
-    augment,
-    learning_rate,
-    make_batch,
-    make_optimizer,
-    sample_augmentation,
-    train,
-    train_step,
-)
+from gdpt.training.schedule import learning_rate
+from gdpt.training.step import make_optimizer, train_step
+from gdpt.training.train import train
 
 H = W = 8
 
