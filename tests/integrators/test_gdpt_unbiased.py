@@ -104,15 +104,17 @@ def _oracle(name: str, max_depth: int, seed: int = 100_000) -> Oracle:
     return Oracle(render_runs(_scene(name), path, REF_RUNS, REF_SPP, seed)["primal"])
 
 
-def _runs(name: str, integrator: str, max_depth: int, **props) -> dict[str, np.ndarray]:
+def _runs(
+    name: str, integrator: str, max_depth: int, runs: int = RUNS, **props
+) -> dict[str, np.ndarray]:
     import mitsuba as mi
 
     plugin = mi.load_dict({"type": integrator, "max_depth": max_depth, "features": False, **props})
     spp = SPP if name in REAL else BUILTIN_SPP
-    runs = render_runs(_scene(name), plugin, RUNS, spp, seed=1)
+    result = render_runs(_scene(name), plugin, runs, spp, seed=1)
     counts = {k: v for k, v in plugin.guard_counts.items() if v}
     assert not counts, f"{integrator} on {name}: numerical guards fired {counts}"
-    return runs
+    return result
 
 
 def _assert_passes(results: dict, label: str) -> None:
@@ -192,19 +194,24 @@ def test_gdpt_agrees_with_random_replay(variant, name, max_depth):
 
 
 @pytest.mark.parametrize(
-    ("name", "threshold"),
+    ("name", "threshold", "runs"),
     [
-        ("near-specular", 0.05),
-        pytest.param("textured-roughness", 0.05, marks=pytest.mark.slow),
-        pytest.param("near-specular", 0.025, marks=pytest.mark.slow),
-        pytest.param("rough-conductor", 0.5, marks=pytest.mark.slow),
-        pytest.param("principled", 1.0, marks=pytest.mark.slow),
+        ("near-specular", 0.05, RUNS),
+        pytest.param("textured-roughness", 0.05, 2 * RUNS, marks=pytest.mark.slow),
+        pytest.param("near-specular", 0.025, 2 * RUNS, marks=pytest.mark.slow),
+        pytest.param("rough-conductor", 0.5, 2 * RUNS, marks=pytest.mark.slow),
+        pytest.param("principled", 1.0, 2 * RUNS, marks=pytest.mark.slow),
     ],
 )
-def test_unbiased_with_the_half_vector_shift(variant, name, threshold):
+def test_unbiased_with_the_half_vector_shift(variant, name, threshold, runs):
     """shift_threshold above some roughness of the scene: those vertices take the half-vector
     copy and their light samples leave the gradient's MIS (near-specular at 0.05: glass alpha
     0.03 and mirror 0.02, reflection and refraction; textured-roughness: alpha 0.02 and 0.3
-    cells side by side; rough-conductor and principled: the copy on genuinely rough lobes)."""
-    results = _oracle(name, 5).compare(_runs(name, "gdpt", 5, shift_threshold=threshold))
+    cells side by side; rough-conductor and principled: the copy on genuinely rough lobes).
+
+    The slow cases are heavy-tailed (the copy on lobes it does not suit, textured 0.3 cells):
+    twice the runs keep the run-variance estimate honest there (measured at 48 runs: principled
+    at 1.0 dy max |z| 6.4, textured-roughness's primal, which the threshold does not change,
+    1.1%; at 96 runs 5.1 and 0.06%)."""
+    results = _oracle(name, 5).compare(_runs(name, "gdpt", 5, runs=runs, shift_threshold=threshold))
     _assert_passes(results, f"gdpt on builtin:{name}, shift_threshold {threshold}")
