@@ -212,6 +212,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
     ``gradients`` (bool, true: trace offset paths; false = plain path tracing with features),
     ``features`` (bool, true), ``variance`` (bool, false),
     ``samples_per_pass`` (int, 2^20: samples traced per kernel launch),
+    ``freeze`` (bool, true: replay the recorded kernels of a pass instead of tracing it again),
     ``shift_threshold`` (float, 0.001: microfacet roughness at or below which a glossy vertex
     counts as near-specular; used by ``gdpt``, ignored by ``gdpt_rr``).
     """
@@ -239,6 +240,12 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             )
         if props.get("hide_emitters", False):
             raise ValueError(f"{self.plugin_name}: 'hide_emitters' is not supported")
+        self.freeze = bool(props.get("freeze", True))
+        # Replays the kernels of a pass without tracing Python again (dr.freeze): the tracing of
+        # the large path loop, its virtual calls over every BSDF and emitter and the kernel
+        # hashing cost as much as the kernel itself at 128 px. It records again for new film
+        # sizes, spp per pass or settings (the key) and for scenes of another layout.
+        self._frozen_pass = dr.freeze(self._trace_pass, limit=8)
         #: Optional ``callable(spp_done, spp_total)`` called after every pass (progress bars).
         self.pass_callback = None
         #: How often each numerical guard fired in the last ``render()``: ``sample_nonfinite``
@@ -308,17 +315,13 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
 
         acc = _Accumulator(n_pix, self.gradients, self.features, self.variance)
         self.guard_counts = acc.guard_counts
+        trace = self._frozen_pass if self.freeze else self._trace_pass
+        key = (*self._pass_key(), width, height, *(int(v) for v in film.crop_offset()))
         done = 0
         for index, spp_pass in enumerate(passes):
-            sampler = sensor.sampler().clone()
-            sampler.set_sample_count(spp_pass)
-            sampler.set_samples_per_wavefront(spp_pass)
             pass_seed = (int(seed) * 0x9E3779B1 + index) & 0xFFFFFFFF
-            sampler.seed(dr.opaque(mi.UInt32, pass_seed), n_pix * spp_pass)
-            rays, weights, active = self._primary_rays(sensor, sampler, spp_pass)
-            samples = self.sample_paths(scene, sensor, sampler, rays, weights, active)
-            acc.add(samples, spp_pass)
-            del samples, rays, weights
+            sums, counts = trace(scene, sensor, mi.UInt32(pass_seed), spp_pass, key)
+            acc.add(sums, counts, spp_pass)
             done += spp_pass
             if self.pass_callback is not None:
                 self.pass_callback(done, spp)
@@ -331,6 +334,38 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
                 stacklevel=2,
             )
         return acc.finish(width, height, self.channels())
+
+    def _trace_pass(self, scene: mi.Scene, sensor: mi.Sensor, seed: mi.UInt32, spp: int, key):
+        """One pass of ``spp`` samples per pixel: per-pixel sums and the pass's guard counts.
+
+        ``key`` (settings, film size and offset, see :meth:`_pass_key`) is unused here: as an
+        argument of the frozen ``_frozen_pass`` it makes a change of any of them record anew.
+        """
+        n_pix = int(dr.prod(sensor.film().crop_size()))
+        sampler = sensor.sampler().clone()
+        sampler.set_sample_count(spp)
+        sampler.set_samples_per_wavefront(spp)
+        sampler.seed(seed, n_pix * spp)
+        rays, weights, active = self._primary_rays(sensor, sampler, spp)
+        samples = self.sample_paths(scene, sensor, sampler, rays, weights, active)
+        return pass_sums(samples, spp, self.variance)
+
+    def _pass_key(self) -> tuple:
+        """Everything besides the JIT inputs that shapes the kernels of a pass (Python values:
+        the frozen pass records again when one of them changes)."""
+        return (
+            self.max_depth,
+            self.rr_depth,
+            self.gradients,
+            self.features,
+            self.variance,
+            self.shift_threshold,
+            *self.prepared_state(),
+        )
+
+    def prepared_state(self) -> tuple:
+        """Python-side state :meth:`prepare` derived from the scene (default: none)."""
+        return ()
 
     def _primary_rays(self, sensor: mi.Sensor, sampler: mi.Sampler, spp: int):
         """Base ray and the four offset rays (same sub-pixel, aperture and time samples)."""
@@ -355,6 +390,39 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             rays.append(ray)
             weights.append(weight)
         return rays, weights, mi.Bool(True)
+
+
+def pass_sums(s: PathSamples, spp: int, variance: bool) -> tuple[dict, dict]:
+    """Per-pixel sums of one pass's samples (``spp`` contiguous samples per pixel).
+
+    Returns ``(sums, counts)``: ``sums`` maps ``primal``, ``g0``..``g3``, ``albedo``, ``normal``,
+    ``depth`` and with ``variance`` the squared luminances ``sq_primal``, ``sq_g0``.. to lists of
+    per-pixel ``mi.Float`` channels; ``counts`` maps guard names to one-element ``mi.UInt32``
+    totals (``sample_nonfinite``: samples whose buffer was not finite, which contribute 0 to that
+    buffer, plus the integrator's own guards).
+    """
+    values = {"primal": s.primal}
+    for k, g in enumerate(s.gradients):
+        values[f"g{k}"] = g
+    if s.albedo is not None:
+        values.update(albedo=s.albedo, normal=s.normal, depth=[s.depth])
+    bad = mi.UInt32(0)
+    for name, v in values.items():
+        comps = v if isinstance(v, list) else [v[i] for i in range(dr.size_v(v))]
+        ok = dr.isfinite(sum(comps[1:], comps[0]))
+        bad += dr.select(ok, 0, 1)
+        values[name] = [dr.select(ok, c, 0) for c in comps]
+    if variance:
+        for name in ["primal"] + [f"g{k}" for k in range(len(s.gradients))]:
+            values[f"sq_{name}"] = [dr.square(sum(values[name]) / 3)]
+    guards = {"sample_nonfinite": bad, **s.guards}
+    # One kernel for all outputs: evaluating them one by one (a reduction evaluates its input)
+    # would re-run the path loop for each.
+    dr.eval(values, guards)
+    counts = {k: dr.sum(c) for k, c in guards.items()}
+    sums = {name: [dr.block_sum(c, spp) for c in v] for name, v in values.items()}
+    dr.eval(sums, counts)
+    return sums, counts
 
 
 def plan_passes(n_pixels: int, spp: int, samples_per_pass: int) -> list[int]:
@@ -386,31 +454,12 @@ class _Accumulator:
             if gradients:
                 self.sums.update({f"sq_g{k}": z(1) for k in range(4)})
 
-    def add(self, s: PathSamples, spp: int) -> None:
-        values = {"primal": s.primal}
-        for k, g in enumerate(s.gradients):
-            values[f"g{k}"] = g
-        if s.albedo is not None:
-            values.update(albedo=s.albedo, normal=s.normal, depth=[s.depth])
-        # A sample whose buffer is not finite contributes 0 to that buffer (counted).
-        bad = mi.UInt32(0)
-        for name, v in values.items():
-            comps = v if isinstance(v, list) else [v[i] for i in range(dr.size_v(v))]
-            ok = dr.isfinite(sum(comps[1:], comps[0]))
-            bad += dr.select(ok, 0, 1)
-            values[name] = [dr.select(ok, c, 0) for c in comps]
-        if self.variance:
-            for name in ["primal"] + [f"g{k}" for k in range(len(s.gradients))]:
-                values[f"sq_{name}"] = [dr.square(sum(values[name]) / 3)]
-        guards = {"sample_nonfinite": bad, **s.guards}
-        # One kernel for all outputs: evaluating them one by one (a reduction evaluates its
-        # input) would re-run the path loop for each.
-        dr.eval(values, guards)
-        counts = {k: dr.sum(c) for k, c in guards.items()}
-        for name, sums in self.sums.items():
-            for i, c in enumerate(values[name]):
-                sums[i] += mi.Float64(dr.block_sum(c, spp))
-        dr.eval(self.sums, counts)
+    def add(self, sums: dict, counts: dict, spp: int) -> None:
+        """Add one pass's per-pixel sums and guard counts (from :func:`pass_sums`)."""
+        for name, acc in self.sums.items():
+            for i, c in enumerate(sums[name]):
+                acc[i] += mi.Float64(c)
+        dr.eval(self.sums)
         for k, c in counts.items():
             self.guard_counts[k] = self.guard_counts.get(k, 0) + int(c[0])
         self.n += spp
@@ -476,5 +525,6 @@ __all__ = [
     "update_features",
     "safe_div",
     "plan_passes",
+    "pass_sums",
     "camera_transform",
 ]

@@ -91,6 +91,10 @@ class GDPTIntegrator(GradientIntegratorBase):
      * - samples_per_pass
        - |int|
        - Samples traced per kernel launch. (Default: 2^20)
+     * - freeze
+       - |bool|
+       - Replay the recorded kernels of a pass (``dr.freeze``) instead of tracing it again.
+         (Default: true)
      * - shift_threshold
        - |float|
        - Microfacet roughness (alpha) at or below which a glossy vertex is near-specular: the
@@ -141,6 +145,9 @@ class GDPTIntegrator(GradientIntegratorBase):
         self._has_null = any(
             mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Null) for shape in scene.shapes()
         )
+
+    def prepared_state(self) -> tuple:
+        return (self._active_threshold, self._has_null)
 
     def sample_paths(self, scene, sensor, sampler, rays, weights, active) -> PathSamples:
         n = dr.width(rays[0].d)
