@@ -320,7 +320,15 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         done = 0
         for index, spp_pass in enumerate(passes):
             pass_seed = (int(seed) * 0x9E3779B1 + index) & 0xFFFFFFFF
-            sums, counts = trace(scene, sensor, mi.UInt32(pass_seed), spp_pass, key)
+            # The primary rays are traced outside the frozen pass (Mitsuba 3.9's thinlens
+            # camera does not expose all of its variables to dr.freeze; the rays are cheap),
+            # with their own sampler: a sampler passed in would be written back after the
+            # loop, which re-runs the loop for the sampler's final state.
+            ray_sampler = _pass_sampler(sensor, spp_pass, pass_seed ^ _RAY_SEED, n_pix)
+            rays, weights = self._primary_rays(sensor, ray_sampler, spp_pass)
+            path_seed = dr.opaque(mi.UInt32, pass_seed)
+            sums, counts = trace(scene, sensor, path_seed, rays, weights, spp_pass, key)
+            del rays, weights, ray_sampler
             acc.add(sums, counts, spp_pass)
             done += spp_pass
             if self.pass_callback is not None:
@@ -335,19 +343,17 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             )
         return acc.finish(width, height, self.channels())
 
-    def _trace_pass(self, scene: mi.Scene, sensor: mi.Sensor, seed: mi.UInt32, spp: int, key):
-        """One pass of ``spp`` samples per pixel: per-pixel sums and the pass's guard counts.
+    def _trace_pass(self, scene, sensor, seed: mi.UInt32, rays, weights, spp: int, key):
+        """One pass of ``spp`` samples per pixel from the primary ``rays`` (base and offsets,
+        with their ``weights``), the path sampler seeded with ``seed``: per-pixel sums and the
+        pass's guard counts (:func:`pass_sums`).
 
         ``key`` (settings, film size and offset, see :meth:`_pass_key`) is unused here: as an
         argument of the frozen ``_frozen_pass`` it makes a change of any of them record anew.
         """
-        n_pix = int(dr.prod(sensor.film().crop_size()))
-        sampler = sensor.sampler().clone()
-        sampler.set_sample_count(spp)
-        sampler.set_samples_per_wavefront(spp)
-        sampler.seed(seed, n_pix * spp)
-        rays, weights, active = self._primary_rays(sensor, sampler, spp)
-        samples = self.sample_paths(scene, sensor, sampler, rays, weights, active)
+        n_pix = dr.width(rays[0].d) // spp
+        sampler = _pass_sampler(sensor, spp, seed, n_pix)
+        samples = self.sample_paths(scene, sensor, sampler, rays, weights, mi.Bool(True))
         return pass_sums(samples, spp, self.variance)
 
     def _pass_key(self) -> tuple:
@@ -389,7 +395,20 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             ray, weight = sensor.sample_ray(time, wavelength, p, aperture)
             rays.append(ray)
             weights.append(weight)
-        return rays, weights, mi.Bool(True)
+        return rays, weights
+
+
+#: Mixed into a pass's seed for the primary-ray sampler (independent of the path sampler's).
+_RAY_SEED = 0x5BD1E995
+
+
+def _pass_sampler(sensor: mi.Sensor, spp: int, seed, n_pix: int) -> mi.Sampler:
+    """A clone of the sensor's sampler for ``n_pix`` pixels x ``spp`` samples, seeded."""
+    sampler = sensor.sampler().clone()
+    sampler.set_sample_count(spp)
+    sampler.set_samples_per_wavefront(spp)
+    sampler.seed(seed if isinstance(seed, mi.UInt32) else dr.opaque(mi.UInt32, seed), n_pix * spp)
+    return sampler
 
 
 def pass_sums(s: PathSamples, spp: int, variance: bool) -> tuple[dict, dict]:
