@@ -225,7 +225,8 @@ def test08_passes_split_the_work(variant):
 @pytest.mark.parametrize("name", ["gdpt", "gdpt_rr"])
 def test08b_frozen_passes_equal_traced_passes(variant, name):
     """The frozen pass (the default) replays exactly what tracing gives: across spp per pass,
-    film sizes, settings and a scene parameter changed in place."""
+    film sizes, settings, a thin-lens camera (whose rays are traced outside the frozen pass)
+    and a scene parameter changed in place."""
     import mitsuba as mi
 
     from gdpt.scenes import builtin_scene
@@ -236,8 +237,16 @@ def test08b_frozen_passes_equal_traced_passes(variant, name):
 
     small = mi.load_dict(builtin_scene("rough-conductor", resolution=(8, 6)))
     large = mi.load_dict(builtin_scene("rough-conductor", resolution=(12, 10)))
+    lens = mi.load_dict(builtin_scene("thin-lens", resolution=(8, 6)))
     frozen = mi.load_dict({"type": name, "max_depth": 4})
-    cases = [(small, 4, 4), (small, 3, 4), (large, 4, 4), (small, 4, 2), (small, 4, 4)]
+    cases = [
+        (small, 4, 4),
+        (small, 3, 4),
+        (large, 4, 4),
+        (small, 4, 2),
+        (small, 4, 4),
+        (lens, 4, 4),
+    ]
     for scene, spp, max_depth in cases:
         frozen.max_depth = max_depth  # a setting changed on the same integrator
         for _ in range(2):  # records (or finds its recording), then replays
