@@ -33,11 +33,9 @@ brightness multipliers), per-step seeding (exact resume) and held-out split
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from gdpt.io.atomic import atomic_path
@@ -56,7 +54,7 @@ from gdpt.training.augment import augment, sample_augmentation
 from gdpt.training.batches import split_datasets, step_seed
 from gdpt.training.checkpoint import write_checkpoint
 from gdpt.training.config import TrainConfig
-from gdpt.training.dataset import CropDataset, DatasetWarning
+from gdpt.training.dataset import CropDataset
 from gdpt.training.run_dir import (
     append_jsonl,
     checkpoint_base,
@@ -68,7 +66,7 @@ from gdpt.training.run_dir import (
 )
 from gdpt.training.schedule import learning_rate
 from gdpt.training.step import make_optimizer
-from gdpt.training.validation import image_metrics
+from gdpt.training.validation import held_out_elements, image_metrics
 
 __all__ = [
     "FINETUNE_LOSSES",
@@ -167,24 +165,13 @@ def load_finetune_validation(
     """Up to ``count`` evenly spaced held-out elements with the baselines' scores: OIDN on the
     same input (``oidn_``), OIDN on the equal-time path-traced input (``pt_oidn_``) and L1
     Poisson on the equal-time G-PT input (``l1_``)."""
-    from gdpt.io.exr import load_buffers
     from gdpt.reconstruct.oidn_unet import denoise
     from gdpt.reconstruct.poisson import reconstruct
 
     flip = FLIPLoss("ldr")
-    picks = sorted({round(float(i)) for i in np.linspace(0, len(dataset) - 1, count)})
     elements = []
-    for index in picks:
-        record, level = dataset.element(index)
-        try:
-            item = dataset.load(index)
-            g = load_buffers(dataset.root / record["files"][f"in{level}"]).to(device)
-            pt = load_buffers(dataset.root / record["files"][f"pt{level}"]).to(device)
-        except (ValueError, OSError) as error:
-            warnings.warn(f"validation element {index} skipped: {error}", DatasetWarning, 2)
-            continue
-        target = item["target"].to(device)
-        inputs = {k: v.to(device) for k, v in item["inputs"].items()}
+    for inputs, target, buffers in held_out_elements(dataset, count, device, ("in", "pt")):
+        g, pt = buffers["in"], buffers["pt"]
         l1 = reconstruct(g.primal, g.dx, g.dy, method="l1", alpha=0.2)
         l1_fast = None
         if design.l1:

@@ -5,7 +5,9 @@ baseline scores, and the mean relMSE and FLIP of the network over them (``val.js
 from __future__ import annotations
 
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -33,6 +35,36 @@ def image_metrics(pred: torch.Tensor, target: torch.Tensor, flip: FLIPLoss) -> d
     return {"relmse": relmse(pred, target), "flip": float(flip(*nchw))}
 
 
+def held_out_elements(
+    dataset: CropDataset, count: int, device: torch.device, renders: tuple[str, ...] = ("in",)
+) -> Iterator[tuple[dict[str, torch.Tensor], torch.Tensor, dict[str, Any]]]:
+    """Up to ``count`` evenly spaced elements of ``dataset``, loaded on ``device``.
+
+    Yields ``(inputs, target, buffers)``: the network inputs (name -> ``(H, W, C)``), the
+    ``(H, W, 3)`` target, and for each prefix of ``renders`` the crop's render at the element's
+    level as ``GradientBuffers`` (``"in"``: the gradient-domain input; ``"pt"``: the equal-time
+    path-traced input of a path-traced dataset). Unreadable elements are skipped with a warning.
+    """
+    from gdpt.io.exr import load_buffers
+
+    picks = sorted({round(float(i)) for i in np.linspace(0, len(dataset) - 1, count)})
+    for index in picks:
+        record, level = dataset.element(index)
+        try:
+            item = dataset.load(index)
+            buffers = {
+                prefix: load_buffers(dataset.root / record["files"][f"{prefix}{level}"]).to(device)
+                for prefix in renders
+            }
+        except (ValueError, OSError) as error:
+            warnings.warn(
+                f"validation element {index} skipped: {error}", DatasetWarning, stacklevel=3
+            )
+            continue
+        inputs = {k: v.to(device) for k, v in item["inputs"].items()}
+        yield inputs, item["target"].to(device), buffers
+
+
 def load_validation(dataset: CropDataset, count: int, device: torch.device) -> list[_ValElement]:
     """Up to ``count`` evenly spaced elements of ``dataset`` with their L1-Poisson metrics.
 
@@ -40,25 +72,13 @@ def load_validation(dataset: CropDataset, count: int, device: torch.device) -> l
     crop and level (for a path-traced dataset: the equal-time G-PT input). Unreadable elements
     are skipped with a warning.
     """
-    from gdpt.io.exr import load_buffers
     from gdpt.reconstruct.poisson import reconstruct
 
     flip = FLIPLoss("ldr")
-    picks = sorted({round(float(i)) for i in np.linspace(0, len(dataset) - 1, count)})
     elements = []
-    for index in picks:
-        record, level = dataset.element(index)
-        try:
-            item = dataset.load(index)
-            g = load_buffers(dataset.root / record["files"][f"in{level}"]).to(device)
-        except (ValueError, OSError) as error:
-            warnings.warn(
-                f"validation element {index} skipped: {error}", DatasetWarning, stacklevel=2
-            )
-            continue
-        target = item["target"].to(device)
+    for inputs, target, buffers in held_out_elements(dataset, count, device):
+        g = buffers["in"]
         l1 = reconstruct(g.primal, g.dx, g.dy, method="l1", alpha=0.2)
-        inputs = {k: v.to(device) for k, v in item["inputs"].items()}
         elements.append(_ValElement(inputs, target, image_metrics(l1, target, flip)))
     if not elements:
         raise ValueError(f"{dataset.root}: no readable validation element")

@@ -274,3 +274,21 @@ def test_torchrun_ddp_two_processes(data, tmp_path):
     assert len(read_jsonl(run / "val.jsonl")) == 1
     assert (run / "checkpoints" / "ckpt-0000002.pt").is_file()
     assert torch.load(run / "checkpoints" / "ckpt-0000002.pt", weights_only=True)["world_size"] == 2
+
+
+def test_validation_skips_an_unreadable_element_with_a_warning(data, tmp_path):
+    """A held-out element whose render cannot be read is named in a warning and left out; the
+    others are still validated (the fine-tuning validation uses the same element loader)."""
+    import shutil
+
+    from gdpt.training.dataset import DatasetWarning
+    from gdpt.training.validation import load_validation
+
+    root = tmp_path / "data"
+    shutil.copytree(data, root)
+    dataset = CropDataset(root)
+    record, level = dataset.element(0)
+    (root / record["files"][f"in{level}"]).write_bytes(b"not an EXR file")
+    with pytest.warns(DatasetWarning, match="validation element 0 skipped"):
+        elements = load_validation(dataset, 2, torch.device("cpu"))  # picks the first and last
+    assert len(elements) == 1
