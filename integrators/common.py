@@ -218,6 +218,11 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
     """
 
     def __init__(self, props: mi.Properties):
+        # Taken before the base class sees it: Mitsuba's SamplingIntegrator reads a
+        # 'samples_per_pass' of its own and warns that it is deprecated.
+        samples_per_pass = int(props.get("samples_per_pass", DEFAULT_SAMPLES_PER_PASS))
+        if "samples_per_pass" in props:
+            del props["samples_per_pass"]
         super().__init__(props)
         max_depth = props.get("max_depth", 6)
         if max_depth < 0 and max_depth != -1:
@@ -229,7 +234,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         self.gradients = bool(props.get("gradients", True))
         self.features = bool(props.get("features", True))
         self.variance = bool(props.get("variance", False))
-        self.samples_per_pass = int(props.get("samples_per_pass", DEFAULT_SAMPLES_PER_PASS))
+        self.samples_per_pass = samples_per_pass
         if self.samples_per_pass < 1:
             raise ValueError(f"{self.plugin_name}: 'samples_per_pass' must be >= 1")
         self.shift_threshold = float(props.get("shift_threshold", DEFAULT_SHIFT_THRESHOLD))

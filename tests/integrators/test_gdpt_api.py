@@ -63,6 +63,17 @@ def test03_invalid_properties(variant, extra, message):
         mi.load_string(xml)
 
 
+@pytest.mark.parametrize("name", ["gdpt", "gdpt_rr"])
+def test03a_samples_per_pass_is_ours_without_a_deprecation_warning(variant, name, capfd):
+    """``samples_per_pass`` sets the samples per kernel launch; Mitsuba's base class, which
+    deprecates a property of the same name, does not see it."""
+    import mitsuba as mi
+
+    integrator = mi.load_dict({"type": name, "samples_per_pass": 4096})
+    assert integrator.samples_per_pass == 4096
+    assert "deprecated" not in capfd.readouterr().out
+
+
 def test03b_shift_threshold_selects_the_half_vector_shift(variant):
     """A threshold above the scene's lobe roughness changes the gradients (the half-vector branch
     runs), never the primal (the base path does not depend on the shift)."""
