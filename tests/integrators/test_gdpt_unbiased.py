@@ -47,6 +47,12 @@ REAL = ["cornell-box", "veach-mis", "matpreview-dof", "sponza", "staircase", "to
 #: (scene, max depth) of the real scenes checked in CI; every other pair is ``slow``.
 REAL_FAST = {("staircase", 6), ("matpreview-dof", 6), ("veach-mis", 2)}
 
+#: Built-in scenes whose primal is heavy-tailed (rough glass alpha 0.03 and a mirror of alpha
+#: 0.02): twice the runs keep the run-variance estimate honest. Measured on near-specular at 48
+#: runs: primal 1.04% |z| > 3.29 with the suite's seeds (the same base paths for gdpt, gdpt_rr
+#: and every shift_threshold), 0.87% and 0.81% with two other seed sets; 0.46% at 96 runs.
+HEAVY_TAILED = {"near-specular"}
+
 #: Built-in scenes and their max depth.
 BUILTIN = [
     ("alpha-mask", 5),
@@ -172,7 +178,8 @@ def _builtin_cases():
 
 @pytest.mark.parametrize(("integrator", "name", "max_depth"), list(_builtin_cases()))
 def test_unbiased_on_builtin_scenes(variant, integrator, name, max_depth):
-    results = _oracle(name, max_depth).compare(_runs(name, integrator, max_depth))
+    runs = 2 * RUNS if name in HEAVY_TAILED else RUNS
+    results = _oracle(name, max_depth).compare(_runs(name, integrator, max_depth, runs=runs))
     _assert_passes(results, f"{integrator} on builtin:{name}, max depth {max_depth}")
 
 
@@ -212,7 +219,7 @@ def test_unbiased_with_the_half_vector_shift(variant, name, threshold, runs):
     All cases are heavy-tailed (narrow glossy lobes; the copy on lobes it does not suit,
     textured 0.3 cells): twice the runs keep the run-variance estimate honest there (measured
     at 48 runs: principled at 1.0 dy max |z| 6.4, textured-roughness's primal, which the
-    threshold does not change, 1.1%; at 96 runs 5.1 and 0.06%; near-specular at 0.05, primal:
-    1.04% with the suite's seeds, 0.87% and 0.81% with two other seed sets, 0.46% at 96 runs)."""
+    threshold does not change, 1.1%; at 96 runs 5.1 and 0.06%; near-specular: see
+    ``HEAVY_TAILED``)."""
     results = _oracle(name, 5).compare(_runs(name, "gdpt", 5, runs=runs, shift_threshold=threshold))
     _assert_passes(results, f"gdpt on builtin:{name}, shift_threshold {threshold}")
