@@ -31,6 +31,13 @@ class ConfigMismatchError(ValueError):
     """A run directory is resumed with settings that change the training."""
 
 
+def require_positive(config: Any, names: tuple[str, ...]) -> None:
+    """Raise ``ValueError`` naming the first of ``names`` whose value on ``config`` is < 1."""
+    for name in names:
+        if getattr(config, name) < 1:
+            raise ValueError(f"{name} must be >= 1, got {getattr(config, name)}")
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Everything that defines a training run.
@@ -99,16 +106,9 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if not self.data or not self.out:
             raise ValueError("TrainConfig needs data= and out= directories")
-        for name in (
-            "steps",
-            "batch",
-            "holdout_every",
-            "val_crops",
-            "ckpt_every",
-            "keep_checkpoints",
-        ):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        require_positive(
+            self, ("steps", "batch", "holdout_every", "val_crops", "ckpt_every", "keep_checkpoints")
+        )
         if self.val_every < 0 or self.pad < 0 or not 0 <= self.vary_padding <= self.pad:
             raise ValueError("need val_every >= 0 and 0 <= vary_padding <= pad")
         if self.crop is not None and self.crop < 2:

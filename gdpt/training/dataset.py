@@ -68,6 +68,7 @@ from torch.utils.data import Dataset
 
 from gdpt.io.atomic import atomic_write
 from gdpt.io.exr import load_buffers
+from gdpt.training.config import require_positive
 
 if TYPE_CHECKING:
     from gdpt.buffers import GradientBuffers
@@ -128,17 +129,9 @@ class DatasetConfig:
     scene_config: RandomSceneConfig | None = None
 
     def __post_init__(self) -> None:
-        for name in (
-            "scenes",
-            "views",
-            "resolution",
-            "spp_min",
-            "levels",
-            "target_spp",
-            "max_depth",
-        ):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        require_positive(
+            self, ("scenes", "views", "resolution", "spp_min", "levels", "target_spp", "max_depth")
+        )
         if self.spp_max < self.spp_min:
             raise ValueError(f"spp_max ({self.spp_max}) must be >= spp_min ({self.spp_min})")
         if not (self.pt_factor > 0 and self.alpha > 0):
