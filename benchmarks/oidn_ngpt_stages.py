@@ -4,7 +4,8 @@ to OIDN alone, at several image sizes.
 Per design (``oidn-grad``, ``oidn-grad-l1``, ``oidn-nograd``) and size: input assembly
 (autoexposure, PU encoding, signed-log gradients; for ``oidn-grad-l1`` the 'l1-fast' Poisson
 solve is timed as its own stage), the U-Net, the output decoding, and the end-to-end
-``OIDNReconstructor`` call; next to ``pyoidn.denoise`` (HDR, albedo + normal, quality high) and
+``OIDNReconstructor`` call (for gradient designs also with the shipped ``ngpt``'s gated Poisson
+refinement, :mod:`gdpt.reconstruct.refine`: its L1 solve and gate as stages); next to ``pyoidn.denoise`` (HDR, albedo + normal, quality high) and
 the torch port of OIDN (:func:`gdpt.reconstruct.oidn_unet.denoise`). Timings do not depend on
 the weights' values, so Intel's weights with zero extra-channel weights are used. Every task is
 warmed up once, then timed in ``--repeats`` interleaved rounds; medians are reported, with the
@@ -28,6 +29,7 @@ from gdpt.reconstruct.oidn_ngpt import DESIGNS, OIDNReconstructor, assemble, bas
 from gdpt.reconstruct.oidn_unet import decode_output
 from gdpt.reconstruct.oidn_unet import denoise as torch_oidn
 from gdpt.reconstruct.poisson import reconstruct as poisson
+from gdpt.reconstruct.refine import GatedRefinement
 from ngpt_inference import _time, oidn_task, synthetic_buffers
 
 
@@ -50,6 +52,14 @@ def stage_tasks(design_name: str, buffers: dict[str, torch.Tensor]) -> dict[str,
     tasks["decode"] = lambda: decode_output(y, h, w, scale)
     rec = OIDNReconstructor(net, design)
     tasks["total"] = lambda: rec(buffers)
+    if design.gradients:
+        refine = GatedRefinement()
+        image = rec(buffers)
+        refined = refine.solve(image, buffers["dx"], buffers["dy"])
+        tasks["refinement: L1 solve"] = lambda: refine.solve(image, buffers["dx"], buffers["dy"])
+        tasks["refinement: gate"] = lambda: refine.gate(refined, image)
+        with_refine = OIDNReconstructor(net, design, {"refine": refine.to_dict()})
+        tasks["total, refined"] = lambda: with_refine(buffers)
     return tasks
 
 

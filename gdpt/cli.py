@@ -343,10 +343,11 @@ def _run_dataset(args: argparse.Namespace) -> int:
 # -------------------------------------------------------------------------------------- train
 def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
     from gdpt.reconstruct.losses import LOSSES
+    from gdpt.training.combine import COMBINER_LOSSES
     from gdpt.training.config import TrainConfig
     from gdpt.training.finetune import FINETUNE_LOSSES
 
-    losses = [*LOSSES, *(name for name in FINETUNE_LOSSES if name not in LOSSES)]
+    losses = list(dict.fromkeys([*LOSSES, *FINETUNE_LOSSES, *COMBINER_LOSSES]))
     add_config_arguments(
         parser,
         TrainConfig,
@@ -388,8 +389,10 @@ def _add_model_report_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--ship",
-        action="store_true",
-        help="copy each run's network into gdpt/models/NAME with a model card",
+        nargs="*",
+        metavar="NAME",
+        default=None,
+        help="copy the runs NAME (default: every run) into gdpt/models/NAME with a model card",
     )
 
 
@@ -420,10 +423,44 @@ def _run_model_report(args: argparse.Namespace) -> int:
     table = comparison_markdown(result)
     (args.out / "comparison.md").write_text(table)
     print(table)
-    if args.ship:
-        for name, run in runs.items():
-            print(f"shipped {ship_model(run, name, comparison=result)}")
+    if args.ship is not None:
+        unknown = sorted(set(args.ship) - set(runs))
+        if unknown:
+            raise ValueError(f"--ship {' '.join(unknown)}: not among the --run names {sorted(runs)}")
+        for name in args.ship or runs:
+            print(f"shipped {ship_model(runs[name], name, comparison=result)}")
     print(f"wrote {args.out}/ (training.png, comparison.json, comparison.md)")
+    return 0
+
+
+# -------------------------------------------------------------------------- select-refinement
+def _add_select_refinement_arguments(parser: argparse.ArgumentParser) -> None:
+    from gdpt.training.refinement import ALPHAS, TAUS
+
+    parser.add_argument(
+        "--model", type=Path, required=True, help="a gradient network's model.safetensors"
+    )
+    parser.add_argument(
+        "--data", type=Path, required=True, help="procedural dataset it was not trained on"
+    )
+    parser.add_argument("--out", type=Path, required=True, help="new run directory")
+    parser.add_argument(
+        "--alphas", type=float, nargs="+", default=list(ALPHAS), help="L1 data weights to try"
+    )
+    parser.add_argument(
+        "--taus", type=float, nargs="+", default=list(TAUS), help="gate widths (PU) to try"
+    )
+    parser.add_argument("--window", type=int, default=5, help="gate max-pool side (default: 5)")
+
+
+def _run_select_refinement(args: argparse.Namespace) -> int:
+    from gdpt.training.refinement import select_refinement
+
+    path = select_refinement(
+        args.model, args.data, args.out, alphas=args.alphas, taus=args.taus, window=args.window
+    )
+    print((args.out / "refinement.md").read_text())
+    print(f"wrote {path}")
     return 0
 
 
@@ -458,6 +495,12 @@ COMMANDS: tuple[Command, ...] = (
         "train an NGPT network on a dataset (torchrun-ready)",
         _add_train_arguments,
         _run_train,
+    ),
+    Command(
+        "select-refinement",
+        "choose a gradient network's gated Poisson refinement on procedural data",
+        _add_select_refinement_arguments,
+        _run_select_refinement,
     ),
     Command(
         "model-report",

@@ -98,11 +98,15 @@ def model_path(name: str, model: str | os.PathLike | None = None) -> Path:
 
 @lru_cache(maxsize=4)
 def load_reconstructor(path: Path) -> Any:
-    """The reconstructor of a checkpoint (cached): a fine-tuned OIDN network (delta card of
-    :mod:`gdpt.reconstruct.oidn_ngpt`) or a dense U-Net (:mod:`gdpt.reconstruct.ngpt`); both
+    """The reconstructor of a checkpoint (cached): a combiner over a fine-tuned OIDN network
+    (:mod:`gdpt.reconstruct.combiner`), a fine-tuned OIDN network (delta card of
+    :mod:`gdpt.reconstruct.oidn_ngpt`) or a dense U-Net (:mod:`gdpt.reconstruct.ngpt`); all
     are called with a buffer mapping or ``GradientBuffers`` and expose ``features``."""
+    from gdpt.reconstruct.combiner import CombinerReconstructor, is_combiner_card
     from gdpt.reconstruct.oidn_ngpt import OIDNReconstructor, is_delta_card
 
+    if is_combiner_card(path):
+        return CombinerReconstructor.from_checkpoint(path)
     if is_delta_card(path):
         return OIDNReconstructor.from_checkpoint(path)
     from gdpt.reconstruct.ngpt import NGPTReconstructor
@@ -127,10 +131,12 @@ def _ngpt(
 
 
 def _oidn_weights_missing(name: str, path: Path) -> str | None:
-    """Why the fine-tuned OIDN model at ``path`` cannot load its base weights, or ``None``."""
+    """Why the fine-tuned OIDN model at ``path`` (or a combiner's base network) cannot load its
+    base weights, or ``None``."""
+    from gdpt.reconstruct.combiner import is_combiner_card
     from gdpt.reconstruct.oidn_ngpt import is_delta_card
 
-    if not is_delta_card(path):
+    if not (is_delta_card(path) or is_combiner_card(path)):
         return None
     if importlib.util.find_spec("pyoidn") is None:
         return (

@@ -18,7 +18,11 @@ Checkpoint (delta) format: Intel's weights are read at run time from pyoidn's li
     model.safetensors   per tensor: fine-tuned minus OIDN (the extra channels' OIDN weights
                         are zero), float32
     model.json          card: {"format": DELTA_FORMAT, "design", "base_weights", "features",
-                        "parameter_count", ...training information...}
+                        "parameter_count", optionally "refine", ...training information...}
+
+A card's optional ``"refine"`` entry (gradient designs only) makes :class:`OIDNReconstructor`
+follow the network with the gated screened-Poisson refinement of :mod:`.refine` (its
+``alpha``, ``tau``, ``window``).
 
 :func:`load_model` adds the deltas to OIDN's weights (one float32 rounding per weight, about
 1e-7 relative); it fails with :class:`~.tza.OIDNWeightsError` (which says how to pass a
@@ -39,6 +43,7 @@ import torch
 from safetensors.torch import load_file, save
 
 from .oidn_unet import OIDNUNet, autoexposure, decode_output, encode_inputs, pu_forward
+from .refine import GatedRefinement
 from .registry import Registry
 
 __all__ = [
@@ -255,18 +260,27 @@ def load_model(
 
 
 class OIDNReconstructor:
-    """Apply a fine-tuned OIDN network to a render's buffers, on the buffers' device.
+    """Apply a fine-tuned OIDN network (and the card's refinement, if any) to a render's
+    buffers, on the buffers' device.
 
     Args:
         net: the network (weights copied to each device on first use).
         design: its inputs.
-        card: the model card, kept as :attr:`card`.
+        card: the model card, kept as :attr:`card`; its ``"refine"`` entry, if present, is the
+            :class:`~.refine.GatedRefinement` applied after the network (:attr:`refine`).
+
+    Raises:
+        ValueError: a refinement on a design without gradients, or bad refinement settings.
     """
 
     def __init__(self, net: OIDNUNet, design: Design, card: Mapping[str, Any] | None = None):
         self.design = design
         self.features = design.features
         self.card = dict(card or {})
+        refine = self.card.get("refine")
+        if refine is not None and not design.gradients:
+            raise ValueError(f"a refinement needs gradients; {design.description} reads none")
+        self.refine = GatedRefinement.from_dict(refine) if refine is not None else None
         self._net = net.eval()
         self._per_device: dict[torch.device, OIDNUNet] = {}
 
@@ -294,7 +308,8 @@ class OIDNReconstructor:
                 them as attributes (``gdpt.buffers.GradientBuffers``).
 
         Returns:
-            ``(H, W, 3)`` float32 radiance (finite, >= 0) on the buffers' device.
+            ``(H, W, 3)`` float32 radiance (finite, >= 0) on the buffers' device: the network's
+            output, refined with the gradients when the card has a ``"refine"`` entry.
 
         Raises:
             KeyError: a buffer the model reads is missing (named).
@@ -304,7 +319,10 @@ class OIDNReconstructor:
         x, scale = assemble(buffers, self.design)
         h, w = buffers["primal"].shape[:2]
         x = x.contiguous(memory_format=torch.channels_last)
-        return predict(self._net_on(x.device), x, h, w, scale).contiguous()
+        out = predict(self._net_on(x.device), x, h, w, scale).contiguous()
+        if self.refine is not None:
+            out = self.refine(out, buffers["dx"], buffers["dy"])
+        return out
 
 
 def finetune_loss(

@@ -47,7 +47,10 @@ class TrainConfig:
             with 16 input channels read the ``gdpt`` inputs, 10-channel ones the path-traced.
             A design of :data:`gdpt.reconstruct.oidn_ngpt.DESIGNS` (``oidn-grad``, ...)
             fine-tunes OIDN's U-Net instead (:mod:`gdpt.training.finetune`; ``pad`` and
-            ``vary_padding`` do not apply there).
+            ``vary_padding`` do not apply there). A design of
+            :data:`gdpt.reconstruct.combiner.COMBINER_DESIGNS` (``combiner-grad``,
+            ``combiner-nograd``) trains a kernel-predicting combiner on top of ``base_model``
+            (:mod:`gdpt.training.combine`).
         data: training dataset directory (:mod:`gdpt.training.dataset`).
         out: run directory.
         val_data: validation dataset directory; ``None`` holds out every ``holdout_every``-th
@@ -75,6 +78,8 @@ class TrainConfig:
         ckpt_every: checkpoint every this many steps (and at the end).
         keep_checkpoints: checkpoints kept in ``checkpoints/`` (older ones are deleted).
         device: torch device (``None``: ``cuda:LOCAL_RANK`` if available, else ``cpu``).
+        base_model: the frozen base network of a combiner design (a fine-tuned OIDN
+            checkpoint, ``.safetensors``); unused by the other models.
     """
 
     model: str = "fast_xs"
@@ -102,6 +107,7 @@ class TrainConfig:
     ckpt_every: int = 100
     keep_checkpoints: int = 3
     device: str | None = None
+    base_model: str | None = None
 
     def __post_init__(self) -> None:
         if not self.data or not self.out:

@@ -252,7 +252,8 @@ def ship_model(
     comparison: Mapping[str, Any] | None = None,
     dest: str | Path | None = None,
 ) -> Path:
-    """Copy a run's final network into the package as ``<dest>/<name>.safetensors`` + card.
+    """Copy a run's final network into the package as ``<dest>/<name>.safetensors`` + card
+    (a combiner also writes its base network as ``<dest>/<name>-base``).
 
     The card adds to the run's own card: the dataset configuration and size (crops, scenes,
     held-out scenes), the wall-clock training time, the run's config, and ``comparison`` (from
@@ -271,14 +272,17 @@ def ship_model(
         FileNotFoundError: the run has no final model.
     """
     from gdpt.denoise import MODEL_DIR
-    from gdpt.reconstruct import oidn_ngpt
+    from gdpt.reconstruct import combiner, oidn_ngpt
     from gdpt.reconstruct.ngpt import load_checkpoint
     from gdpt.training.checkpoint import save_checkpoint, write_checkpoint
 
     run = Path(run)
     delta = oidn_ngpt.is_delta_card(run / "model.json")
+    combined = combiner.is_combiner_card(run / "model.json")
     if delta:  # fine-tuned OIDN: shipped as the difference to Intel's weights
         model, _, card = oidn_ngpt.load_model(run / "model.safetensors")
+    elif combined:  # a combiner: shipped with its base network as <name>-base
+        model, _, card, base_path = combiner.load_combiner(run / "model.safetensors")
     else:
         model, card = load_checkpoint(run / "model.safetensors")
     log = _read_jsonl(run / "log.jsonl")
@@ -288,7 +292,7 @@ def ship_model(
     scenes = sorted({row["scene"] for row in manifest if "scene" in row})
     holdout = config.get("holdout_every") or HOLDOUT_EVERY
     reserved = {"format", "config_name", "config", "features", "parameter_count"}
-    reserved |= {"design", "description", "base_weights"}
+    reserved |= {"design", "description", "base_weights", "base_model", "kernel", "widths"}
     extra = {k: v for k, v in card.items() if k not in reserved}
     extra.update(
         name=name,
@@ -312,7 +316,16 @@ def ship_model(
             "limit of shipped models"
         )
     target = Path(dest or MODEL_DIR) / name
-    if delta:
+    if combined:
+        base_target = target.with_name(f"{name}-base")
+        write_checkpoint(
+            base_target,
+            base_path.with_suffix(".safetensors").read_bytes(),
+            base_path.with_suffix(".json").read_text(),
+        )
+        encoded = combiner.encode_combiner(model, card["design"], base_target.name, extra)
+        weights, _ = write_checkpoint(target, *encoded)
+    elif delta:
         weights, _ = write_checkpoint(target, *oidn_ngpt.encode_delta(model, card["design"], extra))
     else:
         weights, _ = save_checkpoint(model, target, extra)

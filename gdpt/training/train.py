@@ -78,8 +78,13 @@ def train(config: TrainConfig, *, resume: bool = False, progress: bool = True) -
     import torch.distributed as dist
     from tqdm.auto import tqdm
 
+    from gdpt.reconstruct.combiner import COMBINER_DESIGNS
     from gdpt.reconstruct.oidn_ngpt import DESIGNS
 
+    if config.model in COMBINER_DESIGNS:  # a combiner over a frozen base network
+        from gdpt.training.combine import train_combiner
+
+        return train_combiner(config, resume=resume, progress=progress)
     if config.model in DESIGNS:  # OIDN's U-Net fine-tuned (gdpt.training.finetune)
         from gdpt.training.finetune import finetune
 

@@ -5,6 +5,9 @@
   depth 4; keyword arguments override fields.
 * ``tiny_dataset``: that dataset (``tiny_dataset_config()``, 2 crops), rendered once per
   session. Read-only: tests that change a dataset work on a copy.
+* ``pt_dataset``: two 32x32 crops of a one-object scene, 2 levels, with equal-time path-traced
+  inputs and 16-spp path-traced targets (``--target pt``), rendered once per session.
+  Read-only.
 * ``tiny_run_config``: a factory ``(data, out, **changes)`` of
   :class:`~gdpt.training.config.TrainConfig` with a tiny schedule: 3 steps of batch 2, no
   warm-up, decay from step 1 with half-life 2, validation every 2 steps on 2 crops (so at
@@ -59,6 +62,17 @@ def tiny_dataset(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("dataset") / "tiny"
     summary = build_dataset(make_tiny_dataset_config(), root, progress=False)
     assert (summary.rendered, summary.skipped) == (2, 0)
+    return root
+
+
+@pytest.fixture(scope="session")
+def pt_dataset(tmp_path_factory) -> Path:
+    """Two 32x32 crops with path-traced inputs and targets (do not modify)."""
+    from gdpt.training.dataset import build_dataset
+
+    root = tmp_path_factory.mktemp("pt-dataset") / "data"
+    config = make_tiny_dataset_config(resolution=32, levels=2, target_spp=16, target="pt")
+    build_dataset(config, root, progress=False)
     return root
 
 

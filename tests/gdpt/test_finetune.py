@@ -12,19 +12,16 @@ import torch
 from gdpt.reconstruct.oidn_ngpt import DESIGNS, base_model, finetune_loss, load_model
 
 from gdpt.training.config import TrainConfig
-from gdpt.training.dataset import CropDataset, build_dataset
+from gdpt.training.dataset import CropDataset
 from gdpt.training.finetune import make_finetune_batch
 from gdpt.training.step import make_optimizer
 from gdpt.training.train import train
 
 
-@pytest.fixture(scope="module")
-def data(tmp_path_factory, tiny_dataset_config) -> Path:
-    """Two rendered 32x32 crops of a one-object scene, 2 levels, 16-spp path-traced targets."""
-    root = tmp_path_factory.mktemp("finetune") / "data"
-    config = tiny_dataset_config(resolution=32, levels=2, target_spp=16, target="pt")
-    build_dataset(config, root, progress=False)
-    return root
+@pytest.fixture
+def data(pt_dataset) -> Path:
+    """The session's path-traced dataset (``pt_dataset``)."""
+    return pt_dataset
 
 
 @pytest.fixture

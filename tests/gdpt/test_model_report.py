@@ -106,3 +106,19 @@ def test_cli_bad_run_argument(runs, tmp_path, capsys, run, message):
     status = main(["model-report", "--data", str(data), "--out", str(tmp_path), "--run", run])
     assert status == 2
     assert message in capsys.readouterr().err
+
+
+def test_cli_ships_only_the_named_runs(runs, tmp_path, monkeypatch, capsys):
+    import gdpt.denoise
+
+    data, run_dirs = runs
+    monkeypatch.setattr(gdpt.denoise, "MODEL_DIR", tmp_path / "models")
+    args = ["model-report", "--data", str(data), "--holdout-every", "1", "--out", str(tmp_path)]
+    args += [f"--run={k}={v}" for k, v in run_dirs.items()]
+    assert main([*args, "--ship", "ngpt-nograd"]) == 0
+    assert sorted(p.name for p in (tmp_path / "models").iterdir()) == [
+        "ngpt-nograd.json",
+        "ngpt-nograd.safetensors",
+    ]
+    assert main([*args, "--ship", "nope"]) == 2
+    assert "--ship nope: not among the --run names" in capsys.readouterr().err
