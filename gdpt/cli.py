@@ -426,7 +426,9 @@ def _run_model_report(args: argparse.Namespace) -> int:
     if args.ship is not None:
         unknown = sorted(set(args.ship) - set(runs))
         if unknown:
-            raise ValueError(f"--ship {' '.join(unknown)}: not among the --run names {sorted(runs)}")
+            raise ValueError(
+                f"--ship {' '.join(unknown)}: not among the --run names {sorted(runs)}"
+            )
         for name in args.ship or runs:
             print(f"shipped {ship_model(runs[name], name, comparison=result)}")
     print(f"wrote {args.out}/ (training.png, comparison.json, comparison.md)")
@@ -451,13 +453,22 @@ def _add_select_refinement_arguments(parser: argparse.ArgumentParser) -> None:
         "--taus", type=float, nargs="+", default=list(TAUS), help="gate widths (PU) to try"
     )
     parser.add_argument("--window", type=int, default=5, help="gate max-pool side (default: 5)")
+    parser.add_argument(
+        "--preset", default="refine", help="IRLS schedule of the L1 solve (default: refine)"
+    )
 
 
 def _run_select_refinement(args: argparse.Namespace) -> int:
     from gdpt.training.refinement import select_refinement
 
     path = select_refinement(
-        args.model, args.data, args.out, alphas=args.alphas, taus=args.taus, window=args.window
+        args.model,
+        args.data,
+        args.out,
+        alphas=args.alphas,
+        taus=args.taus,
+        window=args.window,
+        preset=args.preset,
     )
     print((args.out / "refinement.md").read_text())
     print(f"wrote {path}")

@@ -48,6 +48,7 @@ from safetensors.torch import load_file, save
 from torch import nn
 from torch.nn import functional as F
 
+from .ngpt import read_card
 from .oidn_ngpt import OIDNReconstructor, signed_log
 from .oidn_unet import autoexposure, pu_forward, pu_inverse
 from .registry import Registry
@@ -314,14 +315,7 @@ def load_combiner(path: str | Path) -> tuple[CombinerNet, CombinerDesign, dict[s
         FileNotFoundError: a file (also the base network's) is missing.
         ValueError: not a combiner card, or the stored tensors do not fit it.
     """
-    weights_path, card_path = (
-        Path(path).with_suffix(".safetensors"),
-        Path(path).with_suffix(".json"),
-    )
-    for p in (weights_path, card_path):
-        if not p.is_file():
-            raise FileNotFoundError(f"checkpoint file {p} not found (need .safetensors + .json)")
-    card = json.loads(card_path.read_text())
+    weights_path, card_path, card = read_card(path)
     if card.get("format") != COMBINER_FORMAT:
         raise ValueError(
             f"{card_path}: format {card.get('format')!r}, expected {COMBINER_FORMAT!r}"

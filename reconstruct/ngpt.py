@@ -74,6 +74,20 @@ def checkpoint_paths(path: str | Path) -> tuple[Path, Path]:
     return path.with_suffix(".safetensors"), path.with_suffix(".json")
 
 
+def read_card(path: str | Path) -> tuple[Path, Path, dict[str, Any]]:
+    """``(weights_path, card_path, card)`` of the checkpoint at ``path`` (either of its two
+    files; any checkpoint format of gdpt).
+
+    Raises:
+        FileNotFoundError: one of the two files is missing.
+    """
+    weights_path, card_path = checkpoint_paths(path)
+    for p in (weights_path, card_path):
+        if not p.is_file():
+            raise FileNotFoundError(f"checkpoint file {p} not found (need .safetensors + .json)")
+    return weights_path, card_path, json.loads(card_path.read_text())
+
+
 def encode_checkpoint(
     model: DenseUNet,
     card: Mapping[str, Any] | None = None,
@@ -150,11 +164,7 @@ def load_checkpoint(
             registered config of the same name, or weights whose names/shapes do not match
             the card's config.
     """
-    weights_path, card_path = checkpoint_paths(path)
-    for p in (weights_path, card_path):
-        if not p.is_file():
-            raise FileNotFoundError(f"checkpoint file {p} not found (need .safetensors + .json)")
-    card = json.loads(card_path.read_text())
+    weights_path, card_path, card = read_card(path)
     if card.get("format") != CARD_FORMAT:
         raise CheckpointMismatchError(
             f"{card_path}: format {card.get('format')!r}, this code reads {CARD_FORMAT!r}"

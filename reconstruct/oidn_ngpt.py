@@ -42,6 +42,7 @@ from typing import Any
 import torch
 from safetensors.torch import load_file, save
 
+from .ngpt import read_card
 from .oidn_unet import OIDNUNet, autoexposure, decode_output, encode_inputs, pu_forward
 from .refine import GatedRefinement
 from .registry import Registry
@@ -236,14 +237,7 @@ def load_model(
         ValueError: not a delta card, or the stored tensors do not fit the design.
         reconstruct.tza.OIDNWeightsError: OIDN's weights cannot be read.
     """
-    weights_path, card_path = (
-        Path(path).with_suffix(".safetensors"),
-        Path(path).with_suffix(".json"),
-    )
-    for p in (weights_path, card_path):
-        if not p.is_file():
-            raise FileNotFoundError(f"checkpoint file {p} not found (need .safetensors + .json)")
-    card = json.loads(card_path.read_text())
+    weights_path, card_path, card = read_card(path)
     if card.get("format") != DELTA_FORMAT:
         raise ValueError(f"{card_path}: format {card.get('format')!r}, expected {DELTA_FORMAT!r}")
     design = DESIGNS[card["design"]]

@@ -2,10 +2,10 @@
 
 A denoiser's output ``n`` is smooth but loses what its input did not show clearly (shadow
 edges, fine texture). The G-PT gradients carry exactly that. The refinement solves screened
-Poisson L1 (:func:`.poisson.solve_l1`, preset ``fast``) with ``n`` as the data term, so the
+Poisson L1 (:func:`.poisson.solve_l1`) with ``n`` as the data term, so the
 gradients correct ``n``::
 
-    r = argmin_x  alpha |x - n|_1 + |Dx x - dx|_1 + |Dy x - dy|_1
+    r = argmin_x  alpha |x - n|_1 + |Dx x - dx|_1 + |Dy x - dy|_1      (IRLS preset ``refine``)
 
 and then keeps ``r`` only where it stays close to ``n``. Where the gradients are unreliable
 (high gradient variance relative to the primal's, the case of Fig. 5 of Kettunen et al. 2019:
@@ -48,11 +48,14 @@ class GatedRefinement:
         alpha: data weight of the L1 solve (> 0).
         tau: gate width in PU units (> 0; ``inf`` keeps the L1 solution everywhere).
         window: side of the max-pool that widens the gate (odd, >= 1).
+        preset: IRLS schedule of the L1 solve (a key of
+            :data:`gdpt.reconstruct.poisson.L1_PRESETS`).
     """
 
     alpha: float = 0.5
     tau: float = 0.02
     window: int = 5
+    preset: str = "refine"
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.alpha) and self.alpha > 0):
@@ -61,6 +64,9 @@ class GatedRefinement:
             raise ValueError(f"refinement tau must be > 0, got {self.tau}")
         if self.window < 1 or self.window % 2 != 1:
             raise ValueError(f"refinement window must be odd and >= 1, got {self.window}")
+        from .poisson import get_l1_preset  # noqa: PLC0415 (imports the solvers only when used)
+
+        get_l1_preset(self.preset)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form (the ``"refine"`` entry of a model card; an infinite ``tau``
@@ -77,7 +83,9 @@ class GatedRefinement:
         ``image``."""
         from .poisson import solve_l1  # noqa: PLC0415 (imports the solvers only when used)
 
-        return solve_l1(image, dx.float(), dy.float(), alpha=self.alpha, preset="fast").clamp_min(0)
+        return solve_l1(
+            image, dx.float(), dy.float(), alpha=self.alpha, preset=self.preset
+        ).clamp_min(0)
 
     def gate(self, refined: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
         """``(H, W, 1)`` gate ``g`` in [0, 1] of ``refined`` against ``image``."""

@@ -16,17 +16,17 @@ schedule, held-out split, per-step seeding (exact resume), checkpoints every
 ``ckpt_every`` steps with the optimizer state in the run's ``.pt`` files. The loss
 (:data:`COMBINER_LOSSES`, :func:`combiner_loss`) is OIDN's PU-L1 plus a relative error
 against the base image. Validation
-(``val.jsonl``) scores the combiner and each candidate alone (``base_*``, ``l1_*``).
+(``val.jsonl``) scores the combiner and each candidate alone (``candidate_base_*``,
+``candidate_l1_*``).
 """
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import torch
 
-from gdpt.io.atomic import atomic_path, atomic_write
+from gdpt.io.atomic import atomic_write
 from gdpt.reconstruct.combiner import (
     COMBINER_DESIGNS,
     CombinerDesign,
@@ -44,16 +44,11 @@ from gdpt.training.batches import split_datasets, step_seed
 from gdpt.training.checkpoint import write_checkpoint
 from gdpt.training.config import TrainConfig
 from gdpt.training.dataset import CropDataset
+from gdpt.training.loop import optimise, resume_state
 from gdpt.training.run_dir import (
-    append_jsonl,
-    checkpoint_base,
-    latest_checkpoint,
     prepare_run,
-    prune_checkpoints,
-    truncate_jsonl,
     write_json,
 )
-from gdpt.training.schedule import learning_rate
 from gdpt.training.step import make_optimizer
 from gdpt.training.validation import held_out_elements, image_metrics
 
@@ -199,7 +194,8 @@ def _validation(
             cands = candidates(inputs, base(inputs), design)
         scores = {}
         for name, image in zip(design.candidate_names, cands, strict=True):
-            scores.update({f"{name}_{k}": v for k, v in image_metrics(image, target, flip).items()})
+            metrics = image_metrics(image, target, flip)
+            scores.update({f"candidate_{name}_{k}": v for k, v in metrics.items()})
         elements.append((inputs, cands, target, scores))
     if not elements:
         raise ValueError(f"{dataset.root}: no readable validation element")
@@ -237,7 +233,6 @@ def train_combiner(config: TrainConfig, *, resume: bool = False, progress: bool 
         ValueError: no ``base_model``, a base network that reads other buffers than the design,
             an unusable dataset or an unknown loss.
     """
-    from tqdm.auto import tqdm
 
     design = COMBINER_DESIGNS[config.model]
     if config.base_model is None:
@@ -263,15 +258,7 @@ def train_combiner(config: TrainConfig, *, resume: bool = False, progress: bool 
     torch.manual_seed(config.seed)
     net = CombinerNet(design.in_channels, len(design.candidate_names)).to(device).train()
     optimizer = make_optimizer(net, config)
-    start, elapsed = 0, 0.0
-    found = latest_checkpoint(run) if resume else None
-    if found is not None:
-        state = torch.load(found[1].with_suffix(".pt"), map_location=device, weights_only=True)
-        net.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        start, elapsed = int(state["step"]), float(state["elapsed"])
-    for name in ("log.jsonl", "val.jsonl"):
-        truncate_jsonl(run / name, start)
+    start, elapsed = resume_state(run, net, optimizer, device, resume)
     val_elements = _validation(val_set, design, base, config.val_crops) if config.val_every else []
     cache = CandidateCache(design, base)
     _copy_base(Path(config.base_model), run / BASE_NAME)
@@ -287,50 +274,21 @@ def train_combiner(config: TrainConfig, *, resume: bool = False, progress: bool 
         }
     }
 
-    def save(base_path: Path, done: int, last_val: dict[str, float], exact: bool) -> None:
-        info = {**card, "steps": done, "train_seconds": round(elapsed, 1), "validation": last_val}
+    def save(base_path: Path, done: int, seconds: float, last_val: dict[str, float]) -> None:
+        info = {**card, "steps": done, "train_seconds": round(seconds, 1), "validation": last_val}
         write_checkpoint(base_path, *encode_combiner(net, config.model, BASE_NAME, info))
-        if exact:
-            payload = {"step": done, "elapsed": elapsed, "world_size": 1,
-                       "model": net.state_dict(), "optimizer": optimizer.state_dict()}  # fmt: skip
-            with atomic_path(base_path.with_suffix(".pt")) as tmp:
-                torch.save(payload, tmp)
 
-    last_val: dict[str, float] = {}
-    bar = tqdm(total=config.steps, initial=start, unit="step", desc="combiner",
-               disable=not progress, dynamic_ncols=True)  # fmt: skip
-    for step in range(start, config.steps):
-        t0 = time.perf_counter()
+    def loss_at(step: int) -> torch.Tensor:
         buffers, cands, target = make_combiner_batch(train_set, config, design, step, cache)
-        lr = learning_rate(step, config)
-        for group in optimizer.param_groups:
-            group["lr"] = lr
-        optimizer.zero_grad(set_to_none=True)
         buffers = {n: t.to(device) for n, t in buffers.items()}
         cands = cands.to(device)
         x, scale = combiner_input(buffers, cands, design)
         out = combine(net, x, scale)
-        loss = combiner_loss(out, target.to(device), cands[:, 0], scale, relative=relative)
-        loss.backward()
-        finite = all(bool(torch.isfinite(p.grad).all()) for p in net.parameters())
-        if finite:
-            optimizer.step()
-        seconds = time.perf_counter() - t0
-        elapsed += seconds
-        done = step + 1
-        record = {"step": done, "loss": float(loss.detach()), "lr": lr,
-                  "time": round(elapsed, 3), "step_seconds": round(seconds, 4)}  # fmt: skip
-        append_jsonl(run / "log.jsonl", record | ({} if finite else {"skipped": True}))
-        bar.update(1)
-        bar.set_postfix(loss=f"{record['loss']:.4g}", lr=f"{lr:.2e}")
-        final = done == config.steps
-        if config.val_every and (done % config.val_every == 0 or final):
-            last_val = _validate(net, design, val_elements)
-            append_jsonl(run / "val.jsonl", {"step": done, "time": round(elapsed, 3), **last_val})
-        if done % config.ckpt_every == 0 or final:
-            save(checkpoint_base(run, done), done, last_val, exact=True)
-            prune_checkpoints(run, config.keep_checkpoints)
-        if final:
-            save(run / "model", done, last_val, exact=False)
-    bar.close()
+        return combiner_loss(out, target.to(device), cands[:, 0], scale, relative=relative)
+
+    optimise(
+        config, run, net, optimizer, start=start, elapsed=elapsed, loss_at=loss_at,
+        validate=lambda: _validate(net, design, val_elements), save=save,
+        desc="combiner", progress=progress,
+    )  # fmt: skip
     return run / "model.safetensors"

@@ -32,13 +32,11 @@ brightness multipliers), per-step seeding (exact resume) and held-out split
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from gdpt.io.atomic import atomic_path
 from gdpt.reconstruct.losses import FLIPLoss
 from gdpt.reconstruct.oidn_ngpt import (
     DESIGNS,
@@ -55,16 +53,11 @@ from gdpt.training.batches import split_datasets, step_seed
 from gdpt.training.checkpoint import write_checkpoint
 from gdpt.training.config import TrainConfig
 from gdpt.training.dataset import CropDataset
+from gdpt.training.loop import optimise, resume_state
 from gdpt.training.run_dir import (
-    append_jsonl,
-    checkpoint_base,
-    latest_checkpoint,
     prepare_run,
-    prune_checkpoints,
-    truncate_jsonl,
     write_json,
 )
-from gdpt.training.schedule import learning_rate
 from gdpt.training.step import make_optimizer
 from gdpt.training.validation import held_out_elements, image_metrics
 
@@ -218,7 +211,6 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
         ConfigMismatchError: resuming with other training settings.
         ValueError: unusable dataset, or a crop that is not a multiple of 16.
     """
-    from tqdm.auto import tqdm
 
     design = DESIGNS[config.model]
     if config.loss not in FINETUNE_LOSSES:
@@ -243,15 +235,7 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
     base = base_model(design)
     net = base_model(design).to(device).train()
     optimizer = make_optimizer(net, config)
-    start, elapsed = 0, 0.0
-    found = latest_checkpoint(run) if resume else None
-    if found is not None:
-        state = torch.load(found[1].with_suffix(".pt"), map_location=device, weights_only=True)
-        net.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        start, elapsed = int(state["step"]), float(state["elapsed"])
-    for name in ("log.jsonl", "val.jsonl"):
-        truncate_jsonl(run / name, start)
+    start, elapsed = resume_state(run, net, optimizer, device, resume)
     val_elements = (
         load_finetune_validation(val_set, design, config.val_crops, device)
         if config.val_every
@@ -270,52 +254,18 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
         }
     }
 
-    def save(base_path: Path, done: int, last_val: dict[str, float], exact: bool) -> None:
-        info = {**card, "steps": done, "train_seconds": round(elapsed, 1), "validation": last_val}
+    def save(base_path: Path, done: int, seconds: float, last_val: dict[str, float]) -> None:
+        info = {**card, "steps": done, "train_seconds": round(seconds, 1), "validation": last_val}
         write_checkpoint(base_path, *encode_delta(net, config.model, info, base=base))
-        if exact:
-            payload = {
-                "step": done,
-                "elapsed": elapsed,
-                "world_size": 1,
-                "model": net.state_dict(),
-                "optimizer": optimizer.state_dict(),
-            }
-            with atomic_path(base_path.with_suffix(".pt")) as tmp:
-                torch.save(payload, tmp)
 
-    last_val: dict[str, float] = {}
-    bar = tqdm(total=config.steps, initial=start, unit="step", desc="finetune",
-               disable=not progress, dynamic_ncols=True)  # fmt: skip
-    for step in range(start, config.steps):
-        t0 = time.perf_counter()
+    def loss_at(step: int) -> torch.Tensor:
         batch = make_finetune_batch(train_set, config, design, step, l1_cache)
-        lr = learning_rate(step, config)
-        for group in optimizer.param_groups:
-            group["lr"] = lr
-        optimizer.zero_grad(set_to_none=True)
         y = net(batch.x.to(device))
-        loss = finetune_loss(y, batch.target.to(device), batch.scale.to(device), relative=relative)
-        loss.backward()
-        finite = all(bool(torch.isfinite(p.grad).all()) for p in net.parameters())
-        if finite:
-            optimizer.step()
-        seconds = time.perf_counter() - t0
-        elapsed += seconds
-        done = step + 1
-        record = {"step": done, "loss": float(loss.detach()), "lr": lr,
-                  "time": round(elapsed, 3), "step_seconds": round(seconds, 4)}  # fmt: skip
-        append_jsonl(run / "log.jsonl", record | ({} if finite else {"skipped": True}))
-        bar.update(1)
-        bar.set_postfix(loss=f"{record['loss']:.4g}", lr=f"{lr:.2e}")
-        final = done == config.steps
-        if config.val_every and (done % config.val_every == 0 or final):
-            last_val = validate_finetune(net, design, val_elements)
-            append_jsonl(run / "val.jsonl", {"step": done, "time": round(elapsed, 3), **last_val})
-        if done % config.ckpt_every == 0 or final:
-            save(checkpoint_base(run, done), done, last_val, exact=True)
-            prune_checkpoints(run, config.keep_checkpoints)
-        if final:
-            save(run / "model", done, last_val, exact=False)
-    bar.close()
+        return finetune_loss(y, batch.target.to(device), batch.scale.to(device), relative=relative)
+
+    optimise(
+        config, run, net, optimizer, start=start, elapsed=elapsed, loss_at=loss_at,
+        validate=lambda: validate_finetune(net, design, val_elements), save=save,
+        desc="finetune", progress=progress,
+    )  # fmt: skip
     return run / "model.safetensors"

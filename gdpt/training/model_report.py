@@ -78,6 +78,8 @@ def plot_training(runs: Mapping[str, str | Path], path: str | Path) -> Path:
             vh = [r["time"] / 3600 for r in val]
             for ax, key in ((axes[1], "relmse"), (axes[2], "flip")):
                 ax.plot(vh, [r[key] for r in val], "o-", ms=3, color=colour, label=label)
+                if f"l1_{key}" not in val[-1]:  # e.g. a combiner: no L1 baseline of its own
+                    continue
                 ax.axhline(
                     val[-1][f"l1_{key}"],
                     color=colour,
@@ -123,8 +125,9 @@ def compare_models(
         progress: show a progress bar.
 
     Returns:
-        ``{"crops": n, "levels": [{"spp", "pt_spp", "render_seconds": {"gdpt", "pt"},
-        "methods": {label: {"relmse", "flip", "seconds"}}}], "mean": {label: {...}}}`` where
+        ``{"crops": n, "resolution": [w, h], "levels": [{"spp", "pt_spp", "render_seconds":
+        {"gdpt", "pt"}, "methods": {label: {"relmse", "flip", "seconds"}}}], "mean": {label:
+        {...}}}`` where
         every number is a mean over the held-out crops; ``seconds`` is the reconstruction time.
     """
     from tqdm.auto import tqdm
@@ -205,6 +208,7 @@ def compare_models(
         "data": str(data),
         "holdout_every": holdout_every,
         "crops": len(gdpt_set.crops),
+        "resolution": list(gdpt_set.resolution),
         "models": {k: str(v) for k, v in models.items()},
         "levels": out_levels,
         "mean": overall,
@@ -236,10 +240,11 @@ def comparison_markdown(result: Mapping[str, Any]) -> str:
                 ]
                 + cells
             )
+    size = "x".join(str(v) for v in result["resolution"]) + " px"
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     return "\n".join(lines) + (
-        f"\n\nrelMSE / LDR-FLIP, means over {result['crops']} held-out crops (128 px) per "
+        f"\n\nrelMSE / LDR-FLIP, means over {result['crops']} held-out crops ({size}) per "
         "level; G-PT methods read the gradient-domain input, PT methods the path-traced input "
         "with 2.5x the samples.\n"
     )

@@ -58,6 +58,7 @@ def select_refinement(
     alphas: Sequence[float] = ALPHAS,
     taus: Sequence[float] = TAUS,
     window: int = 5,
+    preset: str = "refine",
     progress: bool = True,
 ) -> Path:
     """Grid-search the refinement of ``model`` on ``data`` and write the refined model to ``out``.
@@ -69,6 +70,7 @@ def select_refinement(
         alphas: L1 data weights to try.
         taus: gate widths to try.
         window: gate max-pool side.
+        preset: IRLS schedule of the L1 solve.
         progress: show a progress bar.
 
     Returns:
@@ -106,10 +108,10 @@ def select_refinement(
             scores["network"]["relmse"].append(relmse(image, target))
             scores["network"]["flip"].append(flip_ldr(image, target))
             for alpha in alphas:
-                solver = GatedRefinement(alpha=alpha, tau=1.0, window=window)
+                solver = GatedRefinement(alpha=alpha, tau=1.0, window=window, preset=preset)
                 refined = solver.solve(image, inputs["dx"], inputs["dy"])
                 for tau in taus:
-                    g = GatedRefinement(alpha, tau, window).gate(refined, image)
+                    g = GatedRefinement(alpha, tau, window, preset).gate(refined, image)
                     result = g * refined + (1.0 - g) * image
                     scores[(alpha, tau)]["relmse"].append(relmse(result, target))
     base = scores.pop("network")
@@ -131,7 +133,7 @@ def select_refinement(
             }
         )
     best = min(rows, key=lambda r: r["relmse"])
-    chosen = GatedRefinement(best["alpha"], best["tau"], window)
+    chosen = GatedRefinement(best["alpha"], best["tau"], window, preset)
     unrefined = {"relmse": statistics.fmean(base["relmse"]), "flip": statistics.fmean(base["flip"])}
     selection = {
         "data": str(data),

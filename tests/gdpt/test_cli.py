@@ -153,6 +153,7 @@ def test_reconstruct_end_to_end(render, tmp_path):
 def test_config_options_expose_every_field_with_the_dataclass_defaults(monkeypatch):
     from gdpt.reconstruct.losses import LOSSES
 
+    from gdpt.training.combine import COMBINER_LOSSES
     from gdpt.training.config import TrainConfig
     from gdpt.training.dataset import DatasetConfig
     from gdpt.training.finetune import FINETUNE_LOSSES
@@ -173,7 +174,7 @@ def test_config_options_expose_every_field_with_the_dataclass_defaults(monkeypat
     # --loss offers exactly the registered losses
     train = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     loss = next(a for a in train.choices["train"]._actions if a.dest == "loss")
-    assert set(loss.choices) == set(LOSSES) | set(FINETUNE_LOSSES)
+    assert set(loss.choices) == set(LOSSES) | set(FINETUNE_LOSSES) | set(COMBINER_LOSSES)
 
 
 def test_config_options_round_trip_and_help(capsys):

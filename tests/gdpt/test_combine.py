@@ -104,7 +104,7 @@ def test_run_directory_is_a_complete_model_and_resumes_exactly(pt_dataset, tiny,
     assert [r["step"] for r in log] == [1, 2, 3]
     val = read_jsonl(run / "val.jsonl")
     assert [r["step"] for r in val] == [2, 3]
-    assert set(val[0]) >= {"relmse", "flip", "base_relmse", "l1_relmse"}
+    assert set(val[0]) >= {"relmse", "flip", "candidate_base_relmse", "candidate_l1_relmse"}
     net, design, card, base_path = load_combiner(run / "model.safetensors")
     assert design == COMBINER_DESIGNS["combiner-grad"] and card["steps"] == 3
     assert base_path == run / "base" and base_path.with_suffix(".json").is_file()

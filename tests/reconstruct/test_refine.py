@@ -64,7 +64,12 @@ def test_an_infinite_tau_is_the_l1_solution_and_round_trips_through_json(scene):
 
 @pytest.mark.parametrize(
     ("changes", "message"),
-    [({"alpha": 0.0}, "alpha"), ({"tau": -1.0}, "tau"), ({"window": 4}, "window")],
+    [
+        ({"alpha": 0.0}, "alpha"),
+        ({"tau": -1.0}, "tau"),
+        ({"window": 4}, "window"),
+        ({"preset": "slow"}, "unknown L1 preset 'slow'"),
+    ],
 )
 def test_bad_settings_are_named(changes, message):
     with pytest.raises(ValueError, match=message):
