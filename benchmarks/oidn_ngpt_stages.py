@@ -5,8 +5,9 @@ Per design (``oidn-grad``, ``oidn-grad-l1``, ``oidn-nograd``) and size: input as
 (autoexposure, PU encoding, signed-log gradients; for ``oidn-grad-l1`` the 'l1-fast' Poisson
 solve is timed as its own stage), the U-Net, the output decoding, and the end-to-end
 ``OIDNReconstructor`` call (for gradient designs also with the shipped ``ngpt``'s gated Poisson
-refinement, :mod:`gdpt.reconstruct.refine`: its L1 solve and gate as stages); next to ``pyoidn.denoise`` (HDR, albedo + normal, quality high) and
-the torch port of OIDN (:func:`gdpt.reconstruct.oidn_unet.denoise`). Timings do not depend on
+refinement, :mod:`gdpt.reconstruct.refine`: its L1 solve and gate as stages); next to
+``pyoidn.denoise`` (HDR, albedo + normal, quality high) and the torch port of OIDN
+(:func:`gdpt.reconstruct.oidn_unet.denoise`). Timings do not depend on
 the weights' values, so Intel's weights with zero extra-channel weights are used. Every task is
 warmed up once, then timed in ``--repeats`` interleaved rounds; medians are reported, with the
 load average (the machine may be shared). Usage::
