@@ -25,16 +25,12 @@ from typing import Any
 
 import torch
 
+from gdpt.training.run_dir import read_jsonl
+
 #: Largest network (float32 weights) shipped inside the package.
 MAX_SHIPPED_MIB = 20
 #: Scene selection of the held-out set: the same rule as ``gdpt train --holdout-every``.
 HOLDOUT_EVERY = 10
-
-
-def _read_jsonl(path: Path) -> list[dict[str, Any]]:
-    if not path.is_file():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
 def _smooth(values: list[float], window: int) -> list[float]:
@@ -66,14 +62,14 @@ def plot_training(runs: Mapping[str, str | Path], path: str | Path) -> Path:
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     for index, (label, run) in enumerate(runs.items()):
-        log = _read_jsonl(Path(run) / "log.jsonl")
+        log = read_jsonl(Path(run) / "log.jsonl")
         if not log:
             raise FileNotFoundError(f"{run}: no log.jsonl (not a gdpt train run directory?)")
         colour = f"C{index}"
         hours = [r["time"] / 3600 for r in log]
         axes[0].plot(hours, [r["loss"] for r in log], color=colour, alpha=0.15, lw=0.5)
         axes[0].plot(hours, _smooth([r["loss"] for r in log], 101), color=colour, label=label)
-        val = _read_jsonl(Path(run) / "val.jsonl")
+        val = read_jsonl(Path(run) / "val.jsonl")
         if val:
             vh = [r["time"] / 3600 for r in val]
             for ax, key in ((axes[1], "relmse"), (axes[2], "flip")):
@@ -290,10 +286,10 @@ def ship_model(
         model, _, card, base_path = combiner.load_combiner(run / "model.safetensors")
     else:
         model, card = load_checkpoint(run / "model.safetensors")
-    log = _read_jsonl(run / "log.jsonl")
+    log = read_jsonl(run / "log.jsonl")
     config = json.loads((run / "config.json").read_text())
     data = Path(config["data"]) / "dataset.json"
-    manifest = _read_jsonl(Path(config["data"]) / "manifest.jsonl")
+    manifest = read_jsonl(Path(config["data"]) / "manifest.jsonl")
     scenes = sorted({row["scene"] for row in manifest if "scene" in row})
     holdout = config.get("holdout_every") or HOLDOUT_EVERY
     reserved = {"format", "config_name", "config", "features", "parameter_count"}

@@ -41,6 +41,13 @@ def append_jsonl(path: Path, record: Mapping[str, Any]) -> None:
         f.write(json.dumps(record) + "\n")
 
 
+def read_jsonl(path: Path) -> list[dict[str, Any]]:
+    """The records of a JSON-lines file (``[]`` if it does not exist)."""
+    if not path.is_file():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
 def truncate_jsonl(path: Path, step: int) -> None:
     """Drop the lines of steps after ``step`` (written after the checkpoint resumed from)."""
     if path.is_file():

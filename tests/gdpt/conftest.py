@@ -8,6 +8,9 @@
 * ``pt_dataset``: two 32x32 crops of a one-object scene, 2 levels, with equal-time path-traced
   inputs and 16-spp path-traced targets (``--target pt``), rendered once per session.
   Read-only.
+* ``resume_after_a_lost_checkpoint``: a function ``(run, config, train)`` that deletes the
+  checkpoint of step 3 (a run killed between steps 2 and 3), resumes with ``train`` and returns
+  the new log.
 * ``tiny_run_config``: a factory ``(data, out, **changes)`` of
   :class:`~gdpt.training.config.TrainConfig` with a tiny schedule: 3 steps of batch 2, no
   warm-up, decay from step 1 with half-life 2, validation every 2 steps on 2 crops (so at
@@ -74,6 +77,22 @@ def pt_dataset(tmp_path_factory) -> Path:
     config = make_tiny_dataset_config(resolution=32, levels=2, target_spp=16, target="pt")
     build_dataset(config, root, progress=False)
     return root
+
+
+def _resume_after_a_lost_checkpoint(run: Path, config: TrainConfig, train: Callable) -> list[dict]:
+    """Delete ``run``'s checkpoint of step 3 (killed before writing it), resume, return the log."""
+    from gdpt.training.run_dir import read_jsonl
+
+    for suffix in (".pt", ".safetensors", ".json"):
+        (run / "checkpoints" / f"ckpt-0000003{suffix}").unlink()
+    train(config, resume=True, progress=False)
+    return read_jsonl(run / "log.jsonl")
+
+
+@pytest.fixture(scope="session")
+def resume_after_a_lost_checkpoint() -> Callable[..., list[dict]]:
+    """:func:`_resume_after_a_lost_checkpoint`, as a fixture."""
+    return _resume_after_a_lost_checkpoint
 
 
 def make_tiny_run_config(data: Path, out: Path, **changes) -> TrainConfig:

@@ -3,7 +3,6 @@ exactly, and refuses a base network that does not fit."""
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from gdpt.training.combine import CandidateCache, combiner_loss, make_combiner_b
 from gdpt.training.config import TrainConfig
 from gdpt.training.dataset import CropDataset
 from gdpt.training.model_report import ship_model
+from gdpt.training.run_dir import read_jsonl
 from gdpt.training.step import make_optimizer
 from gdpt.training.train import train
 
@@ -50,10 +50,6 @@ def tiny(tiny_run_config, bases) -> Callable[..., TrainConfig]:
         return tiny_run_config(data, out, **{**settings, **changes})
 
     return make
-
-
-def read_jsonl(path: Path) -> list[dict]:
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
 def test_four_steps_on_a_fixed_batch_reduce_the_loss(pt_dataset, tiny, tmp_path, bases):
@@ -96,7 +92,9 @@ def test_an_unknown_relative_term_is_refused():
         combiner_loss(t, t, t, torch.ones(1), relative="square")
 
 
-def test_run_directory_is_a_complete_model_and_resumes_exactly(pt_dataset, tiny, tmp_path):
+def test_run_directory_is_a_complete_model_and_resumes_exactly(
+    pt_dataset, tiny, tmp_path, resume_after_a_lost_checkpoint
+):
     run = tmp_path / "run"
     config = tiny(pt_dataset, run)
     train(config, progress=False)
@@ -111,10 +109,7 @@ def test_run_directory_is_a_complete_model_and_resumes_exactly(pt_dataset, tiny,
     item = CropDataset(pt_dataset)[0]["inputs"]
     assert torch.isfinite(CombinerReconstructor.from_checkpoint(run / "model.json")(item)).all()
 
-    for suffix in (".pt", ".safetensors", ".json"):  # killed before the checkpoint of step 3
-        (run / "checkpoints" / f"ckpt-0000003{suffix}").unlink()
-    train(config, resume=True, progress=False)
-    resumed = read_jsonl(run / "log.jsonl")
+    resumed = resume_after_a_lost_checkpoint(run, config, train)
     assert [r["step"] for r in resumed] == [1, 2, 3]
     assert resumed[2]["loss"] == log[2]["loss"]
     again, _, _, _ = load_combiner(run / "model.safetensors")

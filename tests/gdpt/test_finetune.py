@@ -14,6 +14,7 @@ from gdpt.reconstruct.oidn_ngpt import DESIGNS, base_model, finetune_loss, load_
 from gdpt.training.config import TrainConfig
 from gdpt.training.dataset import CropDataset
 from gdpt.training.finetune import make_finetune_batch
+from gdpt.training.run_dir import read_jsonl
 from gdpt.training.step import make_optimizer
 from gdpt.training.train import train
 
@@ -28,10 +29,6 @@ def data(pt_dataset) -> Path:
 def tiny(tiny_run_config) -> Callable[..., TrainConfig]:
     """``tiny_run_config(data, out, **changes)`` of ``oidn-grad`` (l1_rel, 16 px, lr 1e-4)."""
     return partial(tiny_run_config, model="oidn-grad", loss="l1_rel", crop=16, lr=1e-4)
-
-
-def read_jsonl(path: Path) -> list[dict]:
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
 def test_path_traced_targets_are_written(data):
@@ -58,7 +55,7 @@ def test_three_steps_on_a_fixed_batch_reduce_the_loss(data, tiny, tmp_path, name
     assert losses[3] < losses[2] < losses[1] < losses[0], losses
 
 
-def test_run_directory_and_exact_resume(data, tiny, tmp_path):
+def test_run_directory_and_exact_resume(data, tiny, tmp_path, resume_after_a_lost_checkpoint):
     run = tmp_path / "run"
     config = tiny(data, run)
     train(config, progress=False)
@@ -70,10 +67,7 @@ def test_run_directory_and_exact_resume(data, tiny, tmp_path):
     net, design, card = load_model(run / "model.safetensors")
     assert design == DESIGNS["oidn-grad"] and card["steps"] == 3 and card["validation"]
 
-    for suffix in (".pt", ".safetensors", ".json"):  # killed before the checkpoint of step 3
-        (run / "checkpoints" / f"ckpt-0000003{suffix}").unlink()
-    train(config, resume=True, progress=False)
-    resumed = read_jsonl(run / "log.jsonl")
+    resumed = resume_after_a_lost_checkpoint(run, config, train)
     assert [r["step"] for r in resumed] == [1, 2, 3]
     assert resumed[2]["loss"] == log[2]["loss"]
     again, _, _ = load_model(run / "model.safetensors")

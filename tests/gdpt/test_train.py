@@ -23,6 +23,7 @@ from gdpt.training.augment import AugmentParams, augment, sample_augmentation
 from gdpt.training.batches import make_batch
 from gdpt.training.config import ConfigMismatchError, TrainConfig
 from gdpt.training.dataset import CropDataset
+from gdpt.training.run_dir import read_jsonl
 from gdpt.training.schedule import learning_rate
 from gdpt.training.step import make_optimizer, train_step
 from gdpt.training.train import train
@@ -40,10 +41,6 @@ def data(tiny_dataset: Path) -> Path:
 def tiny(tiny_run_config) -> Callable[..., TrainConfig]:
     """``tiny_run_config(data, out, **changes)`` of ``fast_xs`` (l1 loss, padding +-2)."""
     return partial(tiny_run_config, model="fast_xs", loss="l1", vary_padding=2)
-
-
-def read_jsonl(path: Path) -> list[dict]:
-    return [json.loads(line) for line in path.read_text().splitlines()]
 
 
 # ------------------------------------------------------------------------------- augmentation
@@ -176,7 +173,7 @@ def test_three_steps_on_a_fixed_batch_reduce_the_loss(data, tiny, tmp_path):
     assert losses[3] < losses[2] < losses[1] < losses[0], losses
 
 
-def test_run_directory_and_exact_resume(data, tiny, tmp_path):
+def test_run_directory_and_exact_resume(data, tiny, tmp_path, resume_after_a_lost_checkpoint):
     run = tmp_path / "run"
     config = tiny(data, run)
     train(config, progress=False)
@@ -191,11 +188,7 @@ def test_run_directory_and_exact_resume(data, tiny, tmp_path):
     card = json.loads((run / "model.json").read_text())
     assert card["config_name"] == "fast_xs" and card["steps"] == 3 and card["validation"]
 
-    # Kill after the checkpoint of step 2: step 3 never happened.
-    for suffix in (".pt", ".safetensors", ".json"):
-        (run / "checkpoints" / f"ckpt-0000003{suffix}").unlink()
-    train(config, resume=True, progress=False)
-    resumed = read_jsonl(run / "log.jsonl")
+    resumed = resume_after_a_lost_checkpoint(run, config, train)
     assert [r["step"] for r in resumed] == [1, 2, 3]
     assert resumed[2]["loss"] == pytest.approx(log[2]["loss"], rel=1e-6, abs=0)
     assert resumed[2]["lr"] == log[2]["lr"]
