@@ -51,6 +51,7 @@ from torch.nn import functional as F
 from .ngpt import read_card
 from .oidn_ngpt import OIDNReconstructor, signed_log
 from .oidn_unet import autoexposure, pu_forward, pu_inverse
+from .refine import GatedRefinement
 from .registry import Registry
 
 __all__ = [
@@ -207,11 +208,9 @@ def candidates(
         design: the combiner design.
     """
     out = {"base": base_image.float()}
-    if design.gradients:
-        from .poisson import solve_l1  # noqa: PLC0415 (only the gradient design solves)
-
-        dx, dy = buffers["dx"].float(), buffers["dy"].float()
-        out["l1"] = solve_l1(base_image, dx, dy, alpha=design.alpha, preset="fast").clamp_min(0.0)
+    if design.gradients:  # the refinement's ungated solve, on the schedule it was trained with
+        solver = GatedRefinement(alpha=design.alpha, preset="fast")
+        out["l1"] = solver.solve(out["base"], buffers["dx"], buffers["dy"])
     return torch.stack([out[name] for name in design.candidate_names])
 
 

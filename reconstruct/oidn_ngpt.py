@@ -22,7 +22,7 @@ Checkpoint (delta) format: Intel's weights are read at run time from pyoidn's li
 
 A card's optional ``"refine"`` entry (gradient designs only) makes :class:`OIDNReconstructor`
 follow the network with the gated screened-Poisson refinement of :mod:`.refine` (its
-``alpha``, ``tau``, ``window``).
+``alpha``, ``tau``, ``window``, ``preset``).
 
 :func:`load_model` adds the deltas to OIDN's weights (one float32 rounding per weight, about
 1e-7 relative); it fails with :class:`~.tza.OIDNWeightsError` (which says how to pass a

@@ -36,6 +36,7 @@ import torch
 from torch.nn import functional as F
 
 from .oidn_unet import autoexposure, pu_forward
+from .poisson import get_l1_preset, solve_l1
 
 __all__ = ["GatedRefinement"]
 
@@ -64,8 +65,6 @@ class GatedRefinement:
             raise ValueError(f"refinement tau must be > 0, got {self.tau}")
         if self.window < 1 or self.window % 2 != 1:
             raise ValueError(f"refinement window must be odd and >= 1, got {self.window}")
-        from .poisson import get_l1_preset  # noqa: PLC0415 (imports the solvers only when used)
-
         get_l1_preset(self.preset)
 
     def to_dict(self) -> dict[str, Any]:
@@ -81,8 +80,6 @@ class GatedRefinement:
     def solve(self, image: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor) -> torch.Tensor:
         """The ungated L1 solution ``r``: ``(H, W, 3)`` float32 (finite, >= 0) on the device of
         ``image``."""
-        from .poisson import solve_l1  # noqa: PLC0415 (imports the solvers only when used)
-
         return solve_l1(
             image, dx.float(), dy.float(), alpha=self.alpha, preset=self.preset
         ).clamp_min(0)

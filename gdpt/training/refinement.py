@@ -83,7 +83,7 @@ def select_refinement(
     from tqdm.auto import tqdm
 
     from gdpt.metrics import flip_ldr, relmse
-    from gdpt.reconstruct.oidn_ngpt import OIDNReconstructor
+    from gdpt.reconstruct.oidn_ngpt import OIDNReconstructor, load_model
     from gdpt.reconstruct.refine import GatedRefinement
     from gdpt.training.dataset import CropDataset
 
@@ -92,10 +92,10 @@ def select_refinement(
         raise FileExistsError(f"{out} exists; choose a new --out directory")
     if not alphas or not taus:
         raise ValueError("the grid needs at least one alpha and one tau")
-    rec = OIDNReconstructor.from_checkpoint(model)
-    if not rec.design.gradients:
-        raise ValueError(f"{model}: {rec.design.description} reads no gradients to refine with")
-    rec.refine = None
+    net, design, card = load_model(model)
+    if not design.gradients:
+        raise ValueError(f"{model}: {design.description} reads no gradients to refine with")
+    rec = OIDNReconstructor(net, design, {k: v for k, v in card.items() if k != "refine"})
     dataset = CropDataset(data, kind="gdpt")
     grid = [(a, t) for a in alphas for t in taus]
     scores: dict[Any, dict[str, list[float]]] = {k: {"relmse": []} for k in grid}
