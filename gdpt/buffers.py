@@ -141,3 +141,68 @@ class GradientBuffers:
             raise ValueError(f"empty image: {h}x{w} (HxW)")
         if (self.dx is None) != (self.dy is None):
             raise ValueError("'dx' and 'dy' must be given together")
+
+
+#: Buffers that are per-pixel sample means and can be pooled across renders of one scene.
+POOLED = ("primal", "albedo", "normal", "depth")
+
+
+def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> GradientBuffers:
+    """Pool an independent primal-only render into a gradient-domain render.
+
+    The primal and the features become the sample-weighted means of both renders, an unbiased
+    estimate from ``gradient.spp + primal_only.spp`` samples; ``dx`` and ``dy`` stay those of
+    ``gradient``. ``var_primal`` (variance of the mean) pools as
+    ``(n_g^2 v_g + n_p^2 v_p) / (n_g + n_p)^2``. This is the input of a reconstruction that
+    spends part of its sampling time on plain path samples (about 1x a ``path`` sample) and
+    part on gradient samples (2-3x), see ``primal_spp_factor`` in :mod:`gdpt.denoise`.
+
+    Args:
+        gradient: a render with ``dx``/``dy`` (``spp`` >= 1).
+        primal_only: an independent render of the same scene and film without gradients, with
+            the same feature buffers and ``spp`` >= 1.
+
+    Returns:
+        A new :class:`GradientBuffers` on ``gradient.device`` with ``spp = gradient.spp``
+        (the gradients' count) and ``metadata["primal_spp"]`` the pooled count;
+        ``metadata["primal_only"]`` holds the second render's metadata.
+
+    Raises:
+        ValueError: ``gradient`` has no gradients, ``primal_only`` has some, the sizes or
+            devices differ, a buffer is present in one render only, or an ``spp`` is < 1.
+    """
+    if not gradient.has_gradients:
+        raise ValueError("pool_primal: the first render has no dx/dy (render it with gradients)")
+    if primal_only.has_gradients:
+        raise ValueError("pool_primal: the primal-only render has dx/dy; render it without")
+    if (gradient.height, gradient.width) != (primal_only.height, primal_only.width):
+        raise ValueError(
+            f"pool_primal: renders of {gradient.width}x{gradient.height} and "
+            f"{primal_only.width}x{primal_only.height} px cannot be pooled"
+        )
+    if gradient.device != primal_only.device:
+        raise ValueError(
+            f"pool_primal: renders on {gradient.device} and {primal_only.device} cannot be pooled"
+        )
+    n_g, n_p = gradient.spp, primal_only.spp
+    if n_g < 1 or n_p < 1:
+        raise ValueError(f"pool_primal: both renders need spp >= 1, got {n_g} and {n_p}")
+    names = (*POOLED, "var_primal")
+    uneven = [
+        n for n in names if (getattr(gradient, n) is None) != (getattr(primal_only, n) is None)
+    ]
+    if uneven:
+        raise ValueError(
+            f"pool_primal: {', '.join(uneven)} present in one render only; render both with "
+            "the same features/variance settings"
+        )
+    w_g, w_p = n_g / (n_g + n_p), n_p / (n_g + n_p)
+    pooled: dict[str, torch.Tensor] = {}
+    for name in POOLED:
+        a, b = getattr(gradient, name), getattr(primal_only, name)
+        if a is not None:
+            pooled[name] = w_g * a + w_p * b
+    if gradient.var_primal is not None:
+        pooled["var_primal"] = w_g**2 * gradient.var_primal + w_p**2 * primal_only.var_primal
+    metadata = {**gradient.metadata, "primal_spp": n_g + n_p, "primal_only": primal_only.metadata}
+    return gradient.replace(**pooled, metadata=metadata)

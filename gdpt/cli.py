@@ -150,6 +150,13 @@ def _add_render_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--integrator", choices=["gdpt", "gdpt_rr"], default="gdpt")
     parser.add_argument("--max-depth", type=int, default=6, help="longest path (default: 6)")
     parser.add_argument("--no-gradients", action="store_true", help="plain path tracing")
+    parser.add_argument(
+        "--primal-spp",
+        type=int,
+        default=0,
+        help="also render this many plain path samples per pixel and pool them into the primal "
+        "(the input of a pooled ngpt model: its card's primal_spp_factor x --spp)",
+    )
     parser.add_argument("--variance", action="store_true", help="also store variance buffers")
     parser.add_argument("--half", action="store_true", help="store half floats")
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")
@@ -172,6 +179,7 @@ def _run_render(args: argparse.Namespace) -> int:
         max_depth=args.max_depth,
         gradients=not args.no_gradients,
         variance=args.variance,
+        primal_spp=args.primal_spp,
     )
     args.output.parent.mkdir(parents=True, exist_ok=True)
     save_buffers(args.output, buffers, half=args.half, force=args.force)
@@ -380,6 +388,15 @@ def _add_model_report_arguments(parser: argparse.ArgumentParser) -> None:
         help="a gdpt train run directory and its model name (ngpt, "
         "ngpt-nograd); repeat for several",
     )
+    parser.add_argument(
+        "--model",
+        action="append",
+        default=[],
+        metavar="NAME=CHECKPOINT",
+        dest="models",
+        help="a checkpoint (.safetensors, e.g. a shipped gdpt/models/ngpt-nograd.safetensors) "
+        "to compare as well; neither plotted nor shipped; repeat for several",
+    )
     parser.add_argument("--out", type=Path, required=True, help="report folder")
     parser.add_argument(
         "--holdout-every",
@@ -412,13 +429,19 @@ def _run_model_report(args: argparse.Namespace) -> int:
         if not (Path(run) / "model.safetensors").is_file():
             raise FileNotFoundError(f"--run {item!r}: {run}/model.safetensors not found")
         runs[name] = Path(run)
+    checkpoints = {k: v / "model.safetensors" for k, v in runs.items()}
+    for item in args.models:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise ValueError(f"--model {item!r}: expected NAME=CHECKPOINT")
+        if name in checkpoints:
+            raise ValueError(f"--model {item!r}: the name {name!r} is taken by a --run")
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"--model {item!r}: {path} not found")
+        checkpoints[name] = Path(path)
     args.out.mkdir(parents=True, exist_ok=True)
     plot_training(runs, args.out / "training.png")
-    result = compare_models(
-        args.data,
-        {k: v / "model.safetensors" for k, v in runs.items()},
-        holdout_every=args.holdout_every,
-    )
+    result = compare_models(args.data, checkpoints, holdout_every=args.holdout_every)
     (args.out / "comparison.json").write_text(json.dumps(result, indent=2) + "\n")
     table = comparison_markdown(result)
     (args.out / "comparison.md").write_text(table)

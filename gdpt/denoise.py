@@ -20,7 +20,9 @@ study (:mod:`gdpt.study.methods`) offer every registered name.
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache, partial
@@ -46,6 +48,9 @@ class Method:
         features: reads albedo, normal and depth (``gdpt`` property ``features``).
         description: one line for reports (what follows "path tracing + ").
         check: returns ``None`` when the method can run here, else the reason it cannot.
+        primal_spp_factor: ``f(**options) -> float``: plain path samples per gradient sample
+            that the method's input pools into its primal (0: none; see
+            :func:`gdpt.buffers.pool_primal`); a trained network reads it from its card.
     """
 
     run: Callable[..., torch.Tensor]
@@ -53,11 +58,20 @@ class Method:
     features: bool
     description: str
     check: Callable[[], str | None] = lambda: None
+    primal_spp_factor: Callable[..., float] = lambda **_: 0.0
 
     @property
     def needs(self) -> dict[str, bool]:
         """The ``gdpt`` integrator properties that render what this method reads."""
         return {"gradients": self.gradients, "features": self.features}
+
+    def sampling(self, spp: int, **options: Any) -> dict[str, Any]:
+        """Keyword arguments of :func:`gdpt.render` that render this method's input with
+        ``spp`` gradient samples per pixel: :attr:`needs`, and ``primal_spp`` (rounded
+        ``primal_spp_factor * spp``) when the method pools plain path samples."""
+        factor = self.primal_spp_factor(**options) if self.gradients else 0.0
+        extra = round(factor * spp)
+        return {**self.needs, "primal_spp": extra} if extra else dict(self.needs)
 
 
 def _poisson(
@@ -127,6 +141,16 @@ def _ngpt(
     path = model_path(name, model).resolve()
     if reason := _oidn_weights_missing(name, path):
         raise RuntimeError(reason)
+    factor = _ngpt_primal_spp_factor(name, model)
+    metadata = getattr(buffers, "metadata", None)
+    pooled = metadata is None or "primal_spp" in metadata or not buffers.has_gradients
+    if factor and not pooled:  # (buffers without gradients fail in the network, by name)
+        warnings.warn(
+            f"model {path.name} was trained on primals pooled with {factor:g} plain path "
+            "samples per gradient sample; these buffers have none (render with "
+            f"primal_spp={factor:g} x spp, or 'gdpt render --primal-spp')",
+            stacklevel=3,
+        )
     return load_reconstructor(path)(buffers)
 
 
@@ -150,6 +174,19 @@ def _oidn_weights_missing(name: str, path: Path) -> str | None:
     except OIDNWeightsError as err:
         return f"method {name!r}: {err}"
     return None
+
+
+def _ngpt_primal_spp_factor(name: str, model: str | None = None, **_: Any) -> float:
+    """The model card's ``sampling.primal_spp_factor`` (0 when the card has none or the
+    checkpoint is missing: :func:`_ngpt` reports that)."""
+    try:
+        path = model_path(name, model)
+    except FileNotFoundError:
+        return 0.0
+    card = path.with_suffix(".json")
+    if not card.is_file():
+        return 0.0
+    return float(json.loads(card.read_text()).get("sampling", {}).get("primal_spp_factor", 0.0))
 
 
 def _ngpt_check(name: str) -> str | None:
@@ -183,6 +220,7 @@ METHODS.register(
         True,
         "the shipped NGPT network",
         partial(_ngpt_check, "ngpt"),
+        partial(_ngpt_primal_spp_factor, "ngpt"),
     ),
 )
 METHODS.register(

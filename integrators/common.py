@@ -270,6 +270,22 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
     def prepare(self, scene: mi.Scene) -> None:
         """Per-scene set-up before the passes of one ``render()`` call (default: nothing)."""
 
+    def properties(self) -> dict:
+        """The plugin's properties as a dict for ``mi.load_dict`` (``type`` included): a twin
+        with some settings changed is ``mi.load_dict({**self.properties(), "gradients": False})``.
+        """
+        return {
+            "type": self.plugin_name,
+            "max_depth": -1 if self.max_depth == 0xFFFFFFFF else self.max_depth,
+            "rr_depth": self.rr_depth,
+            "gradients": self.gradients,
+            "features": self.features,
+            "variance": self.variance,
+            "samples_per_pass": self.samples_per_pass,
+            "shift_threshold": self.shift_threshold,
+            "freeze": self.freeze,
+        }
+
     def channels(self) -> list[tuple[str, int]]:
         """``(buffer name, channel count)`` in the order ``render()`` stores them."""
         out = [("primal", 3)]

@@ -7,7 +7,14 @@ OIDN's input scale ``s`` (autoexposure of the colour)::
     design          extra channels (appended with zero weights: step 0 is OIDN exactly)
     oidn-grad       sign(dx) log(1 + |s dx|), sign(dy) log(1 + |s dy|)          6  (eq. 4)
     oidn-grad-l1    the above + PU(s * L1-Poisson(primal, dx, dy)) ('l1-fast')  9
+    oidn-grad-pool  as oidn-grad, trained on pooled inputs (below)              6
     oidn-nograd     none: OIDN itself fine-tuned (the no-gradient ablation)     0
+
+A *pooled* design is trained on (and must be given) a gradient-domain render whose primal and
+features also average independent plain path samples, ``primal_spp_factor`` per gradient
+sample (``gdpt.render(..., primal_spp=...)``): plain path samples cost about a third of a
+gradient sample, so at equal time the network sees a primal of nearly the path tracer's sample
+count and gradients besides. The factor is the card's ``sampling.primal_spp_factor``.
 
 :func:`assemble` builds the network input, :func:`predict` runs it and maps the output back
 to radiance (OIDN's output stage); both run on the device of the buffers.
@@ -76,11 +83,20 @@ class Design:
         gradients: reads ``dx`` and ``dy`` (6 extra channels).
         l1: also reads the L1 Poisson solution of ``primal, dx, dy`` (3 more; needs gradients).
         description: one line for cards and reports.
+        pooled: trained on gradient-domain renders with plain path samples pooled into the
+            primal and features (needs gradients; see the module docstring).
     """
 
     gradients: bool
     l1: bool
     description: str
+    pooled: bool = False
+
+    @property
+    def input_kind(self) -> str:
+        """The training input (``gdpt.training.dataset.INPUT_KINDS``): ``"pool"``, ``"gdpt"``
+        or ``"pt"``."""
+        return "pool" if self.pooled else "gdpt" if self.gradients else "pt"
 
     @property
     def extra_channels(self) -> int:
@@ -101,6 +117,16 @@ DESIGNS.register(
 DESIGNS.register(
     "oidn-grad-l1",
     Design(True, True, "OIDN U-Net + signed-log dx/dy + PU(L1 Poisson) inputs, fine-tuned"),
+)
+DESIGNS.register(
+    "oidn-grad-pool",
+    Design(
+        True,
+        False,
+        "OIDN U-Net + signed-log dx/dy inputs, fine-tuned on primals pooled with plain path "
+        "samples",
+        pooled=True,
+    ),
 )
 DESIGNS.register("oidn-nograd", Design(False, False, "OIDN U-Net fine-tuned, no gradient inputs"))
 

@@ -230,9 +230,12 @@ def _register_denoiser(name: str, method: Method) -> None:
     def run(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
         if reason := method.check():
             raise MethodUnavailable(reason)
-        return _timed_run(scene, spp, seed, partial(reconstruct, method=name), **method.needs)
+        props = method.sampling(spp)
+        return _timed_run(scene, spp, seed, partial(reconstruct, method=name), **props)
 
     label = "gradient-domain path tracing" if method.gradients else "path tracing"
+    if method.gradients and (factor := method.primal_spp_factor()):
+        label += f" (+ {factor:g} plain path samples per sample, pooled into the primal)"
     run.__name__ = run.__qualname__ = f"{sampler}_{name}".replace("-", "_")
     run.__doc__ = f"{label} buffers reconstructed with :data:`gdpt.denoise.METHODS` ``{name}``."
     EVAL_METHODS.register(

@@ -76,7 +76,8 @@ CONVENTIONS = {
     "flip_hdr": "mean HDR-FLIP (flip-evaluator, ACES, ppd 67.02)",
     "flip_ldr": "mean LDR-FLIP (flip-evaluator) on sRGB(clamp(Reinhard(x)))",
     "elpips": "E-LPIPS (weights from GDPT_ELPIPS_WEIGHTS) on sRGB(clamp(Reinhard(x)))",
-    "seconds": "wall time of sampling + reconstruction, kernel compilation excluded",
+    "seconds": "wall time of sampling + reconstruction after an untimed render at the same spp "
+    "(kernel compilation and frozen-pass recording excluded)",
 }
 
 

@@ -66,6 +66,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from torch.utils.data import Dataset
 
+from gdpt.buffers import pool_primal
 from gdpt.io.atomic import atomic_write
 from gdpt.io.exr import load_buffers
 from gdpt.training.config import require_positive
@@ -80,10 +81,13 @@ CONFIG_FILE = "dataset.json"
 MANIFEST_FILE = "manifest.jsonl"
 CROPS_DIR = "crops"
 
-#: Input kinds: element-name prefix and the buffers a network reads from them.
+#: Input kinds: element-name prefix and the buffers a network reads from them. ``pool`` is the
+#: gradient-domain input with the path-traced input of the same crop and level pooled into its
+#: primal and features (:func:`gdpt.buffers.pool_primal`).
 INPUT_KINDS: dict[str, tuple[str, tuple[str, ...]]] = {
     "gdpt": ("in", ("primal", "dx", "dy", "albedo", "normal", "depth")),
     "pt": ("pt", ("primal", "albedo", "normal", "depth")),
+    "pool": ("in", ("primal", "dx", "dy", "albedo", "normal", "depth")),
 }
 
 #: Target kinds (:attr:`DatasetConfig.target`).
@@ -603,8 +607,9 @@ class CropDataset(Dataset):
 
     Args:
         root: dataset directory.
-        kind: ``"gdpt"`` (gradient-domain inputs ``in<k>``) or ``"pt"`` (path-traced inputs
-            ``pt<k>``, 2.5x the samples).
+        kind: ``"gdpt"`` (gradient-domain inputs ``in<k>``), ``"pt"`` (path-traced inputs
+            ``pt<k>``, 2.5x the samples) or ``"pool"`` (``in<k>`` with ``pt<k>`` pooled into
+            its primal and features).
         scenes: keep only crops whose scene index satisfies this predicate (``None``: all).
 
     Raises:
@@ -671,7 +676,9 @@ class CropDataset(Dataset):
         self._unreadable: set[int] = set()
 
     def _element_names(self, record: dict[str, Any]) -> list[str]:
-        return ["target", *(f"{self.prefix}{k}" for k in range(len(record["spp"])))]
+        prefixes = ("in", "pt") if self.kind == "pool" else (self.prefix,)
+        levels = range(len(record["spp"]))
+        return ["target", *(f"{prefix}{k}" for prefix in prefixes for k in levels)]
 
     def _check_file(self, record: dict[str, Any], name: str) -> str | None:
         """``None`` if element ``name`` of ``record`` looks complete, else the reason."""
@@ -710,6 +717,12 @@ class CropDataset(Dataset):
         record, level = self.element(index)
         name = f"{self.prefix}{level}"
         inputs = load_buffers(self.root / record["files"][name])
+        if self.kind == "pool":
+            pt = load_buffers(self.root / record["files"][f"pt{level}"])
+            inputs = pool_primal(
+                inputs.replace(spp=int(record["spp"][level])),
+                pt.replace(spp=int(record["pt_spp"][level])),
+            )
         target = load_buffers(self.root / record["files"]["target"]).primal
         width, height = self.resolution
         tensors = {}
@@ -725,7 +738,7 @@ class CropDataset(Dataset):
                     f"{tensor.shape[1]}x{tensor.shape[0]}, expected "
                     f"{width}x{height}"
                 )
-        spp = record["spp" if self.kind == "gdpt" else "pt_spp"][level]
+        spp = record["pt_spp" if self.kind == "pt" else "spp"][level]
         return {
             "inputs": tensors,
             "target": target,

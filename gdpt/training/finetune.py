@@ -1,8 +1,8 @@
 """Fine-tuning OIDN's U-Net with gradient inputs (:mod:`gdpt.reconstruct.oidn_ngpt`) on a
 :mod:`gdpt.training.dataset`.
 
-``gdpt train --config oidn-grad`` (or ``oidn-grad-l1``, ``oidn-nograd``) lands here through
-:func:`gdpt.training.train.train`. The run uses the same
+``gdpt train --config oidn-grad`` (or ``oidn-grad-l1``, ``oidn-grad-pool``, ``oidn-nograd``)
+lands here through :func:`gdpt.training.train.train`. The run uses the same
 :class:`~gdpt.training.config.TrainConfig`, run directory (:mod:`gdpt.training.run_dir`),
 learning-rate schedule (:mod:`gdpt.training.schedule`), augmentations
 (:mod:`gdpt.training.augment`: sub-crop, flips, transposition, RGB permutation, colour and
@@ -32,6 +32,7 @@ brightness multipliers), per-step seeding (exact resume) and held-out split
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,7 +53,7 @@ from gdpt.training.augment import augment, sample_augmentation
 from gdpt.training.batches import split_datasets, step_seed
 from gdpt.training.checkpoint import write_checkpoint
 from gdpt.training.config import TrainConfig
-from gdpt.training.dataset import CropDataset
+from gdpt.training.dataset import CONFIG_FILE, CropDataset
 from gdpt.training.loop import optimise, resume_state
 from gdpt.training.run_dir import (
     prepare_run,
@@ -71,6 +72,19 @@ __all__ = [
 
 #: ``config.loss`` -> weight of the relative-MSE term of ``finetune_loss``.
 FINETUNE_LOSSES = {"l1": 0.0, "l1_rel": 1.0}
+
+
+def primal_spp_factor(data: str | Path) -> float:
+    """Plain path samples per gradient sample of a dataset's pooled inputs (its ``pt_factor``).
+
+    Raises:
+        ValueError: the dataset has no ``dataset.json`` with a ``pt_factor``.
+    """
+    path = Path(data) / CONFIG_FILE
+    try:
+        return float(json.loads(path.read_text())["config"]["pt_factor"])
+    except (OSError, KeyError, ValueError) as error:
+        raise ValueError(f"{path}: no readable 'config.pt_factor' ({error})") from None
 
 
 @dataclass
@@ -222,8 +236,7 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
     device = torch.device(config.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     run = Path(config.out)
     config = prepare_run(config, resume)
-    kind = "gdpt" if design.gradients else "pt"
-    train_set, val_set = split_datasets(config, kind)
+    train_set, val_set = split_datasets(config, design.input_kind)
     side = config.crop or min(train_set.resolution)
     if side > min(train_set.resolution) or side % 16:
         raise ValueError(
@@ -253,6 +266,8 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
             "lr": config.lr,
         }
     }
+    if design.pooled:
+        card["sampling"] = {"primal_spp_factor": primal_spp_factor(config.data)}
 
     def save(base_path: Path, done: int, seconds: float, last_val: dict[str, float]) -> None:
         info = {**card, "steps": done, "train_seconds": round(seconds, 1), "validation": last_val}

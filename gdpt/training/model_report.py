@@ -103,6 +103,16 @@ def _timed(fn: Any, *args: Any) -> tuple[torch.Tensor, float]:
     return out, time.perf_counter() - start
 
 
+def input_kind(reconstructor: Any) -> str:
+    """The dataset input kind a reconstructor reads: ``"pool"`` when its card pools plain path
+    samples into the primal (``sampling.primal_spp_factor``), else ``"gdpt"`` with gradients,
+    else ``"pt"``."""
+    card = getattr(reconstructor, "card", {}) or {}
+    if card.get("sampling", {}).get("primal_spp_factor"):
+        return "pool"
+    return "gdpt" if "dx" in reconstructor.features else "pt"
+
+
 def compare_models(
     data: str | Path,
     models: Mapping[str, str | Path],
@@ -116,7 +126,9 @@ def compare_models(
         data: ``gdpt dataset`` directory; scenes with ``index % holdout_every ==
             holdout_every - 1`` are the held-out set (never trained on with the same rule).
         models: method label -> checkpoint (``.safetensors``); the input kind follows the
-            network's input channels.
+            network's input channels and card (:func:`input_kind`; a pooled network reads the
+            G-PT input with the path-traced input of the same level pooled in, i.e. the render
+            time of both).
         holdout_every: see ``data``.
         progress: show a progress bar.
 
@@ -135,11 +147,12 @@ def compare_models(
     from gdpt.training.dataset import CropDataset
 
     held = lambda s: s % holdout_every == holdout_every - 1  # noqa: E731
-    sets = {kind: CropDataset(data, kind=kind, scenes=held) for kind in ("gdpt", "pt")}
     nets = {}
     for label, path in models.items():
         rec = load_reconstructor(Path(path).resolve())
-        nets[label] = (rec, "gdpt" if "dx" in rec.features else "pt")
+        nets[label] = (rec, input_kind(rec))
+    kinds = ("gdpt", "pt", *sorted({kind for _, kind in nets.values()} - {"gdpt", "pt"}))
+    sets = {kind: CropDataset(data, kind=kind, scenes=held) for kind in kinds}
     methods: dict[str, tuple[str, Any]] = {
         label: (kind, rec) for label, (rec, kind) in nets.items()
     }
@@ -206,6 +219,7 @@ def compare_models(
         "crops": len(gdpt_set.crops),
         "resolution": list(gdpt_set.resolution),
         "models": {k: str(v) for k, v in models.items()},
+        "inputs": {label: kind for label, (kind, _) in methods.items()},
         "levels": out_levels,
         "mean": overall,
     }
@@ -239,10 +253,17 @@ def comparison_markdown(result: Mapping[str, Any]) -> str:
     size = "x".join(str(v) for v in result["resolution"]) + " px"
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
+    pooled = [k for k, kind in result.get("inputs", {}).items() if kind == "pool"]
+    pooled_note = (
+        f"; {', '.join(pooled)} read the gradient-domain input with the path-traced input "
+        "pooled into its primal (the render time of both)"
+        if pooled
+        else ""
+    )
     return "\n".join(lines) + (
         f"\n\nrelMSE / LDR-FLIP, means over {result['crops']} held-out crops ({size}) per "
         "level; G-PT methods read the gradient-domain input, PT methods the path-traced input "
-        "with 2.5x the samples.\n"
+        f"with 2.5x the samples{pooled_note}.\n"
     )
 
 

@@ -96,7 +96,7 @@ def select_refinement(
     if not design.gradients:
         raise ValueError(f"{model}: {design.description} reads no gradients to refine with")
     rec = OIDNReconstructor(net, design, {k: v for k, v in card.items() if k != "refine"})
-    dataset = CropDataset(data, kind="gdpt")
+    dataset = CropDataset(data, kind=design.input_kind)
     grid = [(a, t) for a in alphas for t in taus]
     scores: dict[Any, dict[str, list[float]]] = {k: {"relmse": []} for k in grid}
     scores["network"] = {"relmse": [], "flip": []}

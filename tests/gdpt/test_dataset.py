@@ -212,3 +212,22 @@ def test_out_of_disk_while_appending_leaves_a_valid_manifest(tmp_path, monkeypat
     append_manifest(tmp_path, {"crop": "b", "files": {}, "resolution": [8, 8]})
     records, problems = read_manifest(tmp_path)
     assert [r["crop"] for r in records] == ["a", "b"] and len(problems) == 1
+
+
+def test_pool_kind_pools_the_path_traced_input(pt_dataset):
+    """``pool`` elements: the G-PT input with the path-traced input of the same crop and level
+    averaged in by sample count; gradients unchanged."""
+    sets = {kind: CropDataset(pt_dataset, kind=kind) for kind in ("gdpt", "pt", "pool")}
+    assert len(sets["pool"]) == len(sets["gdpt"])
+    for index in range(len(sets["pool"])):
+        g, p, pooled = (sets[kind].load(index) for kind in ("gdpt", "pt", "pool"))
+        assert pooled["spp"] == g["spp"] and (pooled["crop"], pooled["level"]) == (
+            g["crop"],
+            g["level"],
+        )
+        n_g, n_p = g["spp"], p["spp"]
+        for name in ("primal", "albedo", "normal", "depth"):
+            expected = (n_g * g["inputs"][name] + n_p * p["inputs"][name]) / (n_g + n_p)
+            torch.testing.assert_close(pooled["inputs"][name], expected)
+        assert torch.equal(pooled["inputs"]["dx"], g["inputs"]["dx"])
+        assert torch.equal(pooled["target"], g["target"])

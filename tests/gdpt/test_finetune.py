@@ -37,11 +37,12 @@ def test_path_traced_targets_are_written(data):
     assert json.loads((data / "dataset.json").read_text())["config"]["target"] == "pt"
 
 
-@pytest.mark.parametrize("name", ["oidn-grad", "oidn-grad-l1"])
+@pytest.mark.parametrize("name", ["oidn-grad", "oidn-grad-l1", "oidn-grad-pool"])
 def test_three_steps_on_a_fixed_batch_reduce_the_loss(data, tiny, tmp_path, name):
     config = tiny(data, tmp_path, model=name)
     design = DESIGNS[name]
-    batch = make_finetune_batch(CropDataset(data), config, design, step=0)
+    dataset = CropDataset(data, kind=design.input_kind)
+    batch = make_finetune_batch(dataset, config, design, step=0)
     assert batch.x.shape == (2, 9 + design.extra_channels, 16, 16)
     net = base_model(design).train()
     optimizer = make_optimizer(net, config)
@@ -79,3 +80,10 @@ def test_nograd_design_trains_on_path_traced_inputs(data, tiny, tmp_path):
     train(tiny(data, tmp_path / "run", model="oidn-nograd", steps=1, val_every=0), progress=False)
     _, design, card = load_model(tmp_path / "run" / "model.json")
     assert not design.gradients and card["steps"] == 1
+
+
+def test_pooled_design_trains_on_pooled_inputs_and_records_the_factor(data, tiny, tmp_path):
+    train(tiny(data, tmp_path / "run", model="oidn-grad-pool", steps=1), progress=False)
+    _, design, card = load_model(tmp_path / "run" / "model.json")
+    factor = json.loads((data / "dataset.json").read_text())["config"]["pt_factor"]
+    assert design.input_kind == "pool" and card["sampling"] == {"primal_spp_factor": factor}

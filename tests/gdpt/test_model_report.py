@@ -122,3 +122,28 @@ def test_cli_ships_only_the_named_runs(runs, tmp_path, monkeypatch, capsys):
     ]
     assert main([*args, "--ship", "nope"]) == 2
     assert "--ship nope: not among the --run names" in capsys.readouterr().err
+
+
+def test_cli_compares_checkpoints_given_by_model(runs, tmp_path, capsys):
+    data, run_dirs = runs
+    args = ["model-report", "--data", str(data), "--holdout-every", "1", "--out", str(tmp_path)]
+    args += [f"--run=ngpt={run_dirs['ngpt']}"]
+    checkpoint = run_dirs["ngpt-nograd"] / "model.safetensors"
+    assert main([*args, f"--model=other={checkpoint}"]) == 0
+    result = json.loads((tmp_path / "comparison.json").read_text())
+    assert {"ngpt", "other"} <= set(result["mean"])
+    assert main([*args, f"--model=ngpt={checkpoint}"]) == 2
+    assert "the name 'ngpt' is taken by a --run" in capsys.readouterr().err
+    assert main([*args, "--model=x=/nonexistent.safetensors"]) == 2
+    assert "/nonexistent.safetensors not found" in capsys.readouterr().err
+
+
+def test_input_kind_follows_the_card_and_the_features():
+    from types import SimpleNamespace
+
+    pooled = {"sampling": {"primal_spp_factor": 2.5}}
+    grad = ("primal", "albedo", "normal", "dx", "dy")
+    kind = model_report.input_kind
+    assert kind(SimpleNamespace(features=grad, card=pooled)) == "pool"
+    assert kind(SimpleNamespace(features=grad, card={})) == "gdpt"
+    assert kind(SimpleNamespace(features=grad[:3])) == "pt"

@@ -1,0 +1,114 @@
+"""Pooling plain path samples into a gradient render: gdpt.buffers.pool_primal,
+gdpt.render(..., primal_spp=N) and the methods that ask for it (gdpt.denoise.Method.sampling)."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import pytest
+import torch
+
+from gdpt.buffers import pool_primal
+from gdpt.denoise import METHODS
+
+GRADIENT = ("primal", "dx", "dy", "albedo", "normal", "depth", "var_primal")
+PRIMAL_ONLY = ("primal", "albedo", "normal", "depth", "var_primal")
+
+
+def test_pooled_buffers_are_sample_weighted_means(random_buffers):
+    g = random_buffers(names=GRADIENT, spp=3, seed=1)
+    p = random_buffers(names=PRIMAL_ONLY, spp=9, seed=2)
+    pooled = pool_primal(g, p)
+    for name in ("primal", "albedo", "normal", "depth"):
+        expected = (3 * getattr(g, name) + 9 * getattr(p, name)) / 12
+        torch.testing.assert_close(getattr(pooled, name), expected)
+    torch.testing.assert_close(pooled.var_primal, (9 * g.var_primal + 81 * p.var_primal) / 144)
+    assert pooled.dx is g.dx and pooled.dy is g.dy
+    assert pooled.spp == 3 and pooled.metadata["primal_spp"] == 12
+
+
+@pytest.mark.parametrize(
+    ("first", "second", "match"),
+    [
+        (("primal",), ("primal",), "first render has no dx/dy"),
+        (GRADIENT, GRADIENT, "primal-only render has dx/dy"),
+        (GRADIENT, ("primal",), "albedo, normal, depth, var_primal present in one render only"),
+    ],
+)
+def test_unpoolable_renders_are_named(random_buffers, first, second, match):
+    with pytest.raises(ValueError, match=match):
+        pool_primal(random_buffers(names=first), random_buffers(names=second))
+
+
+def test_other_sizes_and_empty_renders_are_refused(random_buffers):
+    g = random_buffers(names=("primal", "dx", "dy"))
+    with pytest.raises(ValueError, match="10x12 and 10x13 px"):
+        pool_primal(g, random_buffers(13, 10, names=("primal",)))
+    with pytest.raises(ValueError, match="spp >= 1, got 16 and 0"):
+        pool_primal(g, random_buffers(names=("primal",), spp=0))
+
+
+def test_pooled_render_has_independent_primal_samples(variant):
+    """Across seeds, the pooled primal's variance is the gradient render's times
+    ``spp / (spp + primal_spp)`` (the plain samples are independent of the base paths: with a
+    shared seed stream they would repeat them and the variance would not drop)."""
+    import gdpt
+    from gdpt.scenes import builtin_scene
+
+    scene = builtin_scene("cbox-demo", resolution=(16, 16))
+    spp, extra, runs = 2, 6, 24
+    alone, pooled = [], []
+    for seed in range(runs):
+        props = dict(spp=spp, seed=seed, max_depth=3, features=False)
+        alone.append(gdpt.render(scene, **props).primal.clone())
+        both = gdpt.render(scene, primal_spp=extra, **props)
+        assert both.spp == spp and both.metadata["primal_spp"] == spp + extra
+        assert both.metadata["primal_only"]["integrator"] == "gdpt"
+        pooled.append(both.primal.clone())
+    var_alone = torch.stack(alone).var(0).mean()
+    var_pooled = torch.stack(pooled).var(0).mean()
+    ratio = float(var_pooled / var_alone)
+    # expected spp / (spp + extra) = 0.25; a shared stream gives about 1
+    assert 0.15 < ratio < 0.4, ratio
+
+
+def test_primal_spp_needs_gradients(variant):
+    import gdpt
+    from gdpt.scenes import builtin_scene
+
+    scene = builtin_scene("cbox-demo", resolution=(8, 8))
+    with pytest.raises(ValueError, match="gradients=false"):
+        gdpt.render(scene, spp=1, primal_spp=2, gradients=False)
+    with pytest.raises(ValueError, match="primal_spp must be >= 0"):
+        gdpt.render(scene, spp=1, primal_spp=-1)
+
+
+def test_methods_ask_for_the_primal_samples_of_their_card(tmp_path):
+    card = {"format": "gdpt-oidn-delta/1", "sampling": {"primal_spp_factor": 2.5}}
+    (tmp_path / "pooled.json").write_text(json.dumps(card))
+    (tmp_path / "pooled.safetensors").write_bytes(b"")
+    ngpt = METHODS["ngpt"]
+    model = str(tmp_path / "pooled.safetensors")
+    assert ngpt.sampling(8, model=model) == {"gradients": True, "features": True, "primal_spp": 20}
+    (tmp_path / "pooled.json").write_text(json.dumps({**card, "sampling": {}}))
+    assert ngpt.sampling(8, model=model) == {"gradients": True, "features": True}
+    assert METHODS["l1"].sampling(8) == {"gradients": True, "features": False}
+
+
+def test_pooled_model_on_unpooled_buffers_warns(tmp_path, monkeypatch, random_buffers):
+    import gdpt.denoise as denoise
+
+    card = {"format": "gdpt-oidn-delta/1", "sampling": {"primal_spp_factor": 2.5}}
+    (tmp_path / "pooled.json").write_text(json.dumps(card))
+    (tmp_path / "pooled.safetensors").write_bytes(b"")
+    monkeypatch.setattr(denoise, "_oidn_weights_missing", lambda name, path: None)
+    monkeypatch.setattr(denoise, "load_reconstructor", lambda path: lambda b: b.primal)
+    model = str(tmp_path / "pooled.safetensors")
+    buffers = random_buffers(names=("primal", "dx", "dy"))
+    with pytest.warns(UserWarning, match=r"pooled.safetensors .* primal_spp=2.5 x spp"):
+        denoise.reconstruct(buffers, "ngpt", model=model)
+    pooled = buffers.replace(metadata={"primal_spp": 40})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        denoise.reconstruct(pooled, "ngpt", model=model)
