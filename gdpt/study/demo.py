@@ -5,7 +5,8 @@ The demo is a one-scene, one-budget run of the equal-time study
 G-PT reconstructed by the shipped NGPT network, L1 and L2 screened Poisson; path tracing alone,
 with Intel Open Image Denoise, and with the no-gradient NGPT ablation. Each method's sample
 count is calibrated by timing so that sampling + reconstruction takes ``budget`` seconds on this
-machine (kernel compilation excluded); errors are measured against a cached high-spp path-traced
+machine (kernel compilation and frozen-pass recording excluded: each timed render follows an
+untimed one at the same spp); errors are measured against a cached high-spp path-traced
 reference. Writes the study's report (``results.json``, ``results.md``, ``index.html``, crops),
 an EXR and a PNG per method, and a labelled montage ``side_by_side.png``.
 """
@@ -83,7 +84,7 @@ def run_demo(cfg: DemoConfig, *, progress: bool = True) -> dict[str, Any]:
     montage = {"reference": load_image(out / "images" / cfg.scene / "reference.exr")}
     print(
         f"\n{cfg.scene}, {cfg.resolution}x{cfg.resolution} px, budget {cfg.budget:g} s "
-        f"(compilation excluded), reference {cfg.reference_spp} spp"
+        f"(compilation and pass recording excluded), reference {cfg.reference_spp} spp"
     )
     print(f"{'method':<16}{'spp':>6}{'seconds':>9}{'relMSE':>10}{'FLIP':>8}")
     for name in cfg.methods:
