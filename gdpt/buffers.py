@@ -165,7 +165,8 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
     Returns:
         A new :class:`GradientBuffers` on ``gradient.device`` with ``spp = gradient.spp``
         (the gradients' count) and ``metadata["primal_spp"]`` the pooled count;
-        ``metadata["primal_only"]`` holds the second render's metadata.
+        ``metadata["primal_only"]`` holds the second render's metadata, and
+        ``metadata["render_seconds"]`` (when both have one) is the sum of both.
 
     Raises:
         ValueError: ``gradient`` has no gradients, ``primal_only`` has some, the sizes or
@@ -205,4 +206,7 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
     if gradient.var_primal is not None:
         pooled["var_primal"] = w_g**2 * gradient.var_primal + w_p**2 * primal_only.var_primal
     metadata = {**gradient.metadata, "primal_spp": n_g + n_p, "primal_only": primal_only.metadata}
+    seconds = [b.metadata.get("render_seconds") for b in (gradient, primal_only)]
+    if None not in seconds:
+        metadata["render_seconds"] = sum(seconds)
     return gradient.replace(**pooled, metadata=metadata)

@@ -17,9 +17,10 @@ PRIMAL_ONLY = ("primal", "albedo", "normal", "depth", "var_primal")
 
 
 def test_pooled_buffers_are_sample_weighted_means(random_buffers):
-    g = random_buffers(names=GRADIENT, spp=3, seed=1)
-    p = random_buffers(names=PRIMAL_ONLY, spp=9, seed=2)
+    g = random_buffers(names=GRADIENT, spp=3, seed=1, metadata={"render_seconds": 0.5})
+    p = random_buffers(names=PRIMAL_ONLY, spp=9, seed=2, metadata={"render_seconds": 0.25})
     pooled = pool_primal(g, p)
+    assert pooled.metadata["render_seconds"] == 0.75
     for name in ("primal", "albedo", "normal", "depth"):
         expected = (3 * getattr(g, name) + 9 * getattr(p, name)) / 12
         torch.testing.assert_close(getattr(pooled, name), expected)
