@@ -20,7 +20,6 @@ study (:mod:`gdpt.study.methods`) offer every registered name.
 from __future__ import annotations
 
 import importlib.util
-import json
 import os
 import warnings
 from collections.abc import Callable
@@ -143,8 +142,8 @@ def _ngpt(
         raise RuntimeError(reason)
     factor = _ngpt_primal_spp_factor(name, model)
     metadata = getattr(buffers, "metadata", None)
-    pooled = metadata is None or "primal_spp" in metadata or not buffers.has_gradients
-    if factor and not pooled:  # (buffers without gradients fail in the network, by name)
+    unpooled = metadata is not None and "primal_spp" not in metadata and buffers.has_gradients
+    if factor and unpooled:  # (buffers without gradients fail in the network, by name)
         warnings.warn(
             f"model {path.name} was trained on primals pooled with {factor:g} plain path "
             "samples per gradient sample; these buffers have none (render with "
@@ -179,14 +178,13 @@ def _oidn_weights_missing(name: str, path: Path) -> str | None:
 def _ngpt_primal_spp_factor(name: str, model: str | None = None, **_: Any) -> float:
     """The model card's ``sampling.primal_spp_factor`` (0 when the card has none or the
     checkpoint is missing: :func:`_ngpt` reports that)."""
+    from gdpt.reconstruct.ngpt import read_card
+
     try:
-        path = model_path(name, model)
+        _, _, card = read_card(model_path(name, model))
     except FileNotFoundError:
         return 0.0
-    card = path.with_suffix(".json")
-    if not card.is_file():
-        return 0.0
-    return float(json.loads(card.read_text()).get("sampling", {}).get("primal_spp_factor", 0.0))
+    return float(card.get("sampling", {}).get("primal_spp_factor", 0.0))
 
 
 def _ngpt_check(name: str) -> str | None:
