@@ -220,6 +220,23 @@ class OIDNUNet(nn.Module):
                 target.copy_(w)
                 conv.bias.copy_(b)
 
+    def extra_input_masks(self) -> dict[str, torch.Tensor]:
+        """Parameter name -> float32 mask (1 on the weights that read the extra input channels,
+        0 elsewhere; the shape and device of the parameter), for the two layers that read the
+        input; empty without extra channels."""
+        if not self.extra_channels:
+            return {}
+        masks = {}
+        for name, columns in (
+            (self._first, slice(self.in_channels, None)),
+            ("dec_conv1a", slice(-self.extra_channels, None)),
+        ):
+            weight = getattr(self, name).weight
+            mask = torch.zeros_like(weight)
+            mask[:, columns] = 1.0
+            masks[f"{name}.weight"] = mask
+        return masks
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         c = lambda name, t: getattr(self, name)(t)  # noqa: E731
         relu = F.relu

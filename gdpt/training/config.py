@@ -80,6 +80,9 @@ class TrainConfig:
         device: torch device (``None``: ``cuda:LOCAL_RANK`` if available, else ``cpu``).
         base_model: the frozen base network of a combiner design (a fine-tuned OIDN
             checkpoint, ``.safetensors``); unused by the other models.
+        extra_lr_scale: learning-rate multiplier for the weights that read a fine-tuned OIDN
+            design's extra input channels (zero at step 0; at OIDN's small fine-tuning rate they
+            stay two orders of magnitude below the colour weights); 1 elsewhere.
     """
 
     model: str = "fast_xs"
@@ -108,6 +111,7 @@ class TrainConfig:
     keep_checkpoints: int = 3
     device: str | None = None
     base_model: str | None = None
+    extra_lr_scale: float = 1.0
 
     def __post_init__(self) -> None:
         if not self.data or not self.out:
@@ -117,6 +121,8 @@ class TrainConfig:
         )
         if self.val_every < 0 or self.pad < 0 or not 0 <= self.vary_padding <= self.pad:
             raise ValueError("need val_every >= 0 and 0 <= vary_padding <= pad")
+        if not self.extra_lr_scale > 0:
+            raise ValueError(f"extra_lr_scale must be > 0, got {self.extra_lr_scale}")
         if self.crop is not None and self.crop < 2:
             raise ValueError(f"crop must be >= 2, got {self.crop}")
 

@@ -11,6 +11,8 @@ brightness multipliers), per-step seeding (exact resume) and held-out split
 
 * the network starts as OIDN (Intel's ``rt_hdr_alb_nrm`` weights, the extra inputs with zero
   weights), so step 0 reproduces OIDN exactly;
+* ``extra_lr_scale`` lets the extra inputs' weights move faster than the rest (the fine-tuning
+  rate is small to keep OIDN's skill, and zero-started weights would stay near zero under it);
 * inputs are OIDN's encoding (:func:`~gdpt.reconstruct.oidn_ngpt.assemble`); sub-crops
   (``crop``) must be multiples of 16; there is no mirror padding (``pad`` and
   ``vary_padding`` are ignored: OIDN's convolutions zero-pad, as at inference);
@@ -214,6 +216,20 @@ def validate_finetune(
     return {k: v / len(elements) for k, v in totals.items()} | {"count": len(elements)}
 
 
+def extra_update_scale(
+    net: OIDNUNet, config: TrainConfig
+) -> list[tuple[torch.nn.Parameter, torch.Tensor]]:
+    """``optimise``'s ``update_scale`` for ``config.extra_lr_scale``: the extra input
+    channels' weights move ``extra_lr_scale`` times as fast as the rest (empty at 1)."""
+    if config.extra_lr_scale == 1.0:
+        return []
+    params = dict(net.named_parameters())
+    return [
+        (params[name], 1.0 + (config.extra_lr_scale - 1.0) * mask)
+        for name, mask in net.extra_input_masks().items()
+    ]
+
+
 def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True) -> Path:
     """Fine-tune (or continue fine-tuning) the design ``config.model``; see the module docstring.
 
@@ -264,6 +280,7 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
             "batch": config.batch,
             "crop": side,
             "lr": config.lr,
+            "extra_lr_scale": config.extra_lr_scale,
         }
     }
     if design.pooled:
@@ -281,6 +298,6 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
     optimise(
         config, run, net, optimizer, start=start, elapsed=elapsed, loss_at=loss_at,
         validate=lambda: validate_finetune(net, design, val_elements), save=save,
-        desc="finetune", progress=progress,
+        desc="finetune", progress=progress, update_scale=extra_update_scale(net, config),
     )  # fmt: skip
     return run / "model.safetensors"

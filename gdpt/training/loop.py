@@ -2,16 +2,18 @@
 (:mod:`gdpt.training.finetune`) and the combiner (:mod:`gdpt.training.combine`).
 
 Per update: the learning rate of the schedule, one loss evaluation and backward pass, an
-optimizer step only if every gradient is finite (a skipped step is logged as ``"skipped"``), a
-``log.jsonl`` record; validation every ``val_every`` steps (``val.jsonl``); every
-``ckpt_every`` steps a checkpoint whose ``.pt`` file holds the exact weights and the optimizer
-state, which :func:`resume_state` reads back; at the end the run's ``model`` files.
+optimizer step only if every gradient is finite (a skipped step is logged as ``"skipped"``;
+the step's change of a parameter may be scaled element-wise, under Adam a per-weight
+learning-rate multiplier), a ``log.jsonl`` record; validation every ``val_every`` steps
+(``val.jsonl``); every ``ckpt_every`` steps a checkpoint whose ``.pt`` file holds the exact
+weights and the optimizer state, which :func:`resume_state` reads back; at the end the run's
+``model`` files.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
@@ -71,6 +73,7 @@ def optimise(
     save: SaveFn,
     desc: str,
     progress: bool,
+    update_scale: Sequence[tuple[torch.nn.Parameter, torch.Tensor]] = (),
 ) -> None:
     """Run updates ``start .. config.steps - 1`` (see the module docstring).
 
@@ -86,6 +89,8 @@ def optimise(
         save: writes the model files of a checkpoint or of the final model.
         desc: progress-bar label.
         progress: show a progress bar.
+        update_scale: ``(parameter, multiplier)`` pairs: the optimizer's change of the
+            parameter is multiplied element-wise by ``multiplier`` (same shape and device).
     """
     from tqdm.auto import tqdm
 
@@ -102,7 +107,11 @@ def optimise(
         loss.backward()
         finite = all(bool(torch.isfinite(p.grad).all()) for p in net.parameters())
         if finite:
+            before = [p.detach().clone() for p, _ in update_scale]
             optimizer.step()
+            with torch.no_grad():
+                for (p, multiplier), old in zip(update_scale, before, strict=True):
+                    p.copy_(old + (p - old) * multiplier)
         seconds = time.perf_counter() - t0
         elapsed += seconds
         done = step + 1

@@ -87,3 +87,32 @@ def test_pooled_design_trains_on_pooled_inputs_and_records_the_factor(data, tiny
     _, design, card = load_model(tmp_path / "run" / "model.json")
     factor = json.loads((data / "dataset.json").read_text())["config"]["pt_factor"]
     assert design.input_kind == "pool" and card["sampling"] == {"primal_spp_factor": factor}
+
+
+def test_extra_lr_scale_multiplies_the_first_update_of_the_extra_inputs(data, tiny, tmp_path):
+    # step 0 has the same gradients with any scale (the extra weights are still zero), so one
+    # Adam update differs exactly by the scale on the extra inputs' weights and not elsewhere
+    nets = {}
+    for scale in (1.0, 4.0):
+        run = tmp_path / f"scale{scale}"
+        train(tiny(data, run, steps=1, val_every=0, extra_lr_scale=scale), progress=False)
+        nets[scale], design, card = load_model(run / "model.json")
+        assert card["training"]["extra_lr_scale"] == scale
+    base = dict(base_model(design).named_parameters())
+    masks = nets[1.0].extra_input_masks()
+    assert set(masks) == {"enc_conv0.weight", "dec_conv1a.weight"}
+    for name, plain in nets[1.0].named_parameters():
+        scaled = dict(nets[4.0].named_parameters())[name]
+        step_plain, step_scaled = (plain - base[name]).detach(), (scaled - base[name]).detach()
+        if name in masks:
+            extra = masks[name].bool()
+            assert (step_plain[extra] != 0).float().mean() > 0.5
+            torch.testing.assert_close(step_scaled[extra], 4.0 * step_plain[extra])
+            torch.testing.assert_close(step_scaled[~extra], step_plain[~extra], rtol=0, atol=0)
+        else:
+            torch.testing.assert_close(step_scaled, step_plain, rtol=0, atol=0)
+
+
+def test_extra_lr_scale_must_be_positive(data, tiny, tmp_path):
+    with pytest.raises(ValueError, match="extra_lr_scale"):
+        tiny(data, tmp_path, extra_lr_scale=0.0)

@@ -79,6 +79,27 @@ def test_zero_extra_channels_reproduce_oidn():
     assert net.dec_conv1a.weight.grad[:, -6:].abs().sum() > 0
 
 
+@pytest.mark.parametrize("kind", ["small", "large"])
+def test_extra_input_masks_cover_exactly_the_weights_reading_the_extra_inputs(kind):
+    torch.manual_seed(0)
+    net = oidn_unet.OIDNUNet(9, 3, kind, extra_channels=4).eval()
+    masks = net.extra_input_masks()
+    params = dict(net.named_parameters())
+    x = torch.randn(1, 13, 32, 32)
+    other = x.clone()
+    other[:, 9:] = torch.randn(1, 4, 32, 32)
+    with torch.no_grad():
+        assert not torch.equal(net(x), net(other))  # random weights read the extra inputs
+        for name, mask in masks.items():
+            assert mask.shape == params[name].shape
+            assert int(mask.sum()) == params[name].shape[0] * 4 * 9
+            params[name].mul_(1 - mask)
+        assert torch.equal(net(x), net(other))  # and only through the masked weights
+        x[:, :9] += 1.0
+        assert not torch.equal(net(x), net(other))
+    assert oidn_unet.OIDNUNet(9, 3, kind).extra_input_masks() == {}
+
+
 @needs_pyoidn
 def test_non_finite_inputs_give_finite_output():
     color, albedo, normal = _buffers(37, 53, seed=3)
