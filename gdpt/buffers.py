@@ -145,6 +145,8 @@ class GradientBuffers:
 
 #: Buffers that are per-pixel sample means and can be pooled across renders of one scene.
 POOLED = ("primal", "albedo", "normal", "depth")
+#: The feature buffers among them (a gradient render may leave them to the plain render).
+FEATURES = ("albedo", "normal", "depth")
 
 
 def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> GradientBuffers:
@@ -152,15 +154,17 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
 
     The primal and the features become the sample-weighted means of both renders, an unbiased
     estimate from ``gradient.spp + primal_only.spp`` samples; ``dx`` and ``dy`` stay those of
-    ``gradient``. ``var_primal`` (variance of the mean) pools as
-    ``(n_g^2 v_g + n_p^2 v_p) / (n_g + n_p)^2``. This is the input of a reconstruction that
-    spends part of its sampling time on plain path samples (about 1x a ``path`` sample) and
-    part on gradient samples (2-3x), see ``primal_spp_factor`` in :mod:`gdpt.denoise`.
+    ``gradient``. Features that only ``primal_only`` has are taken from it as they are: the
+    plain pass can supply them alone, which spares the gradient pass their cost.
+    ``var_primal`` (variance of the mean) pools as ``(n_g^2 v_g + n_p^2 v_p) / (n_g + n_p)^2``.
+    This is the input of a reconstruction that spends part of its sampling time on plain path
+    samples (about 1x a ``path`` sample) and part on gradient samples (2-3x), see
+    ``primal_spp_factor`` in :mod:`gdpt.denoise`.
 
     Args:
         gradient: a render with ``dx``/``dy`` (``spp`` >= 1).
         primal_only: an independent render of the same scene and film without gradients, with
-            the same feature buffers and ``spp`` >= 1.
+            the feature buffers of ``gradient`` (or more) and ``spp`` >= 1.
 
     Returns:
         A new :class:`GradientBuffers` on ``gradient.device`` with ``spp = gradient.spp``
@@ -170,7 +174,8 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
 
     Raises:
         ValueError: ``gradient`` has no gradients, ``primal_only`` has some, the sizes or
-            devices differ, a buffer is present in one render only, or an ``spp`` is < 1.
+            devices differ, a buffer is present in one render only (features: in ``gradient``
+            only), or an ``spp`` is < 1.
     """
     if not gradient.has_gradients:
         raise ValueError("pool_primal: the first render has no dx/dy (render it with gradients)")
@@ -190,7 +195,10 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
         raise ValueError(f"pool_primal: both renders need spp >= 1, got {n_g} and {n_p}")
     names = (*POOLED, "var_primal")
     uneven = [
-        n for n in names if (getattr(gradient, n) is None) != (getattr(primal_only, n) is None)
+        n
+        for n in names
+        if (getattr(gradient, n) is None) != (getattr(primal_only, n) is None)
+        and not (n in FEATURES and getattr(gradient, n) is None)
     ]
     if uneven:
         raise ValueError(
@@ -203,6 +211,8 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
         a, b = getattr(gradient, name), getattr(primal_only, name)
         if a is not None:
             pooled[name] = w_g * a + w_p * b
+        elif b is not None:
+            pooled[name] = b
     if gradient.var_primal is not None:
         pooled["var_primal"] = w_g**2 * gradient.var_primal + w_p**2 * primal_only.var_primal
     metadata = {**gradient.metadata, "primal_spp": n_g + n_p, "primal_only": primal_only.metadata}

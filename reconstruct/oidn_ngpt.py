@@ -10,10 +10,10 @@ OIDN's input scale ``s`` (autoexposure of the colour)::
     oidn-grad-pool  as oidn-grad, trained on pooled inputs (below)              6
     oidn-nograd     none: OIDN itself fine-tuned (the no-gradient ablation)     0
 
-A *pooled* design is trained on (and must be given) a gradient-domain render whose primal and
-features also average independent plain path samples, ``primal_spp_factor`` per gradient
-sample (``gdpt.render(..., primal_spp=...)``): plain path samples cost a third to a half of
-a gradient sample, so at equal time the network sees a primal of nearly the path tracer's sample
+A *pooled* design is trained on (and must be given) a gradient-domain render whose primal
+also averages independent plain path samples, ``primal_spp_factor`` per gradient sample, and
+whose features are those of the plain samples (``gdpt.render(..., primal_spp=...)``): plain
+path samples cost a third to a half of a gradient sample, so at equal time the network sees a primal of nearly the path tracer's sample
 count and gradients besides. The factor is the card's ``sampling.primal_spp_factor``.
 
 :func:`assemble` builds the network input, :func:`predict` runs it and maps the output back
@@ -84,7 +84,8 @@ class Design:
         l1: also reads the L1 Poisson solution of ``primal, dx, dy`` (3 more; needs gradients).
         description: one line for cards and reports.
         pooled: trained on gradient-domain renders with plain path samples pooled into the
-            primal and features (needs gradients; see the module docstring).
+            primal, the features from those samples (needs gradients; see the module
+            docstring).
     """
 
     gradients: bool

@@ -83,7 +83,8 @@ CROPS_DIR = "crops"
 
 #: Input kinds: element-name prefix and the buffers a network reads from them. ``pool`` is the
 #: gradient-domain input with the path-traced input of the same crop and level pooled into its
-#: primal and features (:func:`gdpt.buffers.pool_primal`).
+#: primal (:func:`gdpt.buffers.pool_primal`), the features those of the path-traced input (as
+#: ``gdpt.render(..., primal_spp=...)`` renders them).
 INPUT_KINDS: dict[str, tuple[str, tuple[str, ...]]] = {
     "gdpt": ("in", ("primal", "dx", "dy", "albedo", "normal", "depth")),
     "pt": ("pt", ("primal", "albedo", "normal", "depth")),
@@ -609,7 +610,7 @@ class CropDataset(Dataset):
         root: dataset directory.
         kind: ``"gdpt"`` (gradient-domain inputs ``in<k>``), ``"pt"`` (path-traced inputs
             ``pt<k>``, 2.5x the samples) or ``"pool"`` (``in<k>`` with ``pt<k>`` pooled into
-            its primal and features).
+            its primal; the features of ``pt<k>``).
         scenes: keep only crops whose scene index satisfies this predicate (``None``: all).
 
     Raises:
@@ -719,8 +720,8 @@ class CropDataset(Dataset):
         inputs = load_buffers(self.root / record["files"][name])
         if self.kind == "pool":
             pt = load_buffers(self.root / record["files"][f"pt{level}"])
-            inputs = pool_primal(
-                inputs.replace(spp=int(record["spp"][level])),
+            inputs = pool_primal(  # features from the plain render alone, as gdpt.render pools
+                inputs.replace(spp=int(record["spp"][level]), albedo=None, normal=None, depth=None),
                 pt.replace(spp=int(record["pt_spp"][level])),
             )
         target = load_buffers(self.root / record["files"]["target"]).primal

@@ -29,12 +29,22 @@ def test_pooled_buffers_are_sample_weighted_means(random_buffers):
     assert pooled.spp == 3 and pooled.metadata["primal_spp"] == 12
 
 
+def test_features_of_the_plain_render_alone_are_taken_as_they_are(random_buffers):
+    g = random_buffers(names=("primal", "dx", "dy", "var_primal"), spp=3, seed=1)
+    p = random_buffers(names=PRIMAL_ONLY, spp=9, seed=2)
+    pooled = pool_primal(g, p)
+    for name in ("albedo", "normal", "depth"):
+        assert getattr(pooled, name) is getattr(p, name)
+    torch.testing.assert_close(pooled.primal, (3 * g.primal + 9 * p.primal) / 12)
+
+
 @pytest.mark.parametrize(
     ("first", "second", "match"),
     [
         (("primal",), ("primal",), "first render has no dx/dy"),
         (GRADIENT, GRADIENT, "primal-only render has dx/dy"),
         (GRADIENT, ("primal",), "albedo, normal, depth, var_primal present in one render only"),
+        (("primal", "dx", "dy", "var_primal"), ("primal",), "var_primal present in one render"),
     ],
 )
 def test_unpoolable_renders_are_named(random_buffers, first, second, match):
@@ -66,12 +76,30 @@ def test_pooled_render_has_independent_primal_samples(variant):
         both = gdpt.render(scene, primal_spp=extra, **props)
         assert both.spp == spp and both.metadata["primal_spp"] == spp + extra
         assert both.metadata["primal_only"]["integrator"] == "gdpt"
+        assert both.albedo is None
         pooled.append(both.primal.clone())
     var_alone = torch.stack(alone).var(0).mean()
     var_pooled = torch.stack(pooled).var(0).mean()
     ratio = float(var_pooled / var_alone)
     # expected spp / (spp + extra) = 0.25; a shared stream gives about 1
     assert 0.15 < ratio < 0.4, ratio
+
+
+def test_pooled_features_come_from_the_plain_pass_alone(variant):
+    """The gradient pass skips the features; the pooled ones are the plain pass's, equal to a
+    plain render with its seed, and the gradients equal a featureless gradient render's."""
+    import gdpt
+    from gdpt.rendering import PRIMAL_SEED_SALT
+    from gdpt.scenes import builtin_scene
+
+    scene = builtin_scene("cbox-demo", resolution=(16, 16))
+    pooled = gdpt.render(scene, spp=2, seed=5, primal_spp=3, max_depth=3)
+    plain = gdpt.render(scene, spp=3, seed=5 ^ PRIMAL_SEED_SALT, max_depth=3, gradients=False)
+    gradient = gdpt.render(scene, spp=2, seed=5, max_depth=3, features=False)
+    for name in ("albedo", "normal", "depth"):
+        assert torch.equal(getattr(pooled, name), getattr(plain, name)), name
+    assert torch.equal(pooled.dx, gradient.dx) and torch.equal(pooled.dy, gradient.dy)
+    torch.testing.assert_close(pooled.primal, (2 * gradient.primal + 3 * plain.primal) / 5)
 
 
 def test_primal_spp_needs_gradients(variant):
