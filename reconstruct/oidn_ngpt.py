@@ -13,8 +13,8 @@ OIDN's input scale ``s`` (autoexposure of the colour)::
 A *pooled* design is trained on (and must be given) a gradient-domain render whose primal
 also averages independent plain path samples, ``primal_spp_factor`` per gradient sample, and
 whose features are those of the plain samples (``gdpt.render(..., primal_spp=...)``): plain
-path samples cost a third to a half of a gradient sample, so at equal time the network sees a primal of nearly the path tracer's sample
-count and gradients besides. The factor is the card's ``sampling.primal_spp_factor``.
+path samples cost a third to a half of a gradient sample, so at equal time the network sees a
+primal of nearly the path tracer's sample count and gradients besides. The factor is the card's ``sampling.primal_spp_factor``.
 
 :func:`assemble` builds the network input, :func:`predict` runs it and maps the output back
 to radiance (OIDN's output stage); both run on the device of the buffers.
