@@ -8,6 +8,7 @@ OIDN's input scale ``s`` (autoexposure of the colour)::
     oidn-grad       sign(dx) log(1 + |s dx|), sign(dy) log(1 + |s dy|)          6  (eq. 4)
     oidn-grad-l1    the above + PU(s * L1-Poisson(primal, dx, dy)) ('l1-fast')  9
     oidn-grad-pool  as oidn-grad, trained on pooled inputs (below)              6
+    oidn-grad-nbr   oidn-grad-pool + PU(s * neighbour_estimate(primal, dx, dy))  9
     oidn-nograd     none: OIDN itself fine-tuned (the no-gradient ablation)     0
 
 A *pooled* design is trained on (and must be given) a gradient-domain render whose primal
@@ -49,6 +50,7 @@ from typing import Any
 import torch
 from safetensors.torch import load_file, save
 
+from .losses import forward_differences
 from .ngpt import read_card
 from .oidn_unet import OIDNUNet, autoexposure, decode_output, encode_inputs, pu_forward
 from .refine import GatedRefinement
@@ -64,6 +66,7 @@ __all__ = [
     "encode_delta",
     "is_delta_card",
     "load_model",
+    "neighbour_estimate",
     "predict",
     "signed_log",
 ]
@@ -86,12 +89,14 @@ class Design:
         pooled: trained on gradient-domain renders with plain path samples pooled into the
             primal, the features from those samples (needs gradients; see the module
             docstring).
+        neighbours: also reads :func:`neighbour_estimate` (3 more; needs gradients).
     """
 
     gradients: bool
     l1: bool
     description: str
     pooled: bool = False
+    neighbours: bool = False
 
     @property
     def input_kind(self) -> str:
@@ -102,7 +107,7 @@ class Design:
     @property
     def extra_channels(self) -> int:
         """Extra input channels after OIDN's 9."""
-        return 6 * self.gradients + 3 * self.l1
+        return 6 * self.gradients + 3 * self.l1 + 3 * self.neighbours
 
     @property
     def features(self) -> tuple[str, ...]:
@@ -129,12 +134,53 @@ DESIGNS.register(
         pooled=True,
     ),
 )
+DESIGNS.register(
+    "oidn-grad-nbr",
+    Design(
+        True,
+        False,
+        "OIDN U-Net + signed-log dx/dy + PU(neighbour estimate) inputs, fine-tuned on pooled "
+        "primals",
+        pooled=True,
+        neighbours=True,
+    ),
+)
 DESIGNS.register("oidn-nograd", Design(False, False, "OIDN U-Net fine-tuned, no gradient inputs"))
 
 
 def signed_log(x: torch.Tensor) -> torch.Tensor:
     """``sign(x) log(1 + |x|)`` (NGPT's gradient transform, eq. 4); same shape/device."""
     return torch.sign(x) * torch.log1p(x.abs())
+
+
+def neighbour_estimate(primal: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor) -> torch.Tensor:
+    """Each pixel predicted from its four neighbours and the gradients between them.
+
+    ``mean(I[y, x-1] + dx[y, x-1], I[y, x+1] - dx[y, x], I[y-1, x] + dy[y-1, x],
+    I[y+1, x] - dy[y, x])`` over the neighbours inside the image (forward differences:
+    ``dx[y, x] = I[y, x+1] - I[y, x]``). It leaves out the pixel's own primal sample: where the
+    shifts succeed it is a second estimate of the pixel with the gradients' low variance, and
+    its difference from the primal marks primal noise (a firefly has no support from its
+    neighbours). Linear in the inputs, so a network reading PU-encoded colour and signed-log
+    gradients separately gets this relation explicitly.
+
+    Args:
+        primal, dx, dy: ``(H, W, C)`` float tensors on one device.
+
+    Returns:
+        ``(H, W, C)`` tensor like ``primal``; a 1x1 image returns ``primal``.
+    """
+    total = torch.zeros_like(primal)
+    count = torch.zeros_like(primal[..., :1])
+    total[:, 1:] += primal[:, :-1] + dx[:, :-1]
+    total[:, :-1] += primal[:, 1:] - dx[:, :-1]
+    total[1:] += primal[:-1] + dy[:-1]
+    total[:-1] += primal[1:] - dy[:-1]
+    count[:, 1:] += 1
+    count[:, :-1] += 1
+    count[1:] += 1
+    count[:-1] += 1
+    return torch.where(count > 0, total / count.clamp_min(1), primal)
 
 
 def _finite(x: torch.Tensor) -> torch.Tensor:
@@ -179,6 +225,8 @@ def assemble(
 
                 l1 = reconstruct(primal, dx, dy, method="l1-fast", alpha=0.2)
             parts.append(pu_forward((scale * _finite(l1)).clamp_min(0.0)))
+        if design.neighbours:
+            parts.append(pu_forward((scale * neighbour_estimate(primal, dx, dy)).clamp_min(0.0)))
         extra = torch.cat(parts, -1)
     albedo, normal = _finite(buffers["albedo"]), _finite(buffers["normal"])
     return encode_inputs(primal, albedo, normal, input_scale=scale, extra=extra)
@@ -352,20 +400,26 @@ def finetune_loss(
     scale: torch.Tensor,
     *,
     relative: float = 1.0,
+    gradient: float = 0.0,
     eps: float = 1e-2,
 ) -> torch.Tensor:
-    """Fine-tuning loss: L1 in OIDN's PU space plus a relative MSE that tolerates target noise.
+    """Fine-tuning loss: L1 in OIDN's PU space plus a relative MSE that tolerates target noise
+    and an L1 on the image's forward differences.
 
-    ``mean |y - PU(s t)| + relative * mean (p - t)^2 / (eps + mean_c(p)^2)`` with ``p`` the decoded
+    ``mean |y - PU(s t)| + relative * mean (p - t)^2 / (eps + mean_c(p)^2)
+    + gradient * (mean |Dx y - Dx PU(s t)| + mean |Dy y - Dy PU(s t)|)`` with ``p`` the decoded
     prediction (``PU^-1(clamp(y, 0, 1)) / s``), its denominator detached: the relative MSE of
     Noise2Noise (Lehtinen et al. 2018), whose minimiser is the target's expectation, so
-    path-traced targets with zero-mean noise give an unbiased fit; the PU-L1 term is OIDN's own.
+    path-traced targets with zero-mean noise give an unbiased fit; the PU-L1 term is OIDN's own;
+    the difference term is NGPT's L1 on the result's gradients (Kettunen et al. 2019, sec.
+    3.2.3), here in PU space, which rewards edges that only the gradient inputs can place.
 
     Args:
         y: ``(N, 3, H, W)`` raw network output.
         target: ``(N, 3, H, W)`` linear HDR target, same device.
         scale: ``(N,)`` OIDN input scales of the samples.
         relative: weight of the relative-MSE term (0: OIDN's PU-L1 alone).
+        gradient: weight of the forward-difference term (0: none).
         eps: denominator offset of the relative term.
 
     Returns:
@@ -377,7 +431,10 @@ def finetune_loss(
     pu_target = pu_forward((s * target).clamp_min(0.0))
     pred = pu_inverse(y.clamp(0.0, 1.0)) / s
     denominator = eps + pred.detach().mean(1, keepdim=True).square()
-    l1 = (y - pu_target).abs().mean()
+    loss = (y - pu_target).abs().mean()
+    if gradient:
+        for d_y, d_target in zip(forward_differences(y), forward_differences(pu_target), strict=True):
+            loss = loss + gradient * (d_y - d_target).abs().mean()
     if not relative:
-        return l1
-    return l1 + relative * ((pred - target).square() / denominator).mean()
+        return loss
+    return loss + relative * ((pred - target).square() / denominator).mean()

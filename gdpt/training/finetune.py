@@ -1,7 +1,7 @@
 """Fine-tuning OIDN's U-Net with gradient inputs (:mod:`gdpt.reconstruct.oidn_ngpt`) on a
 :mod:`gdpt.training.dataset`.
 
-``gdpt train --config oidn-grad`` (or ``oidn-grad-l1``, ``oidn-grad-pool``, ``oidn-nograd``)
+``gdpt train --config oidn-grad`` (or another design of ``DESIGNS``, e.g. ``oidn-nograd``)
 lands here through :func:`gdpt.training.train.train`. The run uses the same
 :class:`~gdpt.training.config.TrainConfig`, run directory (:mod:`gdpt.training.run_dir`),
 learning-rate schedule (:mod:`gdpt.training.schedule`), augmentations
@@ -19,7 +19,8 @@ brightness multipliers), per-step seeding (exact resume) and held-out split
 * loss (``config.loss``, :data:`FINETUNE_LOSSES`): ``l1`` is OIDN's own L1 in its PU space,
   ``l1_rel`` adds the Noise2Noise relative MSE (:func:`~gdpt.reconstruct.oidn_ngpt
   .finetune_loss`), unbiased under the zero-mean noise of path-traced targets
-  (``gdpt dataset --target pt``);
+  (``gdpt dataset --target pt``), ``l1_grad`` an L1 on the PU image's forward differences
+  (NGPT's gradient term);
 * the ``oidn-grad-l1`` design's L1 Poisson input is solved once per dataset element
   ('l1-fast', alpha 0.2) and augmented like the primal (flips and scalings commute with the
   solve; a sub-crop of the solution stands in for the solution of the sub-crop);
@@ -72,8 +73,12 @@ __all__ = [
     "validate_finetune",
 ]
 
-#: ``config.loss`` -> weight of the relative-MSE term of ``finetune_loss``.
-FINETUNE_LOSSES = {"l1": 0.0, "l1_rel": 1.0}
+#: ``config.loss`` -> keyword weights of ``finetune_loss`` (its PU-L1 term always counts).
+FINETUNE_LOSSES: dict[str, dict[str, float]] = {
+    "l1": {"relative": 0.0},
+    "l1_rel": {"relative": 1.0},
+    "l1_grad": {"relative": 0.0, "gradient": 1.0},
+}
 
 
 def primal_spp_factor(data: str | Path) -> float:
@@ -248,7 +253,7 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
             f"loss {config.loss!r} does not apply to fine-tuning OIDN; use one of "
             f"{', '.join(FINETUNE_LOSSES)}"
         )
-    relative = FINETUNE_LOSSES[config.loss]
+    weights = FINETUNE_LOSSES[config.loss]
     device = torch.device(config.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     run = Path(config.out)
     config = prepare_run(config, resume)
@@ -276,7 +281,7 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
             "data": config.data,
             "crops": len(train_set.crops),
             "validation_crops": len(val_set.crops),
-            "loss": f"{config.loss}: PU-L1 + {relative} x Noise2Noise relMSE (finetune_loss)",
+            "loss": f"{config.loss}: finetune_loss, PU-L1 + weights {weights}",
             "batch": config.batch,
             "crop": side,
             "lr": config.lr,
@@ -293,7 +298,7 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
     def loss_at(step: int) -> torch.Tensor:
         batch = make_finetune_batch(train_set, config, design, step, l1_cache)
         y = net(batch.x.to(device))
-        return finetune_loss(y, batch.target.to(device), batch.scale.to(device), relative=relative)
+        return finetune_loss(y, batch.target.to(device), batch.scale.to(device), **weights)
 
     optimise(
         config, run, net, optimizer, start=start, elapsed=elapsed, loss_at=loss_at,

@@ -12,6 +12,7 @@ from gdpt.reconstruct.oidn_ngpt import (
     encode_delta,
     finetune_loss,
     load_model,
+    neighbour_estimate,
     predict,
 )
 from gdpt.reconstruct.oidn_unet import denoise
@@ -66,6 +67,24 @@ def test_delta_checkpoint_round_trips_and_stores_no_oidn_weights(tmp_path):
     assert not torch.allclose(rec(b), ref)  # the gradient inputs now matter
 
 
+def test_neighbour_estimate_is_exact_for_consistent_gradients_and_drops_a_firefly():
+    yy, xx = torch.meshgrid(torch.arange(6.0), torch.arange(9.0), indexing="ij")
+    image = torch.stack([0.3 * xx + 0.1 * yy, xx * xx, torch.sin(xx + 2 * yy)], -1)
+    dx = torch.zeros_like(image)
+    dy = torch.zeros_like(image)
+    dx[:, :-1] = image[:, 1:] - image[:, :-1]
+    dy[:-1] = image[1:] - image[:-1]
+    torch.testing.assert_close(neighbour_estimate(image, dx, dy), image)
+    flat = torch.ones(5, 5, 1)
+    spike = flat.clone()
+    spike[2, 2] = 100.0  # primal noise the zero gradients do not support
+    estimate = neighbour_estimate(spike, torch.zeros_like(spike), torch.zeros_like(spike))
+    assert float(estimate[2, 2]) == 1.0
+    assert float(estimate[1, 2]) == pytest.approx((100.0 + 3.0) / 4)  # a neighbour of it
+    assert float(estimate[0, 0]) == 1.0  # corner: two neighbours
+    assert torch.equal(neighbour_estimate(flat[:1, :1], flat[:1, :1], flat[:1, :1]), flat[:1, :1])
+
+
 def test_missing_gradient_buffer_is_named():
     b = buffers()
     del b["dy"]
@@ -91,3 +110,20 @@ def test_finetune_loss_is_zero_at_the_target_and_grows_away_from_it():
     y = pu_forward(scale.reshape(-1, 1, 1, 1) * target)
     assert float(finetune_loss(y, target, scale)) < 1e-5
     assert float(finetune_loss(y + 0.05, target, scale)) > 0.05
+
+
+def test_finetune_loss_difference_term_sees_texture_not_a_constant_offset():
+    from gdpt.reconstruct.oidn_unet import pu_forward
+
+    target = torch.rand(2, 3, 8, 8) + 0.1
+    scale = torch.tensor([1.0, 0.5])
+    y = pu_forward(scale.reshape(-1, 1, 1, 1) * target)
+    offset = y + 0.05
+    plain = float(finetune_loss(offset, target, scale, relative=0.0))
+    with_term = float(finetune_loss(offset, target, scale, relative=0.0, gradient=1.0))
+    assert with_term == pytest.approx(plain, abs=1e-6)
+    checker = (torch.arange(8).reshape(1, 1, 1, 8) + torch.arange(8).reshape(1, 1, 8, 1)) % 2
+    textured = y + 0.05 * (2 * checker - 1)  # the same PU-L1 as the offset, wrong edges
+    plain = float(finetune_loss(textured, target, scale, relative=0.0))
+    with_term = float(finetune_loss(textured, target, scale, relative=0.0, gradient=1.0))
+    assert with_term - plain == pytest.approx(2 * 0.1 * 7 / 8, rel=1e-4)
