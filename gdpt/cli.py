@@ -238,6 +238,15 @@ def _add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--budgets", type=float, nargs="+", help="time budgets in seconds")
     parser.add_argument("--resolution", type=int, help="pixels on the long side")
     parser.add_argument("--methods", nargs="+", help="methods to compare (default: all)")
+    parser.add_argument(
+        "--model",
+        action="append",
+        default=[],
+        metavar="NAME=CHECKPOINT",
+        dest="models",
+        help="also compare a checkpoint written by gdpt train, as method gdpt+NAME (pt+NAME "
+        "without gradients); repeat for several",
+    )
     parser.add_argument("--metrics", nargs="+", help="metrics; the first one ranks methods")
     parser.add_argument("--reference-spp", type=int, help="samples per pixel of the reference")
     parser.add_argument(
@@ -260,12 +269,20 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     import dataclasses
     import shlex
 
+    from gdpt.denoise import register_checkpoint
     from gdpt.metrics import METRICS
     from gdpt.study.config import PRESETS
     from gdpt.study.evaluate import evaluate, render_references
-    from gdpt.study.methods import EVAL_METHODS
+    from gdpt.study.methods import EVAL_METHODS, register_denoiser
     from gdpt.study.report import best_methods
 
+    for item in args.models:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise UsageError(f"--model {item!r}: expected NAME=CHECKPOINT")
+        study_name = register_denoiser(name, register_checkpoint(name, path))
+        if args.methods is not None and study_name not in args.methods:
+            args.methods.append(study_name)
     for option, names, valid in (
         ("--methods", args.methods, EVAL_METHODS),
         ("--metrics", args.metrics, METRICS),

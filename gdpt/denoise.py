@@ -13,8 +13,10 @@ those. Registered:
   (:mod:`gdpt.reconstruct.oidn_ngpt`, a delta to Intel's weights read from ``pyoidn``).
 
 To add a method, write ``f(buffers, *, alpha, **options) -> (H, W, 3) tensor`` and
-``METHODS.register(name, Method(f, gradients=..., features=...))``; the CLI, the API and the
-study (:mod:`gdpt.study.methods`) offer every registered name.
+``METHODS.register(name, Method(f, gradients=..., features=...))``, or register a trained
+checkpoint with :func:`register_checkpoint`; the CLI, the API and the study
+(:mod:`gdpt.study.methods`, :func:`gdpt.study.methods.register_denoiser`) offer every registered
+name.
 """
 
 from __future__ import annotations
@@ -231,6 +233,43 @@ METHODS.register(
         partial(_ngpt_check, "ngpt-nograd"),
     ),
 )
+
+
+def register_checkpoint(name: str, path: str | os.PathLike) -> Method:
+    """Register a checkpoint written by ``gdpt train`` as the reconstruction method ``name``
+    (to compare one's own networks with the shipped ones, e.g. ``gdpt evaluate --model``).
+
+    Whether the method reads gradients comes from the card's ``features``; a pooled design's
+    ``sampling.primal_spp_factor`` sets how many plain path samples its renders pool.
+
+    Args:
+        name: the new method's name (not yet in :data:`METHODS`).
+        path: the checkpoint's ``.safetensors`` (its ``.json`` card next to it).
+
+    Returns:
+        The registered :class:`Method`.
+
+    Raises:
+        FileNotFoundError: either file of the checkpoint is missing.
+        ValueError: ``name`` is already registered.
+    """
+    from gdpt.reconstruct.ngpt import read_card
+
+    path = Path(path)
+    _, _, card = read_card(path)
+    if name in METHODS:
+        raise ValueError(f"reconstruction method {name!r} is already registered")
+    return METHODS.register(
+        name,
+        Method(
+            partial(_ngpt, name=name, model=path),
+            "dx" in card.get("features", ()),
+            True,
+            f"the checkpoint {path} ({card.get('design') or card.get('config_name', 'network')})",
+            partial(_oidn_weights_missing, name, path),
+            partial(_ngpt_primal_spp_factor, name, path),
+        ),
+    )
 
 
 def reconstruct(

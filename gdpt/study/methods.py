@@ -222,9 +222,10 @@ EVAL_METHODS.register(
 )
 
 
-def _register_denoiser(name: str, method: Method) -> None:
+def register_denoiser(name: str, method: Method) -> str:
     """Register ``gdpt+NAME`` (or ``pt+NAME`` for a method without gradients): the buffers
-    ``method`` reads, reconstructed by :func:`gdpt.denoise.reconstruct` with ``NAME``."""
+    ``method`` reads, reconstructed by :func:`gdpt.denoise.reconstruct` with ``NAME`` (which
+    must be in :data:`gdpt.denoise.METHODS`); returns the study method's name."""
     sampler = "gdpt" if method.gradients else "pt"
 
     def run(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
@@ -242,7 +243,8 @@ def _register_denoiser(name: str, method: Method) -> None:
         f"{sampler}+{name}",
         EvalMethod(f"{sampler}+{name}", f"{label} + {method.description}", run, method.check),
     )
+    return f"{sampler}+{name}"
 
 
 for _name, _method in DENOISERS.items():
-    _register_denoiser(_name, _method)
+    register_denoiser(_name, _method)

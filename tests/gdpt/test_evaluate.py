@@ -244,3 +244,43 @@ def test_time_model_fit_and_noise_guard():
     # noise made the probe faster than 1 spp: no absurd extrapolation (a past bug: 250k spp)
     noisy = TimeModel.fit([(1, 0.046), (6, 0.035)])
     assert noisy.fixed == 0.0 and noisy.spp_for(0.3) <= 16 * 6 * 0.3 / 0.035 + 1
+
+
+@pytest.fixture
+def registries_restored():
+    """Methods registered during the test are removed afterwards."""
+    before = {id(r): set(r) for r in (denoise.METHODS, EVAL_METHODS)}
+    yield
+    for registry in (denoise.METHODS, EVAL_METHODS):
+        for name in set(registry) - before[id(registry)]:
+            del registry[name]
+
+
+def test_model_option_compares_a_checkpoint(variant, tmp_path, capsys, registries_restored):
+    pytest.importorskip("pyoidn")
+    from gdpt.reconstruct.oidn_ngpt import DESIGNS, base_model, encode_delta
+
+    from gdpt.training.checkpoint import write_checkpoint
+
+    checkpoint = tmp_path / "mine" / "model"
+    card = {"sampling": {"primal_spp_factor": 1.0}}
+    name = "oidn-grad-pool"
+    write_checkpoint(checkpoint, *encode_delta(base_model(DESIGNS[name]), name, card))
+    out = tmp_path / "report"
+    args = ["evaluate", "--scenes", "random:3", "--out", str(out), "--resolution", "24"]
+    args += ["--budgets", "0.2", "--reference-spp", "64", "--methods", "pt", "--no-progress"]
+    status = main([*args, "--model", f"mine={checkpoint}.safetensors"])
+    assert status == 0
+    results = json.loads((out / "results.json").read_text())
+    assert "gdpt+mine" in results["config"]["methods"]
+    assert "oidn-grad-pool" in results["methods"]["gdpt+mine"]["description"]
+    cell = results["scenes"]["random-3"]["methods"]["gdpt+mine"]["cells"]["0.2"]
+    assert cell["spp"] >= 1 and cell["metrics"]["relmse"] < 1.0
+
+    for bad, message in (
+        ("mine", "expected NAME=CHECKPOINT"),
+        (f"other={tmp_path / 'none.safetensors'}", "none.safetensors"),
+        (f"l1={checkpoint}.safetensors", "'l1' is already registered"),
+    ):
+        assert main([*args, "--model", bad]) == 2
+        assert message in capsys.readouterr().err
