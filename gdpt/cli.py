@@ -219,6 +219,25 @@ def _run_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_model_option(parser: argparse.ArgumentParser, text: str) -> None:
+    """``--model NAME=CHECKPOINT``, repeatable, into ``args.models``."""
+    parser.add_argument(
+        "--model", action="append", default=[], metavar="NAME=CHECKPOINT", dest="models", help=text
+    )
+
+
+def _split_named(item: str, option: str, value: str) -> tuple[str, str]:
+    """``NAME=VALUE`` of a command-line ``option`` as ``(NAME, VALUE)``.
+
+    Raises:
+        ValueError: either side is empty or there is no ``=``.
+    """
+    name, sep, rest = item.partition("=")
+    if not sep or not name or not rest:
+        raise ValueError(f"{option} {item!r}: expected NAME={value}")
+    return name, rest
+
+
 # ------------------------------------------------------------------------------------ evaluate
 def _add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
@@ -238,13 +257,9 @@ def _add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--budgets", type=float, nargs="+", help="time budgets in seconds")
     parser.add_argument("--resolution", type=int, help="pixels on the long side")
     parser.add_argument("--methods", nargs="+", help="methods to compare (default: all)")
-    parser.add_argument(
-        "--model",
-        action="append",
-        default=[],
-        metavar="NAME=CHECKPOINT",
-        dest="models",
-        help="also compare a checkpoint written by gdpt train, as method gdpt+NAME (pt+NAME "
+    _add_model_option(
+        parser,
+        "also compare a checkpoint written by gdpt train, as method gdpt+NAME (pt+NAME "
         "without gradients); repeat for several",
     )
     parser.add_argument("--metrics", nargs="+", help="metrics; the first one ranks methods")
@@ -277,9 +292,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     from gdpt.study.report import best_methods
 
     for item in args.models:
-        name, sep, path = item.partition("=")
-        if not sep or not name or not path:
-            raise UsageError(f"--model {item!r}: expected NAME=CHECKPOINT")
+        name, path = _split_named(item, "--model", "CHECKPOINT")
         study_name = register_denoiser(name, register_checkpoint(name, path))
         if args.methods is not None and study_name not in args.methods:
             args.methods.append(study_name)
@@ -405,13 +418,9 @@ def _add_model_report_arguments(parser: argparse.ArgumentParser) -> None:
         help="a gdpt train run directory and its model name (ngpt, "
         "ngpt-nograd); repeat for several",
     )
-    parser.add_argument(
-        "--model",
-        action="append",
-        default=[],
-        metavar="NAME=CHECKPOINT",
-        dest="models",
-        help="a checkpoint (.safetensors, e.g. a shipped gdpt/models/ngpt-nograd.safetensors) "
+    _add_model_option(
+        parser,
+        "a checkpoint (.safetensors, e.g. a shipped gdpt/models/ngpt-nograd.safetensors) "
         "to compare as well; neither plotted nor shipped; repeat for several",
     )
     parser.add_argument("--out", type=Path, required=True, help="report folder")
@@ -440,17 +449,13 @@ def _run_model_report(args: argparse.Namespace) -> int:
 
     runs = {}
     for item in args.runs:
-        name, sep, run = item.partition("=")
-        if not sep or not name or not run:
-            raise ValueError(f"--run {item!r}: expected NAME=RUN_DIR")
+        name, run = _split_named(item, "--run", "RUN_DIR")
         if not (Path(run) / "model.safetensors").is_file():
             raise FileNotFoundError(f"--run {item!r}: {run}/model.safetensors not found")
         runs[name] = Path(run)
     checkpoints = {k: v / "model.safetensors" for k, v in runs.items()}
     for item in args.models:
-        name, sep, path = item.partition("=")
-        if not sep or not name or not path:
-            raise ValueError(f"--model {item!r}: expected NAME=CHECKPOINT")
+        name, path = _split_named(item, "--model", "CHECKPOINT")
         if name in checkpoints:
             raise ValueError(f"--model {item!r}: the name {name!r} is taken by a --run")
         if not Path(path).is_file():
