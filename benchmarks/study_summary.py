@@ -2,12 +2,16 @@
 
 For one method (default ``gdpt+ngpt``) and each metric, over every scene x budget cell of
 ``results.json``: in how many cells it has the lowest error of all methods, in how many it is
-within 1.25x of ``pt+oidn``, below ``gdpt+l1`` and below ``pt+ngpt-nograd``; the geometric mean
-and range of its ratio to ``pt+oidn``; and which method is lowest how often. Cells where a method
-is missing or was skipped are left out of that comparison (and counted).
+within 1.25x of ``pt+oidn``, below ``gdpt+l1`` and below its ablation (default
+``pt+ngpt-nograd``); the geometric mean and range of its ratio to ``pt+oidn``; and which method is
+lowest how often. Cells where a method is missing or was skipped are left out of that comparison
+(and counted). ``--only`` restricts "lowest" to the methods named, e.g. to count a pair of
+networks registered with ``gdpt evaluate --model`` against the baselines without the shipped
+pair.
 
     .venv/bin/python benchmarks/study_summary.py out/eval-v11/results.json [--method gdpt+ngpt]
-        [--metrics relmse flip_ldr] [--out out/eval-v11-summary.md]
+        [--ablation pt+ngpt-nograd] [--only METHOD ...] [--metrics relmse flip_ldr]
+        [--out out/eval-v11-summary.md]
 """
 
 from __future__ import annotations
@@ -19,11 +23,16 @@ from collections import Counter
 from pathlib import Path
 
 
-def cells(results: dict, metric: str) -> dict[tuple[str, str], dict[str, float]]:
-    """``(scene, budget) -> {method: error}`` of every scored cell."""
+def cells(
+    results: dict, metric: str, only: set[str] | None = None
+) -> dict[tuple[str, str], dict[str, float]]:
+    """``(scene, budget) -> {method: error}`` of every scored cell (methods in ``only``, if
+    given)."""
     out: dict[tuple[str, str], dict[str, float]] = {}
     for scene, entry in results["scenes"].items():
         for method, data in entry.get("methods", {}).items():
+            if only is not None and method not in only:
+                continue
             for budget, cell in data.get("cells", {}).items():
                 value = cell.get("metrics", {}).get(metric)
                 if value is not None and math.isfinite(value):
@@ -31,9 +40,16 @@ def cells(results: dict, metric: str) -> dict[tuple[str, str], dict[str, float]]
     return out
 
 
-def summarise(results: dict, method: str, metric: str) -> list[str]:
-    """Markdown lines for ``method`` under ``metric``."""
-    table = cells(results, metric)
+def summarise(
+    results: dict,
+    method: str,
+    metric: str,
+    ablation: str = "pt+ngpt-nograd",
+    only: set[str] | None = None,
+) -> list[str]:
+    """Markdown lines for ``method`` under ``metric``, against ``ablation`` and the baselines,
+    among the methods in ``only`` (all if ``None``)."""
+    table = cells(results, metric, only)
     lowest = Counter(min(errors, key=errors.get) for errors in table.values())
     lines = [f"### {method}, {metric} ({len(table)} cells)", ""]
 
@@ -49,7 +65,7 @@ def summarise(results: dict, method: str, metric: str) -> list[str]:
         f"| lowest of all methods | {lowest.get(method, 0)} / {len(table)} |",
         f"| within 1.25x of pt+oidn | {count('pt+oidn', lambda a, b: a <= 1.25 * b)} |",
         f"| below gdpt+l1 | {count('gdpt+l1', lambda a, b: a < b)} |",
-        f"| below pt+ngpt-nograd | {count('pt+ngpt-nograd', lambda a, b: a < b)} |",
+        f"| below {ablation} | {count(ablation, lambda a, b: a < b)} |",
         f"| below pt+oidn | {count('pt+oidn', lambda a, b: a < b)} |",
         "",
         f"Ratio to pt+oidn: geometric mean {geo:.3f}, range "
@@ -71,13 +87,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("results", type=Path, help="results.json of gdpt evaluate")
     parser.add_argument("--method", default="gdpt+ngpt", help="the method to summarise")
+    parser.add_argument("--ablation", default="pt+ngpt-nograd", help="its no-gradient ablation")
+    parser.add_argument("--only", nargs="+", help="count only these methods (default: all)")
     parser.add_argument("--metrics", nargs="+", default=["relmse", "flip_ldr"])
     parser.add_argument("--out", type=Path, help="also write the Markdown here")
     args = parser.parse_args()
     results = json.loads(args.results.read_text())
     lines = [f"# {args.results}", ""]
     for metric in args.metrics:
-        lines += summarise(results, args.method, metric)
+        only = set(args.only) | {args.method, args.ablation} if args.only else None
+        lines += summarise(results, args.method, metric, args.ablation, only)
     text = "\n".join(lines)
     print(text)
     if args.out is not None:
