@@ -257,8 +257,6 @@ def register_checkpoint(name: str, path: str | os.PathLike) -> Method:
 
     path = Path(path)
     _, _, card = read_card(path)
-    if name in METHODS:
-        raise ValueError(f"reconstruction method {name!r} is already registered")
     return METHODS.register(
         name,
         Method(

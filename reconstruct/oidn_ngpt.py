@@ -15,7 +15,8 @@ A *pooled* design is trained on (and must be given) a gradient-domain render who
 also averages independent plain path samples, ``primal_spp_factor`` per gradient sample, and
 whose features are those of the plain samples (``gdpt.render(..., primal_spp=...)``): plain
 path samples cost a third to a half of a gradient sample, so at equal time the network sees a
-primal of nearly the path tracer's sample count and gradients besides. The factor is the card's ``sampling.primal_spp_factor``.
+primal of nearly the path tracer's sample count and gradients besides. The factor is the card's
+``sampling.primal_spp_factor``.
 
 :func:`assemble` builds the network input, :func:`predict` runs it and maps the output back
 to radiance (OIDN's output stage); both run on the device of the buffers.
@@ -433,7 +434,8 @@ def finetune_loss(
     denominator = eps + pred.detach().mean(1, keepdim=True).square()
     loss = (y - pu_target).abs().mean()
     if gradient:
-        for d_y, d_target in zip(forward_differences(y), forward_differences(pu_target), strict=True):
+        pairs = zip(forward_differences(y), forward_differences(pu_target), strict=True)
+        for d_y, d_target in pairs:
             loss = loss + gradient * (d_y - d_target).abs().mean()
     if not relative:
         return loss
