@@ -18,10 +18,8 @@ from typing import Any
 import torch
 
 from gdpt.buffers import GradientBuffers, pool_primal
+from gdpt.integrators import PLUGINS
 from gdpt.scene_io import load_scene
-
-#: Integrators that produce gradient buffers.
-INTEGRATORS = ("gdpt", "gdpt_rr")
 
 
 @dataclass
@@ -44,8 +42,8 @@ def make_integrator(name: str = "gdpt", **props: Any):
     """Instantiate ``gdpt`` / ``gdpt_rr`` with properties (``max_depth``, ``gradients``, ...)."""
     import mitsuba as mi
 
-    if name not in INTEGRATORS:
-        raise ValueError(f"unknown integrator {name!r}; valid: {', '.join(INTEGRATORS)}")
+    if name not in PLUGINS:
+        raise ValueError(f"unknown integrator {name!r}; valid: {', '.join(PLUGINS)}")
     return mi.load_dict({"type": name, **props})
 
 

@@ -13,7 +13,7 @@ import sys
 _MODULES = ("common", "shifts", "gdpt", "gdpt_rr")
 _registered_variant: str | None = None
 
-#: Names of the plugins this package provides.
+#: Names of the plugins this package provides (the integrators that produce gradient buffers).
 PLUGINS = ("gdpt", "gdpt_rr")
 
 

@@ -8,7 +8,7 @@ reference by the metrics of :mod:`gdpt.metrics`::
     from gdpt.study.config import PRESETS
     from gdpt.study.evaluate import evaluate
 
-    results = evaluate(["../shared/scenes/cornell-box"], "out/eval", PRESETS["quick"])
+    results = evaluate(["builtin:cbox-demo"], "out/eval", PRESETS["quick"])
 
 Protocol, per scene:
 

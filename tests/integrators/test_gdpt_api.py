@@ -23,7 +23,7 @@ def _xml(integrator: str, rfilter: str = "box", extra: str = "") -> str:
 
 
 @pytest.mark.parametrize("name", ["gdpt", "gdpt_rr"])
-def test01_usable_from_xml(variant, name):
+def test_usable_from_xml(variant, name):
     import mitsuba as mi
 
     scene = mi.load_string(_xml(name, extra='<float name="shift_threshold" value="0.001"/>'))
@@ -33,7 +33,7 @@ def test01_usable_from_xml(variant, name):
     assert np.isfinite(np.array(image)).all()
 
 
-def test02_non_box_filter_is_refused(variant):
+def test_non_box_filter_is_refused(variant):
     import mitsuba as mi
 
     import gdpt
@@ -55,7 +55,7 @@ def test02_non_box_filter_is_refused(variant):
         ('<float name="shift_threshold" value="-0.1"/>', "shift_threshold"),
     ],
 )
-def test03_invalid_properties(variant, extra, message):
+def test_invalid_properties(variant, extra, message):
     import mitsuba as mi
 
     xml = _xml("gdpt", extra=extra).replace('<integer name="max_depth" value="3"/>', "", 1)
@@ -64,7 +64,7 @@ def test03_invalid_properties(variant, extra, message):
 
 
 @pytest.mark.parametrize("name", ["gdpt", "gdpt_rr"])
-def test03a_samples_per_pass_is_ours_without_a_deprecation_warning(variant, name, capfd):
+def test_samples_per_pass_is_ours_without_a_deprecation_warning(variant, name, capfd):
     """``samples_per_pass`` sets the samples per kernel launch; Mitsuba's base class, which
     deprecates a property of the same name, does not see it."""
     import mitsuba as mi
@@ -74,7 +74,7 @@ def test03a_samples_per_pass_is_ours_without_a_deprecation_warning(variant, name
     assert "deprecated" not in capfd.readouterr().out
 
 
-def test03b_shift_threshold_selects_the_half_vector_shift(variant):
+def test_shift_threshold_selects_the_half_vector_shift(variant):
     """A threshold above the scene's lobe roughness changes the gradients (the half-vector branch
     runs), never the primal (the base path does not depend on the shift)."""
     import gdpt
@@ -92,7 +92,7 @@ def test03b_shift_threshold_selects_the_half_vector_shift(variant):
     assert np.isfinite(high.dx.numpy()).all() and np.isfinite(high.dy.numpy()).all()
 
 
-def test03c_features_pass_near_specular_glossy_vertices(variant):
+def test_features_pass_near_specular_glossy_vertices(variant):
     """Features follow the path through lobes at or below shift_threshold (the rough glass
     sphere and mirror): farther first rough vertex, in primal-only mode too."""
     import gdpt
@@ -108,7 +108,7 @@ def test03c_features_pass_near_specular_glossy_vertices(variant):
         assert deeper.mean() > 0.1, f"gradients={gradients}: {deeper.mean():.2f} of pixels"
 
 
-def test04_compute_only_what_is_requested(variant):
+def test_compute_only_what_is_requested(variant):
     import gdpt
     from gdpt.scenes import builtin_scene
 
@@ -132,7 +132,7 @@ def test04_compute_only_what_is_requested(variant):
     assert all(t.untyped_storage().data_ptr() == storage for _, t in full.items())
 
 
-def test05_gradient_buffer_borders_are_zero(variant):
+def test_gradient_buffer_borders_are_zero(variant):
     import gdpt
     from gdpt.scenes import builtin_scene
 
@@ -142,7 +142,7 @@ def test05_gradient_buffer_borders_are_zero(variant):
     assert b.dx[:, :-1].abs().sum() > 0 and b.dy[:-1].abs().sum() > 0
 
 
-def test06_features(variant):
+def test_features(variant):
     import gdpt
     from gdpt.scenes import builtin_scene
 
@@ -159,7 +159,7 @@ def test06_features(variant):
 
 
 @pytest.mark.parametrize("name", ["rough-conductor", "plastic", "principled", "cbox-demo"])
-def test06b_albedo_is_bounded_on_glossy_surfaces(variant, name):
+def test_albedo_is_bounded_on_glossy_surfaces(variant, name):
     """Mitsuba's eval_diffuse_reflectance of a narrow glossy lobe is far above 1 (seen: 40 on
     a rough conductor); the albedo feature must stay in [0, 1] for the denoisers."""
     import gdpt
@@ -178,7 +178,7 @@ GUARD_BOUNDS = {"degenerate": 0.02}
 
 @pytest.mark.parametrize("integrator", ["gdpt", "gdpt_rr"])
 @pytest.mark.parametrize("name", HARD_CASES)
-def test07_hard_cases_stay_finite(variant, name, integrator):
+def test_hard_cases_stay_finite(variant, name, integrator):
     """Finite buffers, and the numerical guards inside the loop never fire (counted): a
     non-finite throughput, MIS ratio or gradient term would be a failure, not a fix."""
     import gdpt
@@ -203,7 +203,7 @@ def test07_hard_cases_stay_finite(variant, name, integrator):
 @pytest.mark.parametrize(
     "name", ["near-specular", "principled", "plastic", "tiny-bright-light", "grazing"]
 )
-def test07b_half_vector_shift_everywhere_stays_finite(variant, name):
+def test_half_vector_shift_everywhere_stays_finite(variant, name):
     """shift_threshold 1 sends every glossy vertex through the half-vector copy."""
     import gdpt
     from gdpt.scenes import builtin_scene
@@ -219,7 +219,7 @@ def test07b_half_vector_shift_everywhere_stays_finite(variant, name):
     assert float(b.primal.sum()) > 0
 
 
-def test08_passes_split_the_work(variant):
+def test_passes_split_the_work(variant):
     """Rendering in several passes gives a statistically equivalent image."""
     import gdpt
     from gdpt.scenes import builtin_scene
@@ -234,7 +234,7 @@ def test08_passes_split_the_work(variant):
 
 
 @pytest.mark.parametrize("name", ["gdpt", "gdpt_rr"])
-def test08b_frozen_passes_equal_traced_passes(variant, name):
+def test_frozen_passes_equal_traced_passes(variant, name):
     """The frozen pass (the default) replays exactly what tracing gives: across spp per pass,
     film sizes, settings, a thin-lens camera (whose rays are traced outside the frozen pass)
     and a scene parameter changed in place."""
@@ -273,7 +273,7 @@ def test08b_frozen_passes_equal_traced_passes(variant, name):
     np.testing.assert_array_equal(replayed, render(small, False, 4))
 
 
-def test09_unsupported_plugins_are_named(variant, tmp_path):
+def test_unsupported_plugins_are_named(variant, tmp_path):
     """Unsupported plugins, also nested ones, are refused by name with their shape; a blend
     with a delta component has no invertible shift and says so."""
     import mitsuba as mi
@@ -309,7 +309,7 @@ def test09_unsupported_plugins_are_named(variant, tmp_path):
             gdpt.render(scene, spp=1)
 
 
-def test10_render_and_denoise_renders_only_what_the_method_reads(variant):
+def test_render_and_denoise_renders_only_what_the_method_reads(variant):
     import torch
 
     import gdpt

@@ -125,7 +125,7 @@ def test_reflect_and_odd_match_numpy(pad):
         np.pad(bufs["depth"].numpy(), width, "reflect", reflect_type="odd"),
         rtol=1e-12,
     )
-    for name in ("primal", "albedo", "normal", "depth"):  # gradients: see test07
+    for name in ("primal", "albedo", "normal", "depth"):  # gradients: tested below
         assert torch.equal(T.crop(out[name], padding), bufs[name]), name
 
 
