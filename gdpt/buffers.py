@@ -30,7 +30,18 @@ CHANNELS: dict[str, int] = {
     "var_primal": 1,
     "var_dx": 1,
     "var_dy": 1,
+    "primal_a": 3,
+    "primal_b": 3,
+    "albedo_a": 3,
+    "albedo_b": 3,
+    "normal_a": 3,
+    "normal_b": 3,
+    "depth_a": 1,
+    "depth_b": 1,
 }
+
+#: Buffers that have half-buffers (``<name>_a``, ``<name>_b``).
+HALVED = ("primal", "albedo", "normal", "depth")
 
 #: Buffers every GradientBuffers has; the rest are optional.
 REQUIRED = ("primal",)
@@ -51,6 +62,9 @@ class GradientBuffers:
             or ``None``.
         var_primal, var_dx, var_dy: ``(H, W, 1)`` float32 variance of the per-pixel mean
             (luminance-averaged over channels), or ``None``.
+        primal_a, primal_b, albedo_a, ..., depth_b: the primal and features of two
+            independent halves of the samples (same shapes as the full buffers), or ``None``;
+            ``metadata["half_spp"]`` holds their sample counts.
         spp: samples per pixel behind the estimate.
         metadata: free-form JSON-serialisable render information (integrator, seed, timings...).
     """
@@ -64,6 +78,14 @@ class GradientBuffers:
     var_primal: torch.Tensor | None = None
     var_dx: torch.Tensor | None = None
     var_dy: torch.Tensor | None = None
+    primal_a: torch.Tensor | None = None
+    primal_b: torch.Tensor | None = None
+    albedo_a: torch.Tensor | None = None
+    albedo_b: torch.Tensor | None = None
+    normal_a: torch.Tensor | None = None
+    normal_b: torch.Tensor | None = None
+    depth_a: torch.Tensor | None = None
+    depth_b: torch.Tensor | None = None
     spp: int = 0
     metadata: dict[str, Any] = field(default_factory=dict)
 
@@ -86,6 +108,36 @@ class GradientBuffers:
     @property
     def has_gradients(self) -> bool:
         return self.dx is not None and self.dy is not None
+
+    @property
+    def has_halves(self) -> bool:
+        return self.primal_a is not None and self.primal_b is not None
+
+    def half(self, which: str) -> GradientBuffers:
+        """Half ``which`` (``'a'`` or ``'b'``) as buffers of its own: its primal and features
+        (the full render's where the half has none), no gradients, no variances;
+        ``spp`` and ``metadata["primal_spp"]`` are the half's sample count.
+
+        Raises:
+            ValueError: ``which`` is not ``'a'``/``'b'``, or the render has no half-buffers
+                (render with ``halves=True``).
+        """
+        if which not in ("a", "b"):
+            raise ValueError(f"half must be 'a' or 'b', got {which!r}")
+        if not self.has_halves:
+            raise ValueError(
+                "these buffers have no half-buffers 'primal_a'/'primal_b'; render with "
+                "halves=True (gdpt render --halves)"
+            )
+        half_spp = self.metadata.get("half_spp", (0, 0))[0 if which == "a" else 1]
+        fields = {
+            n: getattr(self, f"{n}_{which}")
+            if getattr(self, f"{n}_{which}") is not None
+            else getattr(self, n)
+            for n in HALVED
+        }
+        metadata = {**self.metadata, "primal_spp": int(half_spp), "half": which}
+        return GradientBuffers(**fields, spp=int(half_spp), metadata=metadata)
 
     def present(self) -> list[str]:
         """Names of the buffers that are set, in :data:`CHANNELS` order."""
@@ -141,6 +193,9 @@ class GradientBuffers:
             raise ValueError(f"empty image: {h}x{w} (HxW)")
         if (self.dx is None) != (self.dy is None):
             raise ValueError("'dx' and 'dy' must be given together")
+        for name in HALVED:
+            if (getattr(self, f"{name}_a") is None) != (getattr(self, f"{name}_b") is None):
+                raise ValueError(f"'{name}_a' and '{name}_b' must be given together")
 
 
 #: Buffers that are per-pixel sample means and can be pooled across renders of one scene.
@@ -193,12 +248,12 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
     n_g, n_p = gradient.spp, primal_only.spp
     if n_g < 1 or n_p < 1:
         raise ValueError(f"pool_primal: both renders need spp >= 1, got {n_g} and {n_p}")
-    names = (*POOLED, "var_primal")
+    names = (*POOLED, "var_primal", "primal_a", *(f"{f}_a" for f in FEATURES))
     uneven = [
         n
         for n in names
         if (getattr(gradient, n) is None) != (getattr(primal_only, n) is None)
-        and not (n in FEATURES and getattr(gradient, n) is None)
+        and not (n.removesuffix("_a") in FEATURES and getattr(gradient, n) is None)
     ]
     if uneven:
         raise ValueError(
@@ -215,7 +270,19 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
             pooled[name] = b
     if gradient.var_primal is not None:
         pooled["var_primal"] = w_g**2 * gradient.var_primal + w_p**2 * primal_only.var_primal
+    if gradient.has_halves:
+        (g_a, g_b), (p_a, p_b) = gradient.metadata["half_spp"], primal_only.metadata["half_spp"]
+        for name in POOLED:
+            for which, n_gh, n_ph in (("a", g_a, p_a), ("b", g_b, p_b)):
+                a = getattr(gradient, f"{name}_{which}")
+                b = getattr(primal_only, f"{name}_{which}")
+                if a is not None:
+                    pooled[f"{name}_{which}"] = (n_gh * a + n_ph * b) / (n_gh + n_ph)
+                elif b is not None:
+                    pooled[f"{name}_{which}"] = b
     metadata = {**gradient.metadata, "primal_spp": n_g + n_p, "primal_only": primal_only.metadata}
+    if gradient.has_halves:
+        metadata["half_spp"] = [g_a + p_a, g_b + p_b]
     seconds = [b.metadata.get("render_seconds") for b in (gradient, primal_only)]
     if None not in seconds:
         metadata["render_seconds"] = sum(seconds)

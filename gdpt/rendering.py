@@ -211,6 +211,8 @@ def _render_one(integrator, scene, spp: int, seed: int, bar, start: int = 0) -> 
         "render_seconds": seconds,
         "guard_counts": dict(integrator.guard_counts),
     }
+    if integrator.halves:
+        metadata["half_spp"] = list(integrator.half_spp)
     return GradientBuffers(**views, spp=int(spp), metadata=metadata)
 
 

@@ -17,7 +17,12 @@ and shifting afterwards needs no atomics and is deterministic.
 
 ``render()`` returns a ``TensorXf`` of shape ``(H, W, C)``; :meth:`GradientIntegratorBase.channels`
 names the channel ranges (``primal``, ``dx``, ``dy``, ``albedo``, ``normal``, ``depth``,
-``var_primal``, ``var_dx``, ``var_dy``), computing only the buffers that were asked for.
+``var_primal``, ``var_dx``, ``var_dy``, and the half-buffers ``primal_a``, ``primal_b``,
+``albedo_a``, ...), computing only the buffers that were asked for.
+
+Half-buffers split every pass's samples of a pixel by index parity (even: ``a``, odd: ``b``):
+two independent estimates of the primal and the features from the same samples, at no extra
+tracing cost (the input of half-buffer error estimates such as NFOR's, Rousselle et al. 2016).
 """
 
 from __future__ import annotations
@@ -37,6 +42,9 @@ DEFAULT_SHIFT_THRESHOLD = 0.001
 
 #: Default number of path samples traced per kernel launch (bounds memory and kernel size).
 DEFAULT_SAMPLES_PER_PASS = 1 << 20
+
+#: Feature buffers and their channel counts, in output order.
+_FEATURE_CHANNELS = (("albedo", 3), ("normal", 3), ("depth", 1))
 
 
 @dataclass
@@ -211,6 +219,8 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
     Properties: ``max_depth`` (int, 6; -1 = unbounded), ``rr_depth`` (int, 5),
     ``gradients`` (bool, true: trace offset paths; false = plain path tracing with features),
     ``features`` (bool, true), ``variance`` (bool, false),
+    ``halves`` (bool, false: also output the primal and features of two independent halves of
+    the samples, ``primal_a``/``primal_b``, ...; needs spp >= 2),
     ``samples_per_pass`` (int, 2^20: samples traced per kernel launch),
     ``freeze`` (bool, true: replay the recorded kernels of a pass instead of tracing it again),
     ``shift_threshold`` (float, 0.001: microfacet roughness at or below which a glossy vertex
@@ -234,6 +244,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         self.gradients = bool(props.get("gradients", True))
         self.features = bool(props.get("features", True))
         self.variance = bool(props.get("variance", False))
+        self.halves = bool(props.get("halves", False))
         self.samples_per_pass = samples_per_pass
         if self.samples_per_pass < 1:
             raise ValueError(f"{self.plugin_name}: 'samples_per_pass' must be >= 1")
@@ -259,6 +270,8 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         #: their throughput or MIS ratio was not finite; ``term_nonfinite``, gradient terms
         #: dropped). Nonzero counts also raise a ``RuntimeWarning``.
         self.guard_counts: dict[str, int] = {}
+        #: Samples per pixel behind the half-buffers ``(a, b)`` of the last ``render()``.
+        self.half_spp: tuple[int, int] = (0, 0)
 
     plugin_name = "gradient integrator"
 
@@ -281,6 +294,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             "gradients": self.gradients,
             "features": self.features,
             "variance": self.variance,
+            "halves": self.halves,
             "samples_per_pass": self.samples_per_pass,
             "shift_threshold": self.shift_threshold,
             "freeze": self.freeze,
@@ -297,6 +311,10 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             out += [("var_primal", 1)]
             if self.gradients:
                 out += [("var_dx", 1), ("var_dy", 1)]
+        if self.halves:
+            out += [("primal_a", 3), ("primal_b", 3)]
+            if self.features:
+                out += [(f"{n}_{h}", c) for n, c in _FEATURE_CHANNELS for h in "ab"]
         return out
 
     def aov_names(self) -> list[str]:
@@ -330,11 +348,13 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         check_scene(scene, self.plugin_name)
         self.prepare(scene)
         spp = int(spp) if spp else int(sensor.sampler().sample_count())
+        if self.halves and spp < 2:
+            raise ValueError(f"{self.plugin_name}: 'halves' needs spp >= 2, got {spp}")
         width, height = (int(v) for v in film.crop_size())
         n_pix = width * height
         passes = plan_passes(n_pix, spp, self.samples_per_pass)
 
-        acc = _Accumulator(n_pix, self.gradients, self.features, self.variance)
+        acc = _Accumulator(n_pix, self.gradients, self.features, self.variance, self.halves)
         self.guard_counts = acc.guard_counts
         trace = self._frozen_pass if self.freeze else self._trace_pass
         key = (*self._pass_key(), width, height, *(int(v) for v in film.crop_offset()))
@@ -354,6 +374,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             done += spp_pass
             if self.pass_callback is not None:
                 self.pass_callback(done, spp)
+        self.half_spp = (acc.n_a, acc.n - acc.n_a)
         fired = {k: v for k, v in self.guard_counts.items() if v}
         if fired:
             warnings.warn(
@@ -375,7 +396,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         n_pix = dr.width(rays[0].d) // spp
         sampler = _pass_sampler(sensor, spp, seed, n_pix)
         samples = self.sample_paths(scene, sensor, sampler, rays, weights, mi.Bool(True))
-        return pass_sums(samples, spp, self.variance)
+        return pass_sums(samples, spp, self.variance, self.halves)
 
     def _pass_key(self) -> tuple:
         """Everything besides the JIT inputs that shapes the kernels of a pass (Python values:
@@ -386,6 +407,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             self.gradients,
             self.features,
             self.variance,
+            self.halves,
             self.shift_threshold,
             *self.prepared_state(),
         )
@@ -432,12 +454,14 @@ def _pass_sampler(sensor: mi.Sensor, spp: int, seed, n_pix: int) -> mi.Sampler:
     return sampler
 
 
-def pass_sums(s: PathSamples, spp: int, variance: bool) -> tuple[dict, dict]:
+def pass_sums(s: PathSamples, spp: int, variance: bool, halves: bool = False) -> tuple[dict, dict]:
     """Per-pixel sums of one pass's samples (``spp`` contiguous samples per pixel).
 
     Returns ``(sums, counts)``: ``sums`` maps ``primal``, ``g0``..``g3``, ``albedo``, ``normal``,
-    ``depth`` and with ``variance`` the squared luminances ``sq_primal``, ``sq_g0``.. to lists of
-    per-pixel ``mi.Float`` channels; ``counts`` maps guard names to one-element ``mi.UInt32``
+    ``depth``, with ``variance`` the squared luminances ``sq_primal``, ``sq_g0``.., and with
+    ``halves`` ``half_primal``, ``half_albedo``, .. (the sums over the even-indexed samples of
+    the pixel in this pass: ``ceil(spp / 2)`` of them) to lists of per-pixel ``mi.Float``
+    channels; ``counts`` maps guard names to one-element ``mi.UInt32``
     totals (``sample_nonfinite``: samples whose buffer was not finite, which contribute 0 to that
     buffer, plus the integrator's own guards).
     """
@@ -455,6 +479,10 @@ def pass_sums(s: PathSamples, spp: int, variance: bool) -> tuple[dict, dict]:
     if variance:
         for name in ["primal"] + [f"g{k}" for k in range(len(s.gradients))]:
             values[f"sq_{name}"] = [dr.square(sum(values[name]) / 3)]
+    if halves:
+        even = (dr.arange(mi.UInt32, dr.width(values["primal"][0])) % spp) % 2 == 0
+        for name in ("primal", *(f for f, _ in _FEATURE_CHANNELS if f in values)):
+            values[f"half_{name}"] = [dr.select(even, c, 0) for c in values[name]]
     guards = {"sample_nonfinite": bad, **s.guards}
     # One kernel for all outputs: evaluating them one by one (a reduction evaluates its input)
     # would re-run the path loop for each.
@@ -479,9 +507,12 @@ def plan_passes(n_pixels: int, spp: int, samples_per_pass: int) -> list[int]:
 class _Accumulator:
     """Per-pixel sums across passes (float64 so that large spp keep their precision)."""
 
-    def __init__(self, n_pix: int, gradients: bool, features: bool, variance: bool):
+    def __init__(
+        self, n_pix: int, gradients: bool, features: bool, variance: bool, halves: bool = False
+    ):
         z = lambda c: [dr.zeros(mi.Float64, n_pix) for _ in range(c)]  # noqa: E731
         self.n = 0
+        self.n_a = 0  # samples per pixel in half a (the even-indexed ones of every pass)
         self.guard_counts: dict[str, int] = {"sample_nonfinite": 0}
         self.sums = {"primal": z(3)}
         if gradients:
@@ -493,6 +524,11 @@ class _Accumulator:
             self.sums["sq_primal"] = z(1)
             if gradients:
                 self.sums.update({f"sq_g{k}": z(1) for k in range(4)})
+        self.halves = halves
+        if halves:
+            self.sums["half_primal"] = z(3)
+            if features:
+                self.sums.update({f"half_{n}": z(c) for n, c in _FEATURE_CHANNELS})
 
     def add(self, sums: dict, counts: dict, spp: int) -> None:
         """Add one pass's per-pixel sums and guard counts (from :func:`pass_sums`)."""
@@ -503,6 +539,7 @@ class _Accumulator:
         for k, c in counts.items():
             self.guard_counts[k] = self.guard_counts.get(k, 0) + int(c[0])
         self.n += spp
+        self.n_a += (spp + 1) // 2
 
     def finish(self, width: int, height: int, channels) -> mi.TensorXf:
         n = self.n
@@ -542,6 +579,16 @@ class _Accumulator:
                 v = [var_of_mean(f"sq_g{k}", lum(f"g{k}")) for k in range(4)]
                 out["var_dx"] = [dr.select(right_ok, v[0] + shifted(v[2], 1, right_ok), 0)]
                 out["var_dy"] = [dr.select(down_ok, v[1] + shifted(v[3], width, down_ok), 0)]
+
+        if self.halves:
+            n_a, n_b = self.n_a, n - self.n_a
+            for name in ("primal", *(f for f, _ in _FEATURE_CHANNELS)):
+                if f"half_{name}" in self.sums:
+                    half, total = self.sums[f"half_{name}"], self.sums[name]
+                    out[f"{name}_a"] = [mi.Float(h / n_a) for h in half]
+                    out[f"{name}_b"] = [
+                        mi.Float((t - h) / n_b) for t, h in zip(total, half, strict=True)
+                    ]
 
         comps = [c for name, _ in channels for c in out[name]]
         n_ch = len(comps)

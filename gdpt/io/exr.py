@@ -9,7 +9,8 @@ channels follow the usual ``layer.channel`` naming, so any EXR viewer can browse
 Absent (``None``) buffers have no channels. The header carries ``gdpt.spp`` (int),
 ``gdpt.metadata`` (the metadata dict as a JSON string), ``gdpt.version`` (the gdpt version that
 wrote the file) and ``gdpt.formatVersion`` (:data:`FORMAT_VERSION`). Pixels are stored as 32-bit
-float (lossless round trip) or 16-bit half, both ZIP-compressed.
+float (lossless round trip) or 16-bit half, both ZIP-compressed. The readers refuse a file of a
+newer format version (naming both versions) and a ``gdpt.metadata`` that is not a JSON object.
 
 Writes are atomic: the file is written to a temporary name in the target directory and moved
 into place with :func:`os.replace`, so a failed write leaves neither a partial file nor a
@@ -36,7 +37,7 @@ FORMAT_VERSION = 1
 
 _RGB = ("R", "G", "B")
 _SUFFIXES: dict[str, tuple[str, ...]] = {
-    name: ("X", "Y", "Z") if name == "normal" else _RGB if c == 3 else ("Y",)
+    name: ("X", "Y", "Z") if name.startswith("normal") else _RGB if c == 3 else ("Y",)
     for name, c in CHANNELS.items()
 }
 _KEY_SPP = "gdpt.spp"
@@ -188,9 +189,11 @@ def load_buffers(path: PathLike) -> GradientBuffers:
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        ValueError: not an OpenEXR file, truncated or corrupt, a required channel or part of a
-            layer is missing, a channel has the wrong size or type, or the buffers are
-            inconsistent. The message names the file (and the channel).
+        IsADirectoryError: ``path`` is a directory.
+        ValueError: not an OpenEXR file, truncated or corrupt, written in a newer format
+            version, ``gdpt.metadata`` not a JSON object, a required channel or part of a layer
+            is missing, a channel has the wrong size or type, or the buffers are inconsistent.
+            The message names the file (and the channel or header attribute).
     """
     path = Path(path)
     header, channels = _read_exr(path)
@@ -210,11 +213,11 @@ def load_buffers(path: PathLike) -> GradientBuffers:
         tensors[name] = _stack(path, names, channels)
     try:
         spp = int(header.get(_KEY_SPP, 0))
-        metadata = json.loads(header.get(_KEY_METADATA, "{}"))
     except (TypeError, ValueError) as error:
-        raise ValueError(f"{path}: invalid gdpt header attribute: {error}") from error
-    if not isinstance(metadata, dict):
-        raise ValueError(f"{path}: header attribute '{_KEY_METADATA}' is not a JSON object")
+        raise ValueError(
+            f"{path}: header attribute '{_KEY_SPP}' is not an integer: {error}"
+        ) from None
+    metadata = _metadata(path, header)
     try:
         return GradientBuffers(**tensors, spp=spp, metadata=metadata)
     except (TypeError, ValueError) as error:
@@ -235,8 +238,9 @@ def load_image(path: PathLike, layer: str | None = None) -> torch.Tensor:
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        ValueError: not a readable OpenEXR file, or a channel is missing (the message names the
-            channel and the file).
+        IsADirectoryError: ``path`` is a directory.
+        ValueError: not a readable OpenEXR file, written in a newer format version, or a
+            channel is missing (the message names the channel and the file).
     """
     path = Path(path)
     if layer is None:
@@ -273,7 +277,37 @@ def _read_exr(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         raise ValueError(
             f"{path}: unreadable OpenEXR file (truncated or corrupt): {error}"
         ) from None
+    _check_format_version(path, header)
     return header, channels
+
+
+def _check_format_version(path: Path, header: dict[str, Any]) -> None:
+    """Refuse a file whose ``gdpt.formatVersion`` is not an integer or newer than ours."""
+    version = header.get(_KEY_FORMAT)
+    if version is None:  # not written by gdpt (or by a version before the attribute)
+        return
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise ValueError(f"{path}: header attribute '{_KEY_FORMAT}' is {version!r}, not an integer")
+    if version > FORMAT_VERSION:
+        writer = header.get(_KEY_VERSION, "an unknown version")
+        raise ValueError(
+            f"{path}: gdpt EXR format version {version} (written by gdpt {writer}); this gdpt "
+            f"{__version__} reads format versions up to {FORMAT_VERSION}: upgrade gdpt"
+        )
+
+
+def _metadata(path: Path, header: dict[str, Any]) -> dict[str, Any]:
+    """The ``gdpt.metadata`` header attribute as a dict (``{}`` when absent)."""
+    text = header.get(_KEY_METADATA, "{}")
+    try:
+        metadata = json.loads(text)
+    except (TypeError, ValueError) as error:
+        raise ValueError(
+            f"{path}: header attribute '{_KEY_METADATA}' is not valid JSON: {error}"
+        ) from None
+    if not isinstance(metadata, dict):
+        raise ValueError(f"{path}: header attribute '{_KEY_METADATA}' is not a JSON object")
+    return metadata
 
 
 def _stack(path: Path, names: tuple[str, ...], channels: dict[str, np.ndarray]) -> torch.Tensor:
