@@ -27,10 +27,17 @@ def assert_same(a: GradientBuffers, b: GradientBuffers) -> None:
     assert (a.spp, a.metadata) == (b.spp, b.metadata)
 
 
-def write_raw(path: Path, channels: dict[str, np.ndarray]) -> Path:
-    """Write an EXR that gdpt did not produce (to test the reader's checks)."""
-    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION}, channels).write(str(path))
+def write_raw(path: Path, channels: dict[str, np.ndarray], **header) -> Path:
+    """Write an EXR that gdpt did not produce, with extra ``header`` attributes (to test the
+    reader's checks)."""
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, **header}
+    OpenEXR.File(header, channels).write(str(path))
     return path
+
+
+def gdpt_channels(h: int = 4, w: int = 3) -> dict[str, np.ndarray]:
+    """Zero ``primal``, ``dx`` and ``dy`` channels of an ``h x w`` render."""
+    return {f"{n}.{c}": np.zeros((h, w), np.float32) for n in ("primal", "dx", "dy") for c in "RGB"}
 
 
 def test_float_round_trip_is_bit_exact(tmp_path, random_buffers):
@@ -127,6 +134,48 @@ def test_truncated_file(tmp_path, fraction, random_buffers):
     cut.write_bytes(data[: int(len(data) * fraction)])
     with pytest.raises(ValueError, match=r"cut\.exr"):
         load_buffers(cut)
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("{not json", r"bad\.exr: header attribute 'gdpt\.metadata' is not valid JSON"),
+        ("[1, 2]", r"bad\.exr: header attribute 'gdpt\.metadata' is not a JSON object"),
+    ],
+)
+def test_metadata_that_is_not_a_json_object_names_file_and_attribute(tmp_path, text, match):
+    path = write_raw(tmp_path / "bad.exr", gdpt_channels(), **{"gdpt.metadata": text})
+    with pytest.raises(ValueError, match=match):
+        load_buffers(path)
+
+
+def test_newer_format_version_is_refused_with_both_versions(tmp_path):
+    newer = exr.FORMAT_VERSION + 1
+    header = {"gdpt.formatVersion": newer, "gdpt.version": "99.0", "gdpt.metadata": "{}"}
+    path = write_raw(tmp_path / "future.exr", gdpt_channels(), **header)
+    expected = (
+        rf"future\.exr: gdpt EXR format version {newer} \(written by gdpt 99\.0\); this gdpt "
+        rf".* reads format versions up to {exr.FORMAT_VERSION}"
+    )
+    with pytest.raises(ValueError, match=expected):
+        load_buffers(path)
+    with pytest.raises(ValueError, match=expected):
+        load_image(path, "dx")
+    # the current version and files without the attribute (other writers) are read
+    header["gdpt.formatVersion"] = exr.FORMAT_VERSION
+    assert load_buffers(write_raw(tmp_path / "now.exr", gdpt_channels(), **header)).spp == 0
+    assert load_buffers(write_raw(tmp_path / "other.exr", gdpt_channels())).metadata == {}
+    header["gdpt.formatVersion"] = "1"
+    with pytest.raises(ValueError, match=r"'gdpt\.formatVersion' is '1', not an integer"):
+        load_buffers(write_raw(tmp_path / "text.exr", gdpt_channels(), **header))
+
+
+def test_directory_given_as_a_file(tmp_path):
+    folder = tmp_path / "render.exr"
+    folder.mkdir()
+    for read in (load_buffers, load_image):
+        with pytest.raises(IsADirectoryError, match=r"render\.exr: is a directory"):
+            read(folder)
 
 
 def test_missing_file(tmp_path):
