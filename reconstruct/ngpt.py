@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save
 
 from .dense_unet import CONFIGS, DenseUNet, ModelConfig, parameter_count
@@ -78,14 +79,30 @@ def read_card(path: str | Path) -> tuple[Path, Path, dict[str, Any]]:
     """``(weights_path, card_path, card)`` of the checkpoint at ``path`` (either of its two
     files; any checkpoint format of gdpt).
 
+    The weights file's header is parsed (not its tensors), so a corrupt or truncated file is
+    refused here, before any work that would need it.
+
     Raises:
         FileNotFoundError: one of the two files is missing.
+        ValueError: the weights are not a readable safetensors file (corrupt, truncated, not
+            safetensors), or the card is not a JSON object; the message names the file.
     """
     weights_path, card_path = checkpoint_paths(path)
     for p in (weights_path, card_path):
         if not p.is_file():
             raise FileNotFoundError(f"checkpoint file {p} not found (need .safetensors + .json)")
-    return weights_path, card_path, json.loads(card_path.read_text())
+    try:
+        with safe_open(str(weights_path), framework="pt"):
+            pass
+    except SafetensorError as error:
+        raise ValueError(f"{weights_path}: not a readable safetensors file ({error})") from None
+    try:
+        card = json.loads(card_path.read_text())
+    except (UnicodeDecodeError, ValueError) as error:
+        raise ValueError(f"{card_path}: model card is not valid JSON ({error})") from None
+    if not isinstance(card, dict):
+        raise ValueError(f"{card_path}: model card is not a JSON object")
+    return weights_path, card_path, card
 
 
 def encode_checkpoint(

@@ -131,3 +131,38 @@ def test_checkpoint_mismatch_errors(tmp_path):
         ngpt.load_checkpoint(card_path)
     with pytest.raises(FileNotFoundError, match="need .safetensors"):
         ngpt.load_checkpoint(tmp_path / "absent.safetensors")
+
+
+@pytest.mark.parametrize(
+    ("damage", "problem"),
+    [
+        (lambda data: bytes(range(256)) * 4, "header too large"),
+        (lambda data: data[: len(data) // 2], "file not fully covered"),
+        (lambda data: b"", "header too small"),
+    ],
+    ids=["random-bytes", "truncated", "empty"],
+)
+def test_corrupt_weights_are_a_value_error_naming_the_file(tmp_path, damage, problem):
+    """A checkpoint whose ``.safetensors`` is corrupt (its card intact) is refused when its card
+    is read, by every reader (and ``gdpt evaluate --model`` before any rendering)."""
+    from gdpt.denoise import METHODS, register_checkpoint
+
+    weights, card_path = save_checkpoint(_model(TINY), tmp_path / "m")
+    weights.write_bytes(damage(weights.read_bytes()))
+    expected = rf"m\.safetensors: not a readable safetensors file \(.*{problem}"
+    for read in (ngpt.read_card, ngpt.load_checkpoint, NGPTReconstructor.from_checkpoint):
+        with pytest.raises(ValueError, match=expected):
+            read(card_path)
+    with pytest.raises(ValueError, match=expected):
+        register_checkpoint("corrupt-test", weights)
+    assert "corrupt-test" not in METHODS
+
+
+def test_card_that_is_not_a_json_object_names_the_file(tmp_path):
+    _, card_path = save_checkpoint(_model(TINY), tmp_path / "m")
+    card_path.write_text("{truncated")
+    with pytest.raises(ValueError, match=r"m\.json: model card is not valid JSON"):
+        ngpt.read_card(card_path)
+    card_path.write_text("[]")
+    with pytest.raises(ValueError, match=r"m\.json: model card is not a JSON object"):
+        ngpt.read_card(card_path)
