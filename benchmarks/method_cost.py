@@ -1,0 +1,138 @@
+"""What each reconstruction method costs: render seconds per sample and reconstruction seconds,
+at 128x128 and at 1280x720, on the built-in ``cbox-demo`` scene.
+
+For every method of :data:`gdpt.denoise.METHODS` that can run here (its ``check()``), the script
+renders what the method reads (:meth:`gdpt.denoise.Method.sampling`: gradients and features as
+needed, pooled plain path samples for a pooled network) with ``gdpt`` at ``--spp`` samples per
+pixel, then times the reconstruction of those buffers. Every render and every reconstruction
+runs once untimed first (kernel compilation, frozen-pass recording, weight loading and torch's
+first-call set-up are excluded), then ``--repeats`` times; medians are reported. A row for plain
+path tracing (``gdpt`` with ``gradients=false``: the primal and features, no reconstruction) is
+included for comparison.
+
+Render cost is per sample per pixel (a method's cost at ``N`` spp is about ``N x render s/spp +
+reconstruct s``); for a pooled network it counts the pooled plain samples of one gradient sample
+too. Threads: torch's and Dr.Jit's defaults, unless ``OMP_NUM_THREADS`` sets torch's. On a
+machine shared with other jobs use ``OMP_NUM_THREADS=1``: torch's spinning worker threads then
+slow each other down by 20-50x on small images (an ``l1-fast`` solve at 128x128 took 5-15 s with
+2 threads on 2 busy cores, 0.24-0.31 s with one). The script prints the thread count and the
+load average. Usage::
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/method_cost.py  # 128x128 and 1280x720
+    .venv/bin/python benchmarks/method_cost.py --sizes 128x128 --repeats 5 --json cost.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+import gdpt
+from gdpt.denoise import METHODS
+from gdpt.scene_io import generated_scene
+
+PLAIN = "(path tracing, no reconstruction)"
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``'WxH'`` -> ``(W, H)``; a clear error otherwise."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--sizes: {text!r} is not WIDTHxHEIGHT") from None
+    if width < 1 or height < 1:
+        raise argparse.ArgumentTypeError(f"--sizes: {text!r} must be positive")
+    return width, height
+
+
+def median_seconds(fn, repeats: int) -> float:
+    """Median wall time of ``repeats`` calls of ``fn`` after one untimed call."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def measure(size: tuple[int, int], spp: int, repeats: int) -> dict[str, dict[str, float]]:
+    """``method -> {'render_per_spp', 'reconstruct'}`` (seconds) at film size ``size``."""
+    import mitsuba as mi
+
+    scene_dict = generated_scene("builtin:cbox-demo")
+    scene_dict["sensor"]["film"]["width"], scene_dict["sensor"]["film"]["height"] = size
+    scene = mi.load_dict(scene_dict)
+    rows: dict[str, dict[str, float]] = {}
+    plan = [(PLAIN, {"gradients": False, "features": True})]
+    for name, method in METHODS.items():
+        reason = method.check()
+        if reason is not None:
+            print(f"  {name}: skipped ({reason})")
+            continue
+        plan.append((name, method.sampling(spp)))
+    for name, sampling in plan:
+        render = lambda s=sampling: gdpt.render(scene, spp=spp, **s)  # noqa: E731
+        render_s = median_seconds(render, repeats)
+        row = {"render_per_spp": render_s / spp, "reconstruct": 0.0}
+        if name != PLAIN:
+            buffers = render()
+            run = lambda n=name, b=buffers: gdpt.reconstruct_image(b, n)  # noqa: E731
+            row["reconstruct"] = median_seconds(run, repeats)
+        rows[name] = row
+        print(
+            f"  {name}: render {row['render_per_spp']:.4f} s/spp, "
+            f"reconstruct {row['reconstruct']:.3f} s"
+        )
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", nargs="+", type=parse_size, default=[(128, 128), (1280, 720)])
+    parser.add_argument("--spp", type=int, default=4, help="gradient samples per pixel")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs per measurement")
+    parser.add_argument("--json", type=Path, help="also write the numbers here")
+    args = parser.parse_args()
+    if args.spp < 1 or args.repeats < 1:
+        parser.error("--spp and --repeats must be >= 1")
+
+    variant = gdpt.set_variant()
+    results = {}
+    for size in args.sizes:
+        print(
+            f"{size[0]}x{size[1]} ({variant}, {torch.get_num_threads()} torch threads), "
+            f"load average {os.getloadavg()[0]:.2f}"
+        )
+        results[f"{size[0]}x{size[1]}"] = measure(size, args.spp, args.repeats)
+
+    labels = list(results)
+    print()
+    header = " | ".join(f"render s/spp, {s} | reconstruct s, {s}" for s in labels)
+    print(f"| method | {header} |")
+    print("|---|" + "---:|---:|" * len(labels))
+    for name in results[labels[0]]:
+        cells = " | ".join(
+            f"{results[s][name]['render_per_spp']:.4f} | {results[s][name]['reconstruct']:.3f}"
+            for s in labels
+            if name in results[s]
+        )
+        print(f"| {name} | {cells} |")
+    print(
+        f"\nmachine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+        f"load average at end {os.getloadavg()[0]:.2f}; spp {args.spp}, "
+        f"median of {args.repeats}"
+    )
+    if args.json:
+        args.json.write_text(json.dumps({"spp": args.spp, "results": results}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
