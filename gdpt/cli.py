@@ -168,6 +168,8 @@ def _run_render(args: argparse.Namespace) -> int:
     from gdpt.rendering import render
     from gdpt.scene_io import load_scene
 
+    if args.output.suffix.lower() != ".exr":
+        raise UsageError(f"output must be an .exr file, got '{args.output}'")
     check_writable(args.output, force=args.force)
     scene = load_scene(args.scene)
     buffers = render(

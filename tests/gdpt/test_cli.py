@@ -138,9 +138,6 @@ def test_entry_point_error_has_no_traceback(tmp_path):
 
 
 def test_reconstruct_end_to_end(render, tmp_path):
-    poisson = pytest.importorskip("gdpt.reconstruct.poisson")
-    if not hasattr(poisson, "reconstruct"):
-        pytest.skip("gdpt.reconstruct.poisson.reconstruct is not written yet")
     out = tmp_path / "l1.exr"
     result = run_cli("reconstruct", str(render), "--method", "l1", "-o", str(out), "--png")
     assert result.returncode == 0, result.stderr
@@ -148,6 +145,76 @@ def test_reconstruct_end_to_end(render, tmp_path):
     assert image.shape == (12, 10, 3) and torch.isfinite(image).all()
     meta = json.loads(OpenEXR.File(str(out)).header()["gdpt.metadata"])
     assert meta["method"] == "l1" and meta["alpha"] == 0.2 and meta["render"]["seed"] == 7
+
+
+@pytest.mark.parametrize(
+    ("command", "match"),
+    [
+        (["{missing}", "-o", "{out}"], "missing.xml"),
+        (["{broken}", "-o", "{out}"], "no_such_plugin"),
+        (["builtin:no-such-scene", "-o", "{out}"], "unknown builtin scene 'no-such-scene'"),
+        (["builtin:cbox-demo", "-o", "{folder}"], "{folder}: is a directory"),
+        (["builtin:cbox-demo", "-o", "{existing}"], "old.exr: file exists"),
+        (["builtin:cbox-demo", "-o", "{tmp}/o.png"], "must be an .exr"),
+        (["builtin:cbox-demo", "-o", "{out}", "--spp", "0"], "spp must be >= 1"),
+        (
+            ["builtin:cbox-demo", "-o", "{out}", "--primal-spp", "4", "--no-gradients"],
+            "gradients=false",
+        ),
+    ],
+    ids=[
+        "missing-scene",
+        "broken-xml",
+        "unknown-builtin",
+        "output-is-a-directory",
+        "output-exists",
+        "output-not-exr",
+        "zero-spp",
+        "pooling-without-gradients",
+    ],
+)
+def test_render_bad_input_exits_2_with_one_line(variant, tmp_path, command, match, capsys):
+    """``gdpt render``: every bad input is one line naming the problem, exit 2, no output."""
+    broken = tmp_path / "broken.xml"
+    broken.write_text('<scene version="3.0.0"><shape type="no_such_plugin"/></scene>')
+    existing = tmp_path / "old.exr"
+    existing.write_bytes(b"an earlier render")
+    names = {"missing": tmp_path / "missing.xml", "broken": broken, "existing": existing}
+    names.update(out=tmp_path / "o.exr", tmp=tmp_path, folder=tmp_path / "folder.exr")
+    names["folder"].mkdir()
+    assert main(["render", *(arg.format(**names) for arg in command)]) == 2
+    assert match.format(**names) in one_line_error(capsys.readouterr().err)
+    assert not (tmp_path / "o.exr").exists() and not (tmp_path / "o.png").exists()
+    assert existing.read_bytes() == b"an earlier render"
+
+
+@pytest.fixture
+def corrupt_checkpoint(tmp_path):
+    """A dense U-Net checkpoint whose card is intact and whose weights are random bytes."""
+    from gdpt.reconstruct.dense_unet import build_model
+
+    from gdpt.training.checkpoint import save_checkpoint
+
+    torch.manual_seed(0)
+    weights, _ = save_checkpoint(build_model("fast_xs"), tmp_path / "mine" / "model")
+    weights.write_bytes(bytes(range(256)) * 8)
+    return weights
+
+
+def test_corrupt_checkpoint_exits_2_naming_the_file(render, tmp_path, corrupt_checkpoint, capsys):
+    """``--model`` with a corrupt ``.safetensors``: one line naming it, before any rendering."""
+    expected = f"{corrupt_checkpoint}: not a readable safetensors file"
+    out = tmp_path / "o.exr"
+    argv = ["reconstruct", str(render), "--method", "ngpt", "--model", str(corrupt_checkpoint)]
+    assert main([*argv, "-o", str(out)]) == 2
+    assert expected in one_line_error(capsys.readouterr().err)
+    assert not out.exists()
+    report = tmp_path / "report"
+    argv = ["evaluate", "--scenes", "builtin:cbox-demo", "--quick", "--methods", "pt"]
+    argv += ["--out", str(report), "--model", f"x={corrupt_checkpoint}", "--no-progress"]
+    assert main(argv) == 2
+    assert expected in one_line_error(capsys.readouterr().err)
+    assert not report.exists()  # refused before the reference was rendered
 
 
 def test_config_options_expose_every_field_with_the_dataclass_defaults(monkeypatch):
