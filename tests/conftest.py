@@ -1,20 +1,63 @@
-"""Fixtures shared by the whole suite.
+"""Fixtures and hooks shared by the whole suite.
 
-* ``variant`` (session): Mitsuba's ``llvm_ad_rgb`` with the gdpt plugins registered (the same
-  contract as ``tests/integrators/conftest.py``'s fixture of that name).
+* ``variant`` (session): Mitsuba's ``llvm_ad_rgb`` with the gdpt plugins registered.
 * ``random_buffers``: a factory of random :class:`~gdpt.buffers.GradientBuffers` on the CPU.
 * ``single_thread``: one torch intra-op thread during the test (restored after), for tiny
   workloads on shared CPUs (``pytestmark = pytest.mark.usefixtures("single_thread")``).
+
+Tests of the shared real scenes (marker ``shared_scenes``, :mod:`shared_scenes`): skipped with
+the path in the reason when the folder is missing, except in CI (``CI=true``), where the run
+fails at collection with the path it looked at; the terminal summary counts how many ran.
 """
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 
 import pytest
 import torch
+from shared_scenes import MARKER, SHARED_SCENES, in_ci
 
 from gdpt.buffers import CHANNELS, GradientBuffers
+
+#: Outcomes (passed, failed, skipped) of the ``shared_scenes`` tests of this run.
+_SHARED_OUTCOMES: Counter[str] = Counter()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers", f"{MARKER}: reads the shared real scenes (../shared/scenes, GDPT_SHARED_SCENES)"
+    )
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Skip the selected ``shared_scenes`` tests when the folder is missing (fail in CI)."""
+    shared = [item for item in items if item.get_closest_marker(MARKER)]
+    if not shared or SHARED_SCENES.is_dir():
+        return
+    where = f"{SHARED_SCENES} (../shared/scenes beside the clone; GDPT_SHARED_SCENES overrides)"
+    if in_ci():
+        pytest.exit(
+            f"CI is set but the shared real scenes are missing: looked for {where}; "
+            f"{len(shared)} selected tests read them",
+            returncode=pytest.ExitCode.USAGE_ERROR,
+        )
+    skip = pytest.mark.skip(reason=f"shared real scenes not found: looked for {where}")
+    for item in shared:
+        item.add_marker(skip)
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if MARKER in report.keywords and (report.when == "call" or report.outcome != "passed"):
+        _SHARED_OUTCOMES[report.outcome] += 1
+
+
+def pytest_terminal_summary(terminalreporter) -> None:
+    """One line: how many ``shared_scenes`` tests passed, failed and were skipped."""
+    if _SHARED_OUTCOMES:
+        counts = ", ".join(f"{_SHARED_OUTCOMES[k]} {k}" for k in ("passed", "failed", "skipped"))
+        terminalreporter.write_line(f"shared real scenes ({SHARED_SCENES}): {counts}")
 
 
 @pytest.fixture(scope="session")

@@ -6,9 +6,9 @@ import dataclasses
 import json
 import statistics
 import sys
-from pathlib import Path
 
 import pytest
+from shared_scenes import SHARED_SCENES
 
 from gdpt import denoise
 from gdpt.cli import main
@@ -17,8 +17,6 @@ from gdpt.study.config import EvaluateConfig
 from gdpt.study.evaluate import evaluate, render_references
 from gdpt.study.methods import EVAL_METHODS
 from gdpt.study.scenes import SceneSpec, load_eval_scene, resolve_scenes
-
-SHARED_SCENES = Path(__file__).resolve().parents[3] / "shared" / "scenes"
 
 GAUSSIAN_XML = """<scene version="3.0.0">
     <default name="res" value="64"/>
@@ -62,7 +60,7 @@ def test_xml_filter_override_and_resolution(variant, tmp_path):
     assert scene.scene.sensors()[0].film().rfilter().is_box_filter()
 
 
-@pytest.mark.skipif(not (SHARED_SCENES / "cornell-box").is_dir(), reason="no ../shared/scenes")
+@pytest.mark.shared_scenes
 def test_real_scene_loads_with_box_filter(variant):
     (spec,) = resolve_scenes([SHARED_SCENES / "cornell-box"])
     scene = load_eval_scene(spec, resolution=16)

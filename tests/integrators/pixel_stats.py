@@ -11,6 +11,15 @@ ref[:, :-1]``), so its variance includes the correlation of neighbouring pixels.
 where both sides are constant and equal (black background, the zero last column of ``dx``) has
 z = 0; the standard error has a floor of float32 rounding (:data:`FLOAT32_ROUNDING` relative).
 
+Two estimators rendered with the same seeds share random numbers (``gdpt`` and ``gdpt_rr`` trace
+the same base paths), so their runs are positively correlated and the formula above, which
+assumes independence, overstates the standard error of the difference (``|z|`` too small). Such
+pairs use :func:`paired_z`: per pixel and channel, the z of the mean of the per-run differences,
+
+    z = mean(d) / sqrt(var(d) / n),   d_i = test_i - ref_i,
+
+which is exact whatever the correlation (the runs, not the two sides, are independent).
+
 Summaries: the share of pixel-channels with ``|z| > 3.29`` (two-sided p = 0.001 for a normal
 z) and the largest ``|z|``. Both are calibrated by self-tests of an oracle against itself
 (independent seeds), which the suites run next to every comparison.
@@ -66,8 +75,30 @@ def pixel_z(test: np.ndarray, ref: np.ndarray) -> PixelZ:
     # emitter) may still differ in the last bits
     rounding = FLOAT32_ROUNDING * np.maximum(np.abs(mean_t), np.abs(mean_r))
     se = np.sqrt(test.var(0, ddof=1) / len(test) + ref.var(0, ddof=1) / len(ref) + rounding**2)
-    z = np.where(se > 0, diff / np.where(se > 0, se, 1.0), np.where(diff == 0, 0.0, np.inf))
-    return PixelZ(z)
+    return _z(diff, se)
+
+
+def paired_z(test: np.ndarray, ref: np.ndarray) -> PixelZ:
+    """z of ``test`` against ``ref``, both (runs, H, W, C) and rendered pairwise with the same
+    seeds (run ``i`` of each side from seed ``i``): the mean of the per-run differences over its
+    standard error (variance ddof 1)."""
+    if test.shape != ref.shape:
+        raise ValueError(f"paired runs need equal shapes: {test.shape} vs {ref.shape}")
+    if len(test) < 2:
+        raise ValueError("need at least two runs for a variance")
+    test = test.astype(np.float64)
+    ref = ref.astype(np.float64)
+    diff = test - ref
+    mean = diff.mean(0)
+    rounding = FLOAT32_ROUNDING * np.maximum(np.abs(test.mean(0)), np.abs(ref.mean(0)))
+    return _z(mean, np.sqrt(diff.var(0, ddof=1) / len(diff) + rounding**2))
+
+
+def _z(diff: np.ndarray, se: np.ndarray) -> PixelZ:
+    """``diff / se``; 0 where both are 0, infinite where only ``se`` is."""
+    return PixelZ(
+        np.where(se > 0, diff / np.where(se > 0, se, 1.0), np.where(diff == 0, 0.0, np.inf))
+    )
 
 
 def forward_dx(primal: np.ndarray) -> np.ndarray:
