@@ -11,9 +11,12 @@ path tracing (``gdpt`` with ``gradients=false``: the primal and features, no rec
 included for comparison.
 
 Render cost is per sample per pixel (a method's cost at ``N`` spp is about ``N x render s/spp +
-reconstruct s``); for a pooled network it counts the pooled plain samples of one gradient sample
-too. Threads: torch's and Dr.Jit's defaults, unless ``OMP_NUM_THREADS`` sets torch's. On a
-machine shared with other jobs use ``OMP_NUM_THREADS=1``: torch's spinning worker threads then
+reconstruct s``), also as a ratio to the plain path-tracing row; for a pooled network it counts
+the pooled plain samples of one gradient sample too. Methods that read the same buffers share
+one render timing.
+
+Threads: torch's and Dr.Jit's defaults, unless ``OMP_NUM_THREADS`` sets torch's. On a machine
+shared with other jobs use ``OMP_NUM_THREADS=1``: torch's spinning worker threads then
 slow each other down by 20-50x on small images (an ``l1-fast`` solve at 128x128 took 5-15 s with
 2 threads on 2 busy cores, 0.24-0.31 s with one). The script prints the thread count and the
 load average. Usage::
@@ -78,10 +81,13 @@ def measure(size: tuple[int, int], spp: int, repeats: int) -> dict[str, dict[str
             print(f"  {name}: skipped ({reason})")
             continue
         plan.append((name, method.sampling(spp)))
+    render_seconds: dict[tuple, float] = {}  # methods reading the same buffers share a timing
     for name, sampling in plan:
         render = lambda s=sampling: gdpt.render(scene, spp=spp, **s)  # noqa: E731
-        render_s = median_seconds(render, repeats)
-        row = {"render_per_spp": render_s / spp, "reconstruct": 0.0}
+        key = tuple(sorted(sampling.items()))
+        if key not in render_seconds:
+            render_seconds[key] = median_seconds(render, repeats)
+        row = {"render_per_spp": render_seconds[key] / spp, "reconstruct": 0.0}
         if name != PLAIN:
             buffers = render()
             run = lambda n=name, b=buffers: gdpt.reconstruct_image(b, n)  # noqa: E731
@@ -115,16 +121,19 @@ def main() -> None:
 
     labels = list(results)
     print()
-    header = " | ".join(f"render s/spp, {s} | reconstruct s, {s}" for s in labels)
+    header = " | ".join(f"render s/spp, {s} | / path tracing | reconstruct s, {s}" for s in labels)
     print(f"| method | {header} |")
-    print("|---|" + "---:|---:|" * len(labels))
+    print("|---|" + "---:|---:|---:|" * len(labels))
     for name in results[labels[0]]:
-        cells = " | ".join(
-            f"{results[s][name]['render_per_spp']:.4f} | {results[s][name]['reconstruct']:.3f}"
-            for s in labels
-            if name in results[s]
-        )
-        print(f"| {name} | {cells} |")
+        cells = []
+        for label in labels:
+            row, plain = results[label].get(name), results[label][PLAIN]
+            if row is None:
+                cells.append("| | ")
+                continue
+            ratio = row["render_per_spp"] / plain["render_per_spp"]
+            cells.append(f"{row['render_per_spp']:.4f} | {ratio:.2f} | {row['reconstruct']:.3f}")
+        print(f"| {name} | {' | '.join(cells)} |")
     print(
         f"\nmachine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
         f"load average at end {os.getloadavg()[0]:.2f}; spp {args.spp}, "
