@@ -113,20 +113,17 @@ def model_path(name: str, model: str | os.PathLike | None = None) -> Path:
 
 @lru_cache(maxsize=4)
 def load_reconstructor(path: Path) -> Any:
-    """The reconstructor of a checkpoint (cached): a combiner over a fine-tuned OIDN network
-    (:mod:`gdpt.reconstruct.combiner`), a fine-tuned OIDN network (delta card of
-    :mod:`gdpt.reconstruct.oidn_ngpt`) or a dense U-Net (:mod:`gdpt.reconstruct.ngpt`); all
-    are called with a buffer mapping or ``GradientBuffers`` and expose ``features``."""
-    from gdpt.reconstruct.combiner import CombinerReconstructor, is_combiner_card
-    from gdpt.reconstruct.oidn_ngpt import OIDNReconstructor, is_delta_card
+    """The reconstructor of a checkpoint (cached), built by its network family
+    (:func:`gdpt.reconstruct.families.family_of`); it is called with a buffer mapping or
+    ``GradientBuffers`` and exposes ``features``.
 
-    if is_combiner_card(path):
-        return CombinerReconstructor.from_checkpoint(path)
-    if is_delta_card(path):
-        return OIDNReconstructor.from_checkpoint(path)
-    from gdpt.reconstruct.ngpt import NGPTReconstructor
+    Raises:
+        FileNotFoundError: a file of the checkpoint is missing.
+        ValueError: the card's format is no known family's (the message lists them).
+    """
+    from gdpt.reconstruct.families import family_of
 
-    return NGPTReconstructor.from_checkpoint(path)
+    return family_of(path).reconstructor(path)
 
 
 def _ngpt(
@@ -156,12 +153,16 @@ def _ngpt(
 
 
 def _oidn_weights_missing(name: str, path: Path) -> str | None:
-    """Why the fine-tuned OIDN model at ``path`` (or a combiner's base network) cannot load its
-    base weights, or ``None``."""
-    from gdpt.reconstruct.combiner import is_combiner_card
-    from gdpt.reconstruct.oidn_ngpt import is_delta_card
+    """Why the model at ``path``, when its family builds on OIDN's weights (a fine-tuned OIDN
+    network, a combiner's base network), cannot load them, or ``None``.
 
-    if not (is_delta_card(path) or is_combiner_card(path)):
+    Raises:
+        FileNotFoundError: a file of the checkpoint is missing.
+        ValueError: the card's format is no known family's.
+    """
+    from gdpt.reconstruct.families import family_of
+
+    if not family_of(path).oidn_weights:
         return None
     if importlib.util.find_spec("pyoidn") is None:
         return (
@@ -193,8 +194,8 @@ def _ngpt_check(name: str) -> str | None:
     """``None`` when the NGPT model ``name`` (and what it builds on) can be found, else why
     not."""
     try:
-        path = model_path(name)
-    except FileNotFoundError as err:
+        return _oidn_weights_missing(name, model_path(name))
+    except (FileNotFoundError, ValueError) as err:
         return str(err)
     return _oidn_weights_missing(name, path)
 
@@ -251,7 +252,8 @@ def register_checkpoint(name: str, path: str | os.PathLike) -> Method:
 
     Raises:
         FileNotFoundError: either file of the checkpoint is missing.
-        ValueError: ``name`` is already registered.
+        ValueError: ``name`` is already registered, or the checkpoint is unreadable or of no
+            known network family (:func:`gdpt.reconstruct.families.family_of`).
     """
     from gdpt.reconstruct.ngpt import read_card
 
@@ -290,3 +292,5 @@ def reconstruct(
     """
     METHODS.check([method])
     return METHODS[method].run(buffers, alpha=alpha, **options)
+    from gdpt.reconstruct.families import family_of
+    family_of(path)
