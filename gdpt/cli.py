@@ -382,12 +382,10 @@ def _run_dataset(args: argparse.Namespace) -> int:
 
 # -------------------------------------------------------------------------------------- train
 def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
-    from gdpt.reconstruct.losses import LOSSES
-    from gdpt.training.combine import COMBINER_LOSSES
+    from gdpt.reconstruct.families import FAMILIES
     from gdpt.training.config import TrainConfig
-    from gdpt.training.finetune import FINETUNE_LOSSES
 
-    losses = list(dict.fromkeys([*LOSSES, *FINETUNE_LOSSES, *COMBINER_LOSSES]))
+    losses = list(dict.fromkeys(name for f in FAMILIES.values() for name in f.losses))
     add_config_arguments(
         parser,
         TrainConfig,

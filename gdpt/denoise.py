@@ -197,7 +197,6 @@ def _ngpt_check(name: str) -> str | None:
         return _oidn_weights_missing(name, model_path(name))
     except (FileNotFoundError, ValueError) as err:
         return str(err)
-    return _oidn_weights_missing(name, path)
 
 
 #: Method name -> :class:`Method`, in registration order.
@@ -255,10 +254,12 @@ def register_checkpoint(name: str, path: str | os.PathLike) -> Method:
         ValueError: ``name`` is already registered, or the checkpoint is unreadable or of no
             known network family (:func:`gdpt.reconstruct.families.family_of`).
     """
+    from gdpt.reconstruct.families import family_of
     from gdpt.reconstruct.ngpt import read_card
 
     path = Path(path)
     _, _, card = read_card(path)
+    family_of(path)
     return METHODS.register(
         name,
         Method(
@@ -292,5 +293,3 @@ def reconstruct(
     """
     METHODS.check([method])
     return METHODS[method].run(buffers, alpha=alpha, **options)
-    from gdpt.reconstruct.families import family_of
-    family_of(path)

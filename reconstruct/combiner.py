@@ -1,4 +1,4 @@
-"""Kernel-predicting combiner over candidate reconstructions (issue 15, design (a)).
+"""Kernel-predicting combiner over candidate reconstructions.
 
 A small U-Net reads the candidates and the primal (each PU-encoded after OIDN's input scale
 ``s``), albedo,
@@ -32,13 +32,16 @@ Checkpoint: ``model.safetensors`` (the combiner's own weights, float32) and ``mo
 (card: ``{"format": COMBINER_FORMAT, "design", "base_model": file name of the base network's
 delta checkpoint next to the card, "kernel", "widths", ...training information...}``).
 
+Training loss: :func:`combiner_loss`, chosen by name from :data:`COMBINER_LOSSES`. The designs,
+losses and checkpoint format form the ``combiner`` family of :mod:`.families`.
+
 Only torch and safetensors are imported (layering rule of ``gdpt.reconstruct``).
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,8 +58,10 @@ from .refine import GatedRefinement
 from .registry import Registry
 
 __all__ = [
+    "CARD_KEYS",
     "COMBINER_DESIGNS",
     "COMBINER_FORMAT",
+    "COMBINER_LOSSES",
     "CombinerDesign",
     "CombinerNet",
     "CombinerReconstructor",
@@ -64,13 +69,16 @@ __all__ = [
     "candidates",
     "combine",
     "combiner_input",
+    "combiner_loss",
     "encode_combiner",
-    "is_combiner_card",
     "load_combiner",
 ]
 
 #: ``"format"`` of a combiner's model card.
 COMBINER_FORMAT = "gdpt-combiner/1"
+#: Card keys written by :func:`encode_combiner` (the rest of a card, ``base_model`` included,
+#: comes from the caller).
+CARD_KEYS = ("format", "design", "description", "kernel", "widths", "features", "parameter_count")
 #: Logit of the base network's centre tap at initialisation: step 0 gives the base network's
 #: pixel a weight of ``e^8 / (e^8 + K k^2 - 1)`` (99.4% for 2 candidates and 3x3 taps).
 INIT_LOGIT = 8.0
@@ -250,7 +258,13 @@ def _pad4(x: torch.Tensor) -> torch.Tensor:
     return F.pad(x, (0, -w % 4, 0, -h % 4), mode="replicate")
 
 
-def combine(net: CombinerNet, x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+def combine(
+    net: CombinerNet,
+    x: torch.Tensor,
+    scale: torch.Tensor,
+    *,
+    forward: Callable[[torch.Tensor], torch.Tensor] | None = None,
+) -> torch.Tensor:
     """Run ``net`` on a :func:`combiner_input` batch and apply its kernels in PU space.
 
     Args:
@@ -258,12 +272,14 @@ def combine(net: CombinerNet, x: torch.Tensor, scale: torch.Tensor) -> torch.Ten
         x: ``(N, C, H, W)`` input (any ``H``, ``W``: padded to multiples of 4 inside); its
             first ``3 K`` channels are the PU-encoded candidates.
         scale: ``(N,)`` OIDN input scales of the batch.
+        forward: what computes ``net``'s logits (default ``net``; in training, e.g. its
+            ``DistributedDataParallel`` wrapper).
 
     Returns:
         ``(N, H, W, 3)`` float32 radiance (finite, >= 0) on ``x``'s device.
     """
     n, _, h, w = x.shape
-    logits = net(_pad4(x))[..., :h, :w]
+    logits = (forward or net)(_pad4(x))[..., :h, :w]
     cands = x[:, : 3 * net.candidates].reshape(n, net.candidates, 3, h, w)
     y = apply_kernels(cands, logits, net.kernel)
     out = pu_inverse(y.clamp(0.0, 1.0)) / scale.reshape(-1, 1, 1, 1)
@@ -271,13 +287,22 @@ def combine(net: CombinerNet, x: torch.Tensor, scale: torch.Tensor) -> torch.Ten
 
 
 def encode_combiner(
-    net: CombinerNet, design_name: str, base_model: str, card: Mapping[str, Any] | None = None
+    net: CombinerNet, design_name: str, card: Mapping[str, Any]
 ) -> tuple[bytes, str]:
     """The two files of a combiner checkpoint: ``.safetensors`` bytes and ``.json`` text.
 
-    ``base_model`` is the file name of the base network's delta checkpoint, stored next to the
-    combiner's card.
+    Args:
+        net: the combiner (any device).
+        design_name: a key of :data:`COMBINER_DESIGNS`.
+        card: JSON-serialisable card entries; ``"base_model"`` (required) is the file name
+            (no suffix) of the base network's delta checkpoint, stored next to the card; the
+            rest is training information.
+
+    Raises:
+        ValueError: ``card`` has no ``"base_model"`` string.
     """
+    if not isinstance(card.get("base_model"), str):
+        raise ValueError("a combiner card needs 'base_model': its base checkpoint's file name")
     state = {
         k: v.detach().to("cpu", torch.float32).contiguous() for k, v in net.state_dict().items()
     }
@@ -286,21 +311,14 @@ def encode_combiner(
         "format": COMBINER_FORMAT,
         "design": design_name,
         "description": design.description,
-        "base_model": base_model,
         "kernel": net.kernel,
         "widths": list(net.widths),
         "features": list(design.features),
         "parameter_count": sum(p.numel() for p in net.parameters()),
-        **dict(card or {}),
+        **card,
     }
     weights = save(state, metadata={"format": COMBINER_FORMAT, "design": design_name})
     return weights, json.dumps(full, indent=2) + "\n"
-
-
-def is_combiner_card(card_path: str | Path) -> bool:
-    """Whether the ``.json`` card at ``card_path`` describes a combiner checkpoint."""
-    path = Path(card_path).with_suffix(".json")
-    return path.is_file() and json.loads(path.read_text()).get("format") == COMBINER_FORMAT
 
 
 def load_combiner(path: str | Path) -> tuple[CombinerNet, CombinerDesign, dict[str, Any], Path]:
@@ -393,3 +411,57 @@ class CombinerReconstructor:
         batch = {n: buffers[n][None] for n in self.design.features}
         x, scale = combiner_input(batch, cands, self.design)
         return combine(self._net_on(x.device), x, scale)[0].contiguous()
+
+
+#: Combiner loss name (``gdpt train --loss``) -> keyword arguments of :func:`combiner_loss`
+#: (its relative term).
+COMBINER_LOSSES: Registry[dict[str, str | None]] = Registry("combiner loss")
+COMBINER_LOSSES.register("l1", {"relative": None})
+COMBINER_LOSSES.register("l1_relabs", {"relative": "abs"})
+COMBINER_LOSSES.register("l1_huber", {"relative": "huber"})
+
+
+def combiner_loss(
+    out: torch.Tensor,
+    target: torch.Tensor,
+    base: torch.Tensor,
+    scale: torch.Tensor,
+    *,
+    relative: str | None,
+    eps: float = 1e-2,
+) -> torch.Tensor:
+    """PU-L1 plus a relative error whose denominator is the base network's image.
+
+    With ``r = s (out - t) / (eps + s mean_c(base))`` (``s``: OIDN's input scale):
+    ``mean |PU(s out) - PU(s t)| + mean rho(r)`` where ``rho`` is ``|r|`` (``"abs"``) or the
+    Huber function with threshold 1 (``"huber"``), or 0 (``None``: OIDN's PU-L1 alone).
+
+    PU-L1 grows like the log of an overshoot, so it barely charges a combiner for mixing a
+    failed candidate (a Poisson dipole, a firefly) into a dark pixel, which the evaluation's
+    relMSE charges quadratically. The relative term charges it linearly. Its denominator comes
+    from the base image, which does not depend on the target's noise, and ``rho`` grows at
+    most linearly, so the target's own fireflies (512-spp path-traced targets) cannot dominate
+    a batch as they do in a squared relative error.
+
+    Args:
+        out: ``(N, H, W, 3)`` combiner output (linear).
+        target: ``(N, H, W, 3)`` linear target, same device.
+        base: ``(N, H, W, 3)`` base network image (the first candidate).
+        scale: ``(N,)`` OIDN input scales.
+        relative: ``None``, ``"abs"`` or ``"huber"``.
+        eps: denominator offset, in units of the scaled image (mean about 0.18).
+
+    Returns:
+        Scalar tensor.
+    """
+    s = scale.reshape(-1, 1, 1, 1)
+    l1 = pu_forward((s * out).clamp_min(0.0)) - pu_forward((s * target).clamp_min(0.0))
+    l1 = l1.abs().mean()
+    if relative is None:
+        return l1
+    r = s * (out - target) / (eps + s * base.detach().mean(-1, keepdim=True))
+    if relative == "abs":
+        return l1 + r.abs().mean()
+    if relative == "huber":
+        return l1 + F.huber_loss(r, torch.zeros_like(r), delta=1.0)
+    raise ValueError(f"unknown relative term {relative!r}; valid: 'abs', 'huber' or None")

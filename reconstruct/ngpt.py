@@ -17,6 +17,9 @@ registered configuration of the same name, or with the stored weights.
     rec = NGPTReconstructor.from_checkpoint("runs/00007-paper/model.safetensors")
     image = rec({"primal": p, "dx": dx, "dy": dy, "albedo": a, "normal": n, "depth": d})
 
+The dense U-Net's configurations, losses and this checkpoint format form the ``dense-unet``
+family of :mod:`.families`.
+
 Layout, dtype, device: HWC float tensors as in ``gdpt.buffers``; the network runs on the device
 of the input buffers (the weights are copied there on first use) in channels-last memory format
 under ``torch.inference_mode``. Only torch, safetensors and json are imported (layering rule of
@@ -51,7 +54,8 @@ from .transforms import (
 
 #: Value of the card's ``"format"`` key written by this version.
 CARD_FORMAT = "gdpt-ngpt-checkpoint/1"
-_RESERVED = ("format", "config_name", "config", "features", "parameter_count")
+#: Card keys written by :func:`encode_checkpoint` (the rest of a card is training information).
+CARD_KEYS = ("format", "config_name", "config", "features", "parameter_count")
 
 
 class CheckpointMismatchError(ValueError):
@@ -131,7 +135,7 @@ def encode_checkpoint(
         TypeError: ``card`` is not JSON-serialisable.
     """
     card = dict(card or {})
-    clash = sorted(set(card) & set(_RESERVED))
+    clash = sorted(set(card) & set(CARD_KEYS))
     if clash:
         raise ValueError(f"card keys {clash} are reserved (written by encode_checkpoint)")
     features = tuple(features or default_features(model.config.in_channels))

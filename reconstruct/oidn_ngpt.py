@@ -1,4 +1,8 @@
-"""NGPT on Intel Open Image Denoise's U-Net: gradient-aware fine-tuning of OIDN (issue 15).
+"""NGPT on Intel Open Image Denoise's U-Net: OIDN fine-tuned with gradient inputs.
+
+The inputs follow NGPT (Kettunen et al. 2019: the gradients as extra network inputs, their
+signed-log transform of eq. 4); the network and its starting weights are OIDN's (Intel Open
+Image Denoise, ``rt_hdr_alb_nrm``).
 
 A *design* (:data:`DESIGNS`) says which inputs OIDN's U-Net (:mod:`.oidn_unet`, Intel's
 ``rt_hdr_alb_nrm`` weights) reads in addition to its own colour, albedo and normal, all after
@@ -37,6 +41,9 @@ follow the network with the gated screened-Poisson refinement of :mod:`.refine` 
 1e-7 relative); it fails with :class:`~.tza.OIDNWeightsError` (which says how to pass a
 ``.tza``) when the base weights cannot be read.
 
+The fine-tuning losses are :data:`FINETUNE_LOSSES` (weights of :func:`finetune_loss`). The
+designs, losses and checkpoint format form the ``oidn-finetune`` family of :mod:`.families`.
+
 Only torch, numpy and safetensors are imported (layering rule of ``gdpt.reconstruct``).
 """
 
@@ -58,14 +65,16 @@ from .refine import GatedRefinement
 from .registry import Registry
 
 __all__ = [
+    "CARD_KEYS",
     "DELTA_FORMAT",
     "DESIGNS",
+    "FINETUNE_LOSSES",
     "Design",
     "OIDNReconstructor",
     "assemble",
     "base_model",
     "encode_delta",
-    "is_delta_card",
+    "finetune_loss",
     "load_model",
     "neighbour_estimate",
     "predict",
@@ -77,6 +86,8 @@ DELTA_FORMAT = "gdpt-oidn-delta/1"
 #: OIDN's weights the designs start from (HDR colour + albedo + normal; OIDN's ``high`` quality
 #: uses these too, there is no ``_large`` variant of them).
 BASE_WEIGHTS = "rt_hdr_alb_nrm"
+#: Card keys written by :func:`encode_delta` (the rest of a card is training information).
+CARD_KEYS = ("format", "design", "description", "base_weights", "features", "parameter_count")
 
 
 @dataclass(frozen=True)
@@ -289,12 +300,6 @@ def encode_delta(
     return weights, json.dumps(full, indent=2) + "\n"
 
 
-def is_delta_card(card_path: str | Path) -> bool:
-    """Whether the ``.json`` card at ``card_path`` describes a delta checkpoint."""
-    path = Path(card_path).with_suffix(".json")
-    return path.is_file() and json.loads(path.read_text()).get("format") == DELTA_FORMAT
-
-
 def load_model(
     path: str | Path, *, weights: str | Path | dict | None = None
 ) -> tuple[OIDNUNet, Design, dict[str, Any]]:
@@ -440,3 +445,12 @@ def finetune_loss(
     if not relative:
         return loss
     return loss + relative * ((pred - target).square() / denominator).mean()
+
+
+#: Fine-tuning loss name (``gdpt train --loss``) -> keyword weights of :func:`finetune_loss`
+#: (its PU-L1 term always counts): ``l1`` is OIDN's own L1 in its PU space, ``l1_rel`` adds the
+#: Noise2Noise relative MSE, ``l1_grad`` the L1 on the PU image's forward differences.
+FINETUNE_LOSSES: Registry[dict[str, float]] = Registry("fine-tuning loss")
+FINETUNE_LOSSES.register("l1", {"relative": 0.0})
+FINETUNE_LOSSES.register("l1_rel", {"relative": 1.0})
+FINETUNE_LOSSES.register("l1_grad", {"relative": 0.0, "gradient": 1.0})

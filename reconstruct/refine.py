@@ -1,4 +1,6 @@
-"""Gated gradient-domain refinement of a denoised image (issue 15).
+"""Gated gradient-domain refinement of a denoised image: the L1 screened Poisson
+reconstruction of gradient-domain path tracing (Kettunen et al. 2015) with the denoiser's
+output as its data term, kept where it stays close to that output.
 
 A denoiser's output ``n`` is smooth but loses what its input did not show clearly (shadow
 edges, fine texture). The G-PT gradients carry exactly that. The refinement solves screened

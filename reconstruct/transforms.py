@@ -2,7 +2,7 @@
 
 Everything here acts on the project's HWC buffers (``(..., H, W, C)`` float tensors, at most one
 leading batch dimension where noted) and follows the reference implementation of Kettunen et al.
-2019 (``mkettune/ngpt``; see ``gdpt-notes.md`` section 3):
+2019 (and its public code, ``github.com/mkettune/ngpt``):
 
 ==========  ========  ======================================  ===============================
 buffer      channels  transform (:data:`INPUT_TRANSFORMS`)    padding (:func:`pad_buffers`)

@@ -1,10 +1,10 @@
 """Writing network checkpoints (training runs, shipped models) atomically.
 
 A checkpoint is two files, ``<path>.safetensors`` (weights) and ``<path>.json`` (model card),
-encoded by :func:`gdpt.reconstruct.ngpt.encode_checkpoint` and read back by
-:func:`gdpt.reconstruct.ngpt.load_checkpoint`. The weights are written first and the card
-last, each with :func:`gdpt.io.atomic.atomic_write`, so a card on disk always describes
-complete weights.
+encoded by its family (:attr:`gdpt.reconstruct.families.Family.encode`; a dense U-Net's by
+:func:`gdpt.reconstruct.ngpt.encode_checkpoint`, which :func:`save_checkpoint` calls).
+:func:`write_checkpoint` writes the weights first and the card last, each with
+:func:`gdpt.io.atomic.atomic_write`, so a card on disk always describes complete weights.
 """
 
 from __future__ import annotations
@@ -46,8 +46,7 @@ def save_checkpoint(
 
 def write_checkpoint(path: str | Path, weights: bytes, text: str) -> tuple[Path, Path]:
     """Write encoded checkpoint files: ``weights`` to ``<path>.safetensors`` first, then the
-    card ``text`` to ``<path>.json``, each atomically (any encoder: DenseUNet checkpoints, the
-    OIDN deltas of :mod:`gdpt.reconstruct.oidn_ngpt`).
+    card ``text`` to ``<path>.json``, each atomically (any family's encoder).
 
     Returns:
         ``(weights_path, card_path)``.

@@ -43,20 +43,19 @@ class TrainConfig:
     """Everything that defines a training run.
 
     Attributes:
-        model: registered model configuration (``gdpt.reconstruct.dense_unet.CONFIGS``); models
-            with 16 input channels read the ``gdpt`` inputs, 10-channel ones the path-traced.
-            A design of :data:`gdpt.reconstruct.oidn_ngpt.DESIGNS` (``oidn-grad``, ...)
-            fine-tunes OIDN's U-Net instead (:mod:`gdpt.training.finetune`; ``pad`` and
-            ``vary_padding`` do not apply there). A design of
-            :data:`gdpt.reconstruct.combiner.COMBINER_DESIGNS` (``combiner-grad``,
-            ``combiner-nograd``) trains a kernel-predicting combiner on top of ``base_model``
-            (:mod:`gdpt.training.combine`).
+        model: a design of a network family (:data:`gdpt.reconstruct.families.FAMILIES`): a
+            dense U-Net configuration (``fast_xs``, ``paper``, ...; 16 input channels read the
+            ``gdpt`` inputs, 10-channel ones the path-traced), a fine-tuned OIDN design
+            (``oidn-grad``, ...; ``pad`` and ``vary_padding`` do not apply) or a combiner
+            design (``combiner-grad``, ``combiner-nograd``; trained on top of
+            ``base_model``).
         data: training dataset directory (:mod:`gdpt.training.dataset`).
         out: run directory.
         val_data: validation dataset directory; ``None`` holds out every ``holdout_every``-th
             scene of ``data`` (scene index ``% holdout_every == holdout_every - 1``).
         holdout_every: see ``val_data``.
-        loss: ``flip``, ``flip_rel``, ``flip_log``, ``flip_hdr``, ``l1`` or ``elpips``
+        loss: a loss of the design's family (its ``losses``): for a dense U-Net ``flip``,
+            ``flip_rel``, ``flip_log``, ``flip_hdr``, ``l1`` or ``elpips``
             (:func:`gdpt.reconstruct.losses.get_loss`).
         steps: total optimizer updates.
         batch: crops per update and process.

@@ -1,8 +1,8 @@
 """Training data for NGPT: rendering crops of procedural scenes, and reading them back.
 
 :func:`build_dataset` renders, for every ``(scene, view)`` pair of :func:`gdpt.scenes.random_scene`,
-one *crop* (a small image, 128x128 by default) as in Kettunen et al. 2019 (section 3.5 of
-``gdpt-notes.md``):
+one *crop* (a small image, 128x128 by default) as in Kettunen et al. 2019 (the paper's
+training data, and ``create_dataset/`` of its public code, ``github.com/mkettune/ngpt``):
 
 * ``levels`` (5) noisy gradient-domain inputs (``gdpt`` integrator, gradients and features) at
   sample counts drawn log-uniformly in ``[spp_min, spp_max]``, stratified (one draw in each of

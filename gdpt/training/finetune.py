@@ -1,13 +1,12 @@
-"""Fine-tuning OIDN's U-Net with gradient inputs (:mod:`gdpt.reconstruct.oidn_ngpt`) on a
-:mod:`gdpt.training.dataset`.
+"""The training plan of the ``oidn-finetune`` family: OIDN's U-Net fine-tuned with gradient
+inputs (:mod:`gdpt.reconstruct.oidn_ngpt`) on a :mod:`gdpt.training.dataset`.
 
 ``gdpt train --config oidn-grad`` (or another design of ``DESIGNS``, e.g. ``oidn-nograd``)
-lands here through :func:`gdpt.training.train.train`. The run uses the same
-:class:`~gdpt.training.config.TrainConfig`, run directory (:mod:`gdpt.training.run_dir`),
-learning-rate schedule (:mod:`gdpt.training.schedule`), augmentations
+runs :func:`finetune_plan` in the training loop (:mod:`gdpt.training.loop`: run directory,
+schedule, exact resume, ``torchrun``). It shares the augmentations
 (:mod:`gdpt.training.augment`: sub-crop, flips, transposition, RGB permutation, colour and
-brightness multipliers), per-step seeding (exact resume) and held-out split
-(:mod:`gdpt.training.batches`) as the dense U-Net trainer; what differs:
+brightness multipliers), per-step seeding and held-out split (:mod:`gdpt.training.batches`)
+with the dense U-Net's plan; what differs:
 
 * the network starts as OIDN (Intel's ``rt_hdr_alb_nrm`` weights, the extra inputs with zero
   weights), so step 0 reproduces OIDN exactly;
@@ -16,7 +15,8 @@ brightness multipliers), per-step seeding (exact resume) and held-out split
 * inputs are OIDN's encoding (:func:`~gdpt.reconstruct.oidn_ngpt.assemble`); sub-crops
   (``crop``) must be multiples of 16; there is no mirror padding (``pad`` and
   ``vary_padding`` are ignored: OIDN's convolutions zero-pad, as at inference);
-* loss (``config.loss``, :data:`FINETUNE_LOSSES`): ``l1`` is OIDN's own L1 in its PU space,
+* loss (``config.loss``, :data:`~gdpt.reconstruct.oidn_ngpt.FINETUNE_LOSSES`): ``l1`` is
+  OIDN's own L1 in its PU space,
   ``l1_rel`` adds the Noise2Noise relative MSE (:func:`~gdpt.reconstruct.oidn_ngpt
   .finetune_loss`), unbiased under the zero-mean noise of path-traced targets
   (``gdpt dataset --target pt``), ``l1_grad`` an L1 on the PU image's forward differences
@@ -26,11 +26,10 @@ brightness multipliers), per-step seeding (exact resume) and held-out split
   solve; a sub-crop of the solution stands in for the solution of the sub-crop);
 * checkpoints store the difference to OIDN's weights (:func:`~gdpt.reconstruct.oidn_ngpt
   .encode_delta`); the exact weights and the Adam state go to the ``.pt`` file of the run
-  (never committed), which resume reads;
+  (never committed), which resume reads (as for every family);
 * validation (``val.jsonl``) scores the network, OIDN on the same input (step 0), OIDN on the
   path-traced input of the same crop and level (``pt+oidn`` at equal time) and L1 Poisson on
-  the G-PT input: ``relmse``, ``flip``, ``oidn_*``, ``pt_oidn_*``, ``l1_*``;
-* one process only (no ``torchrun``).
+  the G-PT input: ``relmse``, ``flip``, ``oidn_*``, ``pt_oidn_*``, ``l1_*``.
 """
 
 from __future__ import annotations
@@ -44,6 +43,7 @@ import torch
 from gdpt.reconstruct.losses import FLIPLoss
 from gdpt.reconstruct.oidn_ngpt import (
     DESIGNS,
+    FINETUNE_LOSSES,
     Design,
     assemble,
     base_model,
@@ -57,28 +57,16 @@ from gdpt.training.batches import split_datasets, step_seed
 from gdpt.training.checkpoint import write_checkpoint
 from gdpt.training.config import TrainConfig
 from gdpt.training.dataset import CONFIG_FILE, CropDataset
-from gdpt.training.loop import optimise, resume_state
-from gdpt.training.run_dir import (
-    prepare_run,
-    write_json,
-)
-from gdpt.training.step import make_optimizer
+from gdpt.training.loop import RunContext, TrainingPlan
+from gdpt.training.step import UpdateScale
 from gdpt.training.validation import held_out_elements, image_metrics
 
 __all__ = [
-    "FINETUNE_LOSSES",
     "FinetuneBatch",
-    "finetune",
+    "finetune_plan",
     "make_finetune_batch",
     "validate_finetune",
 ]
-
-#: ``config.loss`` -> keyword weights of ``finetune_loss`` (its PU-L1 term always counts).
-FINETUNE_LOSSES: dict[str, dict[str, float]] = {
-    "l1": {"relative": 0.0},
-    "l1_rel": {"relative": 1.0},
-    "l1_grad": {"relative": 0.0, "gradient": 1.0},
-}
 
 
 def primal_spp_factor(data: str | Path) -> float:
@@ -143,12 +131,14 @@ def make_finetune_batch(
     design: Design,
     step: int,
     l1_cache: L1Cache | None = None,
+    rank: int = 0,
 ) -> FinetuneBatch:
-    """The batch of update ``step`` (a pure function of ``config.seed`` and ``step``).
+    """The batch of update ``step`` on process ``rank`` (a pure function of ``config.seed``,
+    ``step`` and ``rank``).
 
     Sub-crop sides (``config.crop`` or the dataset crop) must be multiples of 16.
     """
-    generator = torch.Generator().manual_seed(step_seed(config.seed, step, 0))
+    generator = torch.Generator().manual_seed(step_seed(config.seed, step, rank))
     indices = torch.randint(len(dataset), (config.batch,), generator=generator).tolist()
     shape = (dataset.resolution[1], dataset.resolution[0])
     xs, targets, scales = [], [], []
@@ -221,11 +211,9 @@ def validate_finetune(
     return {k: v / len(elements) for k, v in totals.items()} | {"count": len(elements)}
 
 
-def extra_update_scale(
-    net: OIDNUNet, config: TrainConfig
-) -> list[tuple[torch.nn.Parameter, torch.Tensor]]:
-    """``optimise``'s ``update_scale`` for ``config.extra_lr_scale``: the extra input
-    channels' weights move ``extra_lr_scale`` times as fast as the rest (empty at 1)."""
+def extra_update_scale(net: OIDNUNet, config: TrainConfig) -> list[UpdateScale]:
+    """The plan's ``update_scale`` for ``config.extra_lr_scale``: the extra input channels'
+    weights move ``extra_lr_scale`` times as fast as the rest (empty at 1)."""
     if config.extra_lr_scale == 1.0:
         return []
     params = dict(net.named_parameters())
@@ -235,28 +223,15 @@ def extra_update_scale(
     ]
 
 
-def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True) -> Path:
-    """Fine-tune (or continue fine-tuning) the design ``config.model``; see the module docstring.
-
-    Returns:
-        Path of the final network (``RUN_DIR/model.safetensors``, a delta checkpoint).
+def finetune_plan(config: TrainConfig, ctx: RunContext) -> TrainingPlan:
+    """The plan of a fine-tuning run (``config.model`` a key of ``DESIGNS``); see the module
+    docstring.
 
     Raises:
-        FileExistsError: ``config.out`` holds a run and ``resume`` is false.
-        ConfigMismatchError: resuming with other training settings.
         ValueError: unusable dataset, or a crop that is not a multiple of 16.
     """
-
     design = DESIGNS[config.model]
-    if config.loss not in FINETUNE_LOSSES:
-        raise ValueError(
-            f"loss {config.loss!r} does not apply to fine-tuning OIDN; use one of "
-            f"{', '.join(FINETUNE_LOSSES)}"
-        )
     weights = FINETUNE_LOSSES[config.loss]
-    device = torch.device(config.device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    run = Path(config.out)
-    config = prepare_run(config, resume)
     train_set, val_set = split_datasets(config, design.input_kind)
     side = config.crop or min(train_set.resolution)
     if side > min(train_set.resolution) or side % 16:
@@ -264,15 +239,11 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
             f"crop {side} must fit the {train_set.resolution} dataset crops and be a multiple "
             "of 16 (OIDN's alignment)"
         )
-    (run / "checkpoints").mkdir(parents=True, exist_ok=True)
-    write_json(run / "config.json", config.to_dict())
     base = base_model(design)
-    net = base_model(design).to(device).train()
-    optimizer = make_optimizer(net, config)
-    start, elapsed = resume_state(run, net, optimizer, device, resume)
+    net = base_model(design).to(ctx.device).train()
     val_elements = (
-        load_finetune_validation(val_set, design, config.val_crops, device)
-        if config.val_every
+        load_finetune_validation(val_set, design, config.val_crops, ctx.device)
+        if ctx.rank == 0 and config.val_every
         else []
     )
     l1_cache = L1Cache() if design.l1 else None
@@ -282,7 +253,7 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
             "crops": len(train_set.crops),
             "validation_crops": len(val_set.crops),
             "loss": f"{config.loss}: finetune_loss, PU-L1 + weights {weights}",
-            "batch": config.batch,
+            "batch": config.batch * ctx.world,
             "crop": side,
             "lr": config.lr,
             "extra_lr_scale": config.extra_lr_scale,
@@ -291,18 +262,20 @@ def finetune(config: TrainConfig, *, resume: bool = False, progress: bool = True
     if design.pooled:
         card["sampling"] = {"primal_spp_factor": primal_spp_factor(config.data)}
 
-    def save(base_path: Path, done: int, seconds: float, last_val: dict[str, float]) -> None:
-        info = {**card, "steps": done, "train_seconds": round(seconds, 1), "validation": last_val}
-        write_checkpoint(base_path, *encode_delta(net, config.model, info, base=base))
+    def loss(forward, step: int) -> torch.Tensor:
+        batch = make_finetune_batch(train_set, config, design, step, l1_cache, ctx.rank)
+        y = forward(batch.x.to(ctx.device))
+        d = ctx.device
+        return finetune_loss(y, batch.target.to(d), batch.scale.to(d), **weights)
 
-    def loss_at(step: int) -> torch.Tensor:
-        batch = make_finetune_batch(train_set, config, design, step, l1_cache)
-        y = net(batch.x.to(device))
-        return finetune_loss(y, batch.target.to(device), batch.scale.to(device), **weights)
+    def save(path: Path, info) -> None:
+        write_checkpoint(path, *encode_delta(net, config.model, info, base=base))
 
-    optimise(
-        config, run, net, optimizer, start=start, elapsed=elapsed, loss_at=loss_at,
-        validate=lambda: validate_finetune(net, design, val_elements), save=save,
-        desc="finetune", progress=progress, update_scale=extra_update_scale(net, config),
-    )  # fmt: skip
-    return run / "model.safetensors"
+    return TrainingPlan(
+        net=net,
+        loss=loss,
+        validate=lambda: validate_finetune(net, design, val_elements),
+        save=save,
+        card=card,
+        update_scale=extra_update_scale(net, config),
+    )

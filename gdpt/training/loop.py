@@ -1,137 +1,271 @@
-"""The single-process optimisation loop shared by OIDN fine-tuning
-(:mod:`gdpt.training.finetune`) and the combiner (:mod:`gdpt.training.combine`).
+"""The training loop: one loop for every network family, single-process or under ``torchrun``.
 
-Per update: the learning rate of the schedule, one loss evaluation and backward pass, an
-optimizer step only if every gradient is finite (a skipped step is logged as ``"skipped"``;
-the step's change of a parameter may be scaled element-wise, under Adam a per-weight
-learning-rate multiplier), a ``log.jsonl`` record; validation every ``val_every`` steps
-(``val.jsonl``); every ``ckpt_every`` steps a checkpoint whose ``.pt`` file holds the exact
-weights and the optimizer state, which :func:`resume_state` reads back; at the end the run's
-``model`` files.
+The loop knows nothing about the network (as edm's ``training_loop``): a family's plan builder
+(:data:`gdpt.training.train.PLANS`) turns the run settings into a :class:`TrainingPlan` (the
+network, the loss of the batch of an update, validation, how to write a checkpoint) and the
+loop does the rest:
+
+* the run directory (:mod:`gdpt.training.run_dir`): ``config.json`` and the plan's extra
+  files before the first update, ``log.jsonl`` per update, ``val.jsonl`` every ``val_every``
+  updates, a checkpoint every ``ckpt_every`` updates, the final ``model`` files;
+* Adam (:func:`~gdpt.training.step.make_optimizer`) at the learning rate of the schedule
+  (:mod:`gdpt.training.schedule`), one :func:`~gdpt.training.step.update` per step;
+* exact resume: a checkpoint's ``.pt`` file holds the exact weights, the Adam state, the step
+  count and the training time; the batch of update ``s`` is a pure function of
+  ``(seed, s, rank)`` (:func:`~gdpt.training.batches.step_seed`), and so is the global torch
+  RNG during the update (seeded with it, e.g. for E-LPIPS's random ensemble), so there is no
+  RNG state to carry: resuming from a checkpoint repeats the run bit for bit;
+* multi-process: under ``torchrun`` (``WORLD_SIZE > 1``) the network is wrapped in
+  ``DistributedDataParallel`` (gloo on CPU, nccl on CUDA), each rank draws its own batch, the
+  logged loss is the mean over ranks, and rank 0 alone writes files and validates. The device
+  is ``config.device``, else ``cuda:LOCAL_RANK`` when CUDA is available, else the CPU.
 """
 
 from __future__ import annotations
 
+import os
 import time
-from collections.abc import Callable, Sequence
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
+from torch import nn
 
-from gdpt.io.atomic import atomic_path
+from gdpt.io.atomic import atomic_path, atomic_write
+from gdpt.training.batches import step_seed
 from gdpt.training.config import TrainConfig
 from gdpt.training.run_dir import (
     append_jsonl,
     checkpoint_base,
     latest_checkpoint,
+    prepare_run,
     prune_checkpoints,
     truncate_jsonl,
+    write_json,
 )
 from gdpt.training.schedule import learning_rate
+from gdpt.training.step import UpdateScale, make_optimizer, update
 
-__all__ = ["optimise", "resume_state"]
-
-#: ``save(base_path, steps_done, elapsed_seconds, last_validation)`` writes the model files.
-SaveFn = Callable[[Path, int, float, dict[str, float]], None]
+__all__ = ["PlanBuilder", "RunContext", "TrainingPlan", "training_loop"]
 
 
-def resume_state(
+@dataclass(frozen=True)
+class RunContext:
+    """Where a plan runs.
+
+    Attributes:
+        run: the run directory.
+        device: the torch device of this process.
+        rank: this process's rank (0 without ``torchrun``).
+        world: number of processes.
+    """
+
+    run: Path
+    device: torch.device
+    rank: int
+    world: int
+
+
+@dataclass
+class TrainingPlan:
+    """What one network family contributes to :func:`training_loop`.
+
+    Attributes:
+        net: the network being trained, on the run's device, in train mode.
+        loss: ``(forward, step) -> scalar tensor``: the loss of this process's batch of update
+            ``step`` (0-based); the forward pass must go through ``forward`` (``net`` or its
+            ``DistributedDataParallel`` wrapper).
+        validate: ``() -> scores`` of ``net`` on the validation set (rank 0 only).
+        save: ``(path, card) -> None``: writes ``net`` as the checkpoint ``path`` (suffix
+            replaced by ``.safetensors`` / ``.json``) with ``card`` (training information).
+        card: training information of every checkpoint's card; the loop adds ``steps``,
+            ``train_seconds`` and ``validation``.
+        files: run-directory files (name -> content) written with ``config.json``; a resumed
+            run must find them unchanged.
+        update_scale: per-parameter update multipliers (:data:`~gdpt.training.step
+            .UpdateScale`).
+    """
+
+    net: nn.Module
+    loss: Callable[[Callable[[torch.Tensor], torch.Tensor], int], torch.Tensor]
+    validate: Callable[[], dict[str, float]]
+    save: Callable[[Path, Mapping[str, Any]], object]
+    card: dict[str, Any]
+    files: dict[str, bytes] = field(default_factory=dict)
+    update_scale: Sequence[UpdateScale] = ()
+
+
+#: ``(config, context) -> plan``: a family's training plan for a resolved config. It checks
+#: the config against the data before any file is written (``ValueError``) and seeds nothing
+#: (the loop seeds the global RNG with ``config.seed`` before calling it).
+PlanBuilder = Callable[[TrainConfig, RunContext], TrainingPlan]
+
+
+def _distributed() -> tuple[int, int, int]:
+    """``(rank, local_rank, world_size)`` from the torchrun environment."""
+    return (
+        int(os.environ.get("RANK", "0")),
+        int(os.environ.get("LOCAL_RANK", "0")),
+        int(os.environ.get("WORLD_SIZE", "1")),
+    )
+
+
+def _write_files(run: Path, files: Mapping[str, bytes]) -> None:
+    """Write the plan's extra files; an existing one must be identical (a resumed run)."""
+    for name, data in files.items():
+        path = run / name
+        if path.is_file():
+            if path.read_bytes() != data:
+                raise ValueError(
+                    f"{path} differs from the one this run needs; resume with the same inputs "
+                    "or choose another --out"
+                )
+            continue
+        atomic_write(path, data)
+
+
+def _resume(
     run: Path,
-    net: torch.nn.Module,
+    net: nn.Module,
     optimizer: torch.optim.Optimizer,
     device: torch.device,
-    resume: bool,
+    world: int,
 ) -> tuple[int, float]:
-    """Load the newest checkpoint of ``run`` into ``net`` and ``optimizer`` (if ``resume``)
-    and cut the logs back to it.
+    """Load the newest checkpoint's ``.pt`` state into ``net`` and ``optimizer``.
 
     Returns:
-        ``(steps done, training seconds so far)``; ``(0, 0.0)`` for a new run.
+        ``(steps done, training seconds so far)``; ``(0, 0.0)`` without a checkpoint.
     """
-    start, elapsed = 0, 0.0
-    found = latest_checkpoint(run) if resume else None
-    if found is not None:
-        state = torch.load(found[1].with_suffix(".pt"), map_location=device, weights_only=True)
-        net.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        start, elapsed = int(state["step"]), float(state["elapsed"])
-    for name in ("log.jsonl", "val.jsonl"):
-        truncate_jsonl(run / name, start)
-    return start, elapsed
+    found = latest_checkpoint(run)
+    if found is None:
+        return 0, 0.0
+    path = found[1].with_suffix(".pt")
+    state = torch.load(path, map_location=device, weights_only=True)
+    if "model" not in state:
+        raise ValueError(f"{path} holds no network state (an older gdpt's run); start a new run")
+    net.load_state_dict(state["model"])
+    optimizer.load_state_dict(state["optimizer"])
+    if state["world_size"] != world:
+        warnings.warn(
+            f"resuming a {state['world_size']}-process run with {world} processes: batches "
+            "differ from the original run",
+            stacklevel=3,
+        )
+    return int(state["step"]), float(state["elapsed"])
 
 
-def optimise(
+def training_loop(
     config: TrainConfig,
-    run: Path,
-    net: torch.nn.Module,
-    optimizer: torch.optim.Optimizer,
+    build: PlanBuilder,
     *,
-    start: int,
-    elapsed: float,
-    loss_at: Callable[[int], torch.Tensor],
-    validate: Callable[[], dict[str, float]],
-    save: SaveFn,
-    desc: str,
-    progress: bool,
-    update_scale: Sequence[tuple[torch.nn.Parameter, torch.Tensor]] = (),
-) -> None:
-    """Run updates ``start .. config.steps - 1`` (see the module docstring).
+    resume: bool = False,
+    progress: bool = True,
+    desc: str = "train",
+) -> Path:
+    """Train (or continue training) the network of ``build``; see the module docstring.
 
     Args:
-        config: the run settings (steps, schedule, validation and checkpoint intervals).
-        run: the run directory.
-        net: the network being trained.
-        optimizer: its optimizer.
-        start: steps already done.
-        elapsed: training seconds already spent.
-        loss_at: ``step -> loss`` (builds the batch of ``step`` and evaluates the network).
-        validate: scores on the validation set.
-        save: writes the model files of a checkpoint or of the final model.
+        config: the run settings.
+        build: the family's plan builder.
+        resume: continue the run in ``config.out`` from its newest checkpoint (starts afresh
+            if the directory holds no run yet).
+        progress: show a progress bar (rank 0).
         desc: progress-bar label.
-        progress: show a progress bar.
-        update_scale: ``(parameter, multiplier)`` pairs: the optimizer's change of the
-            parameter is multiplied element-wise by ``multiplier`` (same shape and device).
+
+    Returns:
+        Path of the final network (``RUN_DIR/model.safetensors``).
+
+    Raises:
+        FileExistsError: ``config.out`` holds a run and ``resume`` is false.
+        ConfigMismatchError: resuming with other training settings.
+        ValueError: the plan refuses the config or the data, or a resumed run's extra files
+            or checkpoint do not fit.
     """
+    import torch.distributed as dist
     from tqdm.auto import tqdm
 
-    last_val: dict[str, float] = {}
-    bar = tqdm(total=config.steps, initial=start, unit="step", desc=desc,
-               disable=not progress, dynamic_ncols=True)  # fmt: skip
-    for step in range(start, config.steps):
-        t0 = time.perf_counter()
-        lr = learning_rate(step, config)
-        for group in optimizer.param_groups:
-            group["lr"] = lr
-        optimizer.zero_grad(set_to_none=True)
-        loss = loss_at(step)
-        loss.backward()
-        finite = all(bool(torch.isfinite(p.grad).all()) for p in net.parameters())
-        if finite:
-            before = [p.detach().clone() for p, _ in update_scale]
-            optimizer.step()
-            with torch.no_grad():
-                for (p, multiplier), old in zip(update_scale, before, strict=True):
-                    p.copy_(old + (p - old) * multiplier)
-        seconds = time.perf_counter() - t0
-        elapsed += seconds
-        done = step + 1
-        record = {"step": done, "loss": float(loss.detach()), "lr": lr,
-                  "time": round(elapsed, 3), "step_seconds": round(seconds, 4)}  # fmt: skip
-        append_jsonl(run / "log.jsonl", record | ({} if finite else {"skipped": True}))
-        bar.update(1)
-        bar.set_postfix(loss=f"{record['loss']:.4g}", lr=f"{lr:.2e}")
-        final = done == config.steps
-        if config.val_every and (done % config.val_every == 0 or final):
-            last_val = validate()
-            append_jsonl(run / "val.jsonl", {"step": done, "time": round(elapsed, 3), **last_val})
-        if done % config.ckpt_every == 0 or final:
-            base_path = checkpoint_base(run, done)
-            save(base_path, done, elapsed, last_val)
-            payload = {"step": done, "elapsed": elapsed, "world_size": 1,
-                       "model": net.state_dict(), "optimizer": optimizer.state_dict()}  # fmt: skip
-            with atomic_path(base_path.with_suffix(".pt")) as tmp:
-                torch.save(payload, tmp)
-            prune_checkpoints(run, config.keep_checkpoints)
-        if final:
-            save(run / "model", done, elapsed, last_val)
-    bar.close()
+    rank, local_rank, world = _distributed()
+    if config.device is not None:
+        device = torch.device(config.device)
+    elif torch.cuda.is_available():
+        device = torch.device("cuda", local_rank)
+    else:
+        device = torch.device("cpu")
+    owns_group = world > 1 and not dist.is_initialized()
+    if owns_group:
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    try:
+        run = Path(config.out)
+        config = prepare_run(config, resume)
+        torch.manual_seed(config.seed)
+        plan = build(config, RunContext(run, device, rank, world))
+        if world > 1:
+            dist.barrier()  # every rank has checked the run dir before rank 0 writes it
+        if rank == 0:
+            (run / "checkpoints").mkdir(parents=True, exist_ok=True)
+            write_json(run / "config.json", config.to_dict())
+            _write_files(run, plan.files)
+        optimizer = make_optimizer(plan.net, config)
+        start, elapsed = _resume(run, plan.net, optimizer, device, world) if resume else (0, 0.0)
+        if rank == 0:
+            for name in ("log.jsonl", "val.jsonl"):
+                truncate_jsonl(run / name, start)
+        forward = plan.net
+        if world > 1:
+            forward = nn.parallel.DistributedDataParallel(
+                plan.net, device_ids=[device.index] if device.type == "cuda" else None
+            )
+        last_val: dict[str, float] = {}
+        bar = tqdm(total=config.steps, initial=start, unit="step", desc=desc,
+                   disable=not progress or rank != 0, dynamic_ncols=True)  # fmt: skip
+        for step in range(start, config.steps):
+            t0 = time.perf_counter()
+            torch.manual_seed(step_seed(config.seed, step, rank) ^ 1)
+            lr = learning_rate(step, config)
+            loss, updated = update(
+                plan.net, optimizer, lambda s=step: plan.loss(forward, s), lr, plan.update_scale
+            )
+            if world > 1:
+                total = torch.tensor([loss], dtype=torch.float64)
+                dist.all_reduce(total)
+                loss = float(total) / world
+            seconds = time.perf_counter() - t0
+            elapsed += seconds
+            done = step + 1
+            final = done == config.steps
+            validating = bool(config.val_every) and (done % config.val_every == 0 or final)
+            saving = done % config.ckpt_every == 0 or final
+            if rank == 0:
+                record = {"step": done, "loss": loss, "lr": lr, "time": round(elapsed, 3),
+                          "step_seconds": round(seconds, 4)}  # fmt: skip
+                append_jsonl(run / "log.jsonl", record | ({} if updated else {"skipped": True}))
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss:.4g}", lr=f"{lr:.2e}")
+                if validating:
+                    last_val = plan.validate()
+                    append_jsonl(
+                        run / "val.jsonl", {"step": done, "time": round(elapsed, 3), **last_val}
+                    )
+                card = {**plan.card, "steps": done, "train_seconds": round(elapsed, 1),
+                        "validation": last_val}  # fmt: skip
+                if saving:
+                    base = checkpoint_base(run, done)
+                    plan.save(base, card)  # the network first: a .pt marks a complete checkpoint
+                    state = {"step": done, "elapsed": elapsed, "world_size": world,
+                             "model": plan.net.state_dict(),
+                             "optimizer": optimizer.state_dict()}  # fmt: skip
+                    with atomic_path(base.with_suffix(".pt")) as tmp:
+                        torch.save(state, tmp)
+                    prune_checkpoints(run, config.keep_checkpoints)
+                if final:
+                    plan.save(run / "model", card)
+            if world > 1 and (saving or validating):
+                dist.barrier()
+        bar.close()
+        return run / "model.safetensors"
+    finally:
+        if owns_group:
+            dist.destroy_process_group()

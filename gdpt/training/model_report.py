@@ -275,7 +275,8 @@ def ship_model(
     dest: str | Path | None = None,
 ) -> Path:
     """Copy a run's final network into the package as ``<dest>/<name>.safetensors`` + card
-    (a combiner also writes its base network as ``<dest>/<name>-base``).
+    (a network that builds on another checkpoint, a combiner, also writes that one as
+    ``<dest>/<name>-base``).
 
     The card adds to the run's own card: the dataset configuration and size (crops, scenes,
     held-out scenes), the wall-clock training time, the run's config, and ``comparison`` (from
@@ -292,30 +293,23 @@ def ship_model(
 
     Raises:
         FileNotFoundError: the run has no final model.
+        ValueError: the final model is of no known network family, or too large.
     """
     from gdpt.denoise import MODEL_DIR
-    from gdpt.reconstruct import combiner, oidn_ngpt
-    from gdpt.reconstruct.ngpt import load_checkpoint
-    from gdpt.training.checkpoint import save_checkpoint, write_checkpoint
+    from gdpt.reconstruct.families import family_of
+    from gdpt.training.checkpoint import write_checkpoint
 
     run = Path(run)
-    delta = oidn_ngpt.is_delta_card(run / "model.json")
-    combined = combiner.is_combiner_card(run / "model.json")
-    if delta:  # fine-tuned OIDN: shipped as the difference to Intel's weights
-        model, _, card = oidn_ngpt.load_model(run / "model.safetensors")
-    elif combined:  # a combiner: shipped with its base network as <name>-base
-        model, _, card, base_path = combiner.load_combiner(run / "model.safetensors")
-    else:
-        model, card = load_checkpoint(run / "model.safetensors")
+    family = family_of(run / "model.json")
+    model, design, card = family.load(run / "model.safetensors")
+    base_path = family.base(run / "model.json", card)
     log = read_jsonl(run / "log.jsonl")
     config = json.loads((run / "config.json").read_text())
     data = Path(config["data"]) / "dataset.json"
     manifest = read_jsonl(Path(config["data"]) / "manifest.jsonl")
     scenes = sorted({row["scene"] for row in manifest if "scene" in row})
     holdout = config.get("holdout_every") or HOLDOUT_EVERY
-    reserved = {"format", "config_name", "config", "features", "parameter_count"}
-    reserved |= {"design", "description", "base_weights", "base_model", "kernel", "widths"}
-    extra = {k: v for k, v in card.items() if k not in reserved}
+    extra = {k: v for k, v in card.items() if k not in family.card_keys}
     extra.update(
         name=name,
         wall_clock_hours=round(log[-1]["time"] / 3600, 3) if log else None,
@@ -338,17 +332,13 @@ def ship_model(
             "limit of shipped models"
         )
     target = Path(dest or MODEL_DIR) / name
-    if combined:
+    if base_path is not None:  # shipped next to it, under the name the card gives it
         base_target = target.with_name(f"{name}-base")
         write_checkpoint(
             base_target,
             base_path.with_suffix(".safetensors").read_bytes(),
             base_path.with_suffix(".json").read_text(),
         )
-        encoded = combiner.encode_combiner(model, card["design"], base_target.name, extra)
-        weights, _ = write_checkpoint(target, *encoded)
-    elif delta:
-        weights, _ = write_checkpoint(target, *oidn_ngpt.encode_delta(model, card["design"], extra))
-    else:
-        weights, _ = save_checkpoint(model, target, extra)
+        extra["base_model"] = base_target.name
+    weights, _ = write_checkpoint(target, *family.encode(model, design, extra))
     return weights

@@ -2,15 +2,18 @@
 
     RUN_DIR/config.json                     TrainConfig (written before any work)
     RUN_DIR/log.jsonl                       {"step", "loss", "lr", "time", "step_seconds"} per step
-    RUN_DIR/val.jsonl                       {"step", "time", "relmse", "flip", "l1_relmse",
-                                             "l1_flip", "count"} per validation
-    RUN_DIR/checkpoints/ckpt-0000100.safetensors/.json   network + model card (save_checkpoint)
-    RUN_DIR/checkpoints/ckpt-0000100.pt     optimizer state, step, elapsed time (written last)
+    RUN_DIR/val.jsonl                       {"step", "time", scores...} per validation (the
+                                             family's: "relmse", "flip", baselines, "count")
+    RUN_DIR/checkpoints/ckpt-0000100.safetensors/.json   network + model card (the family's
+                                                         checkpoint format)
+    RUN_DIR/checkpoints/ckpt-0000100.pt     exact weights, optimizer state, step, elapsed time,
+                                            world size (written last: marks a complete one)
     RUN_DIR/model.safetensors/.json         the final network
+    RUN_DIR/...                             a family's extra files (a combiner's base.*)
 
 ``step`` counts optimizer updates; ``log.jsonl`` line ``step = s`` is the loss of the batch of
 update ``s``. Files are replaced through :mod:`gdpt.io.atomic`, networks written by
-:mod:`gdpt.training.checkpoint`.
+:mod:`gdpt.training.checkpoint`; :mod:`gdpt.training.loop` writes the run.
 """
 
 from __future__ import annotations
@@ -20,11 +23,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import torch
-
-from gdpt.io.atomic import atomic_path, atomic_write
-from gdpt.reconstruct.dense_unet import DenseUNet
-from gdpt.training.checkpoint import save_checkpoint
+from gdpt.io.atomic import atomic_write
 from gdpt.training.config import TrainConfig, check_resume
 
 _CKPT_PREFIX = "ckpt-"
@@ -86,31 +85,6 @@ def latest_checkpoint(run: Path) -> tuple[int, Path] | None:
             step = int(base.name[len(_CKPT_PREFIX) :])
             best = max(best or (step, base), (step, base))
     return best
-
-
-def save_run_checkpoint(
-    run: Path,
-    model: DenseUNet,
-    optimizer: torch.optim.Optimizer,
-    step: int,
-    elapsed: float,
-    config: TrainConfig,
-    card: dict[str, Any],
-    world: int,
-) -> None:
-    """Checkpoint update ``step``: the network and its ``card`` first, then the ``.pt`` state
-    (optimizer, step, elapsed time, world size), then prune to ``keep_checkpoints``."""
-    base = checkpoint_base(run, step)
-    save_checkpoint(model, base, card)
-    state = {
-        "step": step,
-        "elapsed": elapsed,
-        "world_size": world,
-        "optimizer": optimizer.state_dict(),
-    }
-    with atomic_path(base.with_suffix(".pt")) as tmp:
-        torch.save(state, tmp)
-    prune_checkpoints(run, config.keep_checkpoints)
 
 
 def checkpoint_base(run: Path, step: int) -> Path:

@@ -1,11 +1,18 @@
-"""The loss of a batch and one optimizer update (Adam, ``gdpt-notes.md`` section 3.1).
+"""One optimizer update (every family), the optimizer, and the dense U-Net's batch loss.
 
-The network predicts in log space; the loss sees ``exp(y) - 1`` (linear HDR radiance) on the
-window interior without ``pad + vary_padding`` pixels on each side.
+The optimizer is Adam with NGPT's ``beta2 = 0.99`` (Kettunen et al. 2019; ``reconstruct/
+config.py`` of the public code, ``github.com/mkettune/ngpt``). :func:`update` is the step of
+:func:`gdpt.training.loop.training_loop`; an update whose gradients are not all finite is
+skipped (weights and Adam state stay as they were).
+
+The dense U-Net predicts in log space; its loss (:func:`compute_loss`) sees ``exp(y) - 1``
+(linear HDR radiance) on the window interior without ``pad + vary_padding`` pixels on each
+side.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import torch
@@ -16,15 +23,24 @@ from gdpt.reconstruct.transforms import OUTPUT_TRANSFORM
 if TYPE_CHECKING:
     from gdpt.training.config import TrainConfig
 
+#: ``(parameter, multiplier)``: the optimizer's change of the parameter is multiplied
+#: element-wise by ``multiplier`` (same shape and device).
+UpdateScale = tuple[nn.Parameter, torch.Tensor]
+
 
 def _interior(t: torch.Tensor, border: int) -> torch.Tensor:
     return t[..., border : t.shape[-2] - border, border : t.shape[-1] - border]
 
 
 def compute_loss(
-    model: nn.Module, loss_fn: nn.Module, x: torch.Tensor, target: torch.Tensor, border: int
+    model: Callable[[torch.Tensor], torch.Tensor],
+    loss_fn: nn.Module,
+    x: torch.Tensor,
+    target: torch.Tensor,
+    border: int,
 ) -> torch.Tensor:
-    """Loss of a batch: network in log space, ``exp(y) - 1``, interior without ``border``.
+    """Loss of a dense U-Net batch: network in log space, ``exp(y) - 1``, interior without
+    ``border``.
 
     Args:
         model: the network (or its DDP wrapper).
@@ -40,38 +56,45 @@ def compute_loss(
     return loss_fn(_interior(pred, border), _interior(target, border))
 
 
-def train_step(
-    model: nn.Module,
+def update(
+    net: nn.Module,
     optimizer: torch.optim.Optimizer,
-    loss_fn: nn.Module,
-    x: torch.Tensor,
-    target: torch.Tensor,
-    border: int,
+    loss_fn: Callable[[], torch.Tensor],
     lr: float,
+    update_scale: Sequence[UpdateScale] = (),
 ) -> tuple[float, bool]:
-    """One optimizer update at learning rate ``lr``.
+    """One optimizer update of ``net`` at learning rate ``lr``.
 
     Non-finite gradients (identical on every rank after DDP's all-reduce) skip the update.
 
+    Args:
+        net: the network whose parameters ``optimizer`` updates.
+        optimizer: its optimizer.
+        loss_fn: evaluates the loss of this update's batch (forward pass included).
+        lr: the learning rate of this update.
+        update_scale: :data:`UpdateScale` pairs (under Adam, per-weight learning-rate
+            multipliers).
+
     Returns:
-        ``(loss, updated)``: the loss of this process's batch before the update, and whether
-        the parameters changed.
+        ``(loss, updated)``: the loss before the update, and whether the parameters changed.
     """
     for group in optimizer.param_groups:
         group["lr"] = lr
     optimizer.zero_grad(set_to_none=True)
-    loss = compute_loss(model, loss_fn, x, target, border)
+    loss = loss_fn()
     loss.backward()
-    finite = all(
-        bool(torch.isfinite(p.grad).all()) for p in model.parameters() if p.grad is not None
-    )
+    finite = all(bool(torch.isfinite(p.grad).all()) for p in net.parameters() if p.grad is not None)
     if finite:
+        before = [p.detach().clone() for p, _ in update_scale]
         optimizer.step()
+        with torch.no_grad():
+            for (p, multiplier), old in zip(update_scale, before, strict=True):
+                p.copy_(old + (p - old) * multiplier)
     return float(loss.detach()), finite
 
 
 def make_optimizer(model: nn.Module, config: TrainConfig) -> torch.optim.Adam:
-    """Adam with the reference's ``beta2`` and ``eps``."""
+    """Adam with the run's ``lr``, ``beta1``, ``beta2`` and ``eps``."""
     return torch.optim.Adam(
         model.parameters(), lr=config.lr, betas=(config.beta1, config.beta2), eps=config.eps
     )

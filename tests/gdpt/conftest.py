@@ -10,7 +10,10 @@
   Read-only.
 * ``resume_after_a_lost_checkpoint``: a function ``(run, config, train)`` that deletes the
   checkpoint of step 3 (a run killed between steps 2 and 3), resumes with ``train`` and returns
-  the new log.
+  ``(log, before, after)``: the new log and the training states (``.pt`` payloads: exact
+  weights, optimizer state, step) of step 3 from the first run and from the resumed one.
+* ``assert_same_state``: a function ``(a, b)`` asserting that two such training states are
+  equal bit for bit (every tensor, every number), naming the first entry that differs.
 * ``tiny_run_config``: a factory ``(data, out, **changes)`` of
   :class:`~gdpt.training.config.TrainConfig` with a tiny schedule: 3 steps of batch 2, no
   warm-up, decay from step 1 with half-life 2, validation every 2 steps on 2 crops (so at
@@ -79,20 +82,56 @@ def pt_dataset(tmp_path_factory) -> Path:
     return root
 
 
-def _resume_after_a_lost_checkpoint(run: Path, config: TrainConfig, train: Callable) -> list[dict]:
-    """Delete ``run``'s checkpoint of step 3 (killed before writing it), resume, return the log."""
+def _resume_after_a_lost_checkpoint(
+    run: Path, config: TrainConfig, train: Callable
+) -> tuple[list[dict], dict, dict]:
+    """Delete ``run``'s checkpoint of step 3 (killed before writing it), resume; return the new
+    log and the step-3 training states before and after."""
+    import torch
+
     from gdpt.training.run_dir import read_jsonl
 
+    state = run / "checkpoints" / "ckpt-0000003.pt"
+
+    def training_state() -> dict:  # the training time ("elapsed") is not part of it
+        payload = torch.load(state, weights_only=True)
+        return {k: payload[k] for k in ("step", "model", "optimizer")}
+
+    before = training_state()
     for suffix in (".pt", ".safetensors", ".json"):
-        (run / "checkpoints" / f"ckpt-0000003{suffix}").unlink()
+        state.with_suffix(suffix).unlink()
     train(config, resume=True, progress=False)
-    return read_jsonl(run / "log.jsonl")
+    return read_jsonl(run / "log.jsonl"), before, training_state()
 
 
 @pytest.fixture(scope="session")
-def resume_after_a_lost_checkpoint() -> Callable[..., list[dict]]:
+def resume_after_a_lost_checkpoint() -> Callable[..., tuple[list[dict], dict, dict]]:
     """:func:`_resume_after_a_lost_checkpoint`, as a fixture."""
     return _resume_after_a_lost_checkpoint
+
+
+def _assert_same_state(a: object, b: object, where: str = "state") -> None:
+    """Assert that two nested training states (dicts, lists, tensors, numbers) are identical."""
+    import torch
+
+    if isinstance(a, torch.Tensor):
+        assert isinstance(b, torch.Tensor) and torch.equal(a, b), f"{where} differs"
+    elif isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), f"{where}: keys differ"
+        for key in a:
+            _assert_same_state(a[key], b[key], f"{where}[{key!r}]")
+    elif isinstance(a, list | tuple):
+        assert type(a) is type(b) and len(a) == len(b), f"{where}: lengths differ"
+        for index, (x, y) in enumerate(zip(a, b, strict=True)):
+            _assert_same_state(x, y, f"{where}[{index}]")
+    else:
+        assert a == b, f"{where}: {a!r} != {b!r}"
+
+
+@pytest.fixture(scope="session")
+def assert_same_state() -> Callable[[object, object], None]:
+    """:func:`_assert_same_state`, as a fixture."""
+    return _assert_same_state
 
 
 def make_tiny_run_config(data: Path, out: Path, **changes) -> TrainConfig:

@@ -218,12 +218,12 @@ def test_corrupt_checkpoint_exits_2_naming_the_file(render, tmp_path, corrupt_ch
 
 
 def test_config_options_expose_every_field_with_the_dataclass_defaults(monkeypatch):
+    from gdpt.reconstruct.combiner import COMBINER_LOSSES
     from gdpt.reconstruct.losses import LOSSES
+    from gdpt.reconstruct.oidn_ngpt import FINETUNE_LOSSES
 
-    from gdpt.training.combine import COMBINER_LOSSES
     from gdpt.training.config import TrainConfig
     from gdpt.training.dataset import DatasetConfig
-    from gdpt.training.finetune import FINETUNE_LOSSES
 
     parser = build_parser()
     args = parser.parse_args(["train", "--config", "fast_xs", "--data", "d", "--out", "o"])

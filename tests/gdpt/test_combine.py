@@ -14,12 +14,13 @@ from gdpt.reconstruct.combiner import (
     CombinerReconstructor,
     combine,
     combiner_input,
+    combiner_loss,
     load_combiner,
 )
 from gdpt.reconstruct.oidn_ngpt import DESIGNS, OIDNReconstructor, base_model, encode_delta
 
 from gdpt.training.checkpoint import write_checkpoint
-from gdpt.training.combine import CandidateCache, combiner_loss, make_combiner_batch
+from gdpt.training.combine import CandidateCache, make_combiner_batch
 from gdpt.training.config import TrainConfig
 from gdpt.training.dataset import CropDataset
 from gdpt.training.model_report import ship_model
@@ -93,7 +94,7 @@ def test_an_unknown_relative_term_is_refused():
 
 
 def test_run_directory_is_a_complete_model_and_resumes_exactly(
-    pt_dataset, tiny, tmp_path, resume_after_a_lost_checkpoint
+    pt_dataset, tiny, tmp_path, resume_after_a_lost_checkpoint, assert_same_state
 ):
     run = tmp_path / "run"
     config = tiny(pt_dataset, run)
@@ -109,9 +110,10 @@ def test_run_directory_is_a_complete_model_and_resumes_exactly(
     item = CropDataset(pt_dataset)[0]["inputs"]
     assert torch.isfinite(CombinerReconstructor.from_checkpoint(run / "model.json")(item)).all()
 
-    resumed = resume_after_a_lost_checkpoint(run, config, train)
+    resumed, before, after = resume_after_a_lost_checkpoint(run, config, train)
     assert [r["step"] for r in resumed] == [1, 2, 3]
     assert resumed[2]["loss"] == log[2]["loss"]
+    assert_same_state(before, after)  # weights and Adam state, bit for bit
     again, _, _, _ = load_combiner(run / "model.safetensors")
     for k, v in net.state_dict().items():
         assert torch.equal(again.state_dict()[k], v), k

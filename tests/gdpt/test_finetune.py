@@ -1,4 +1,5 @@
-"""gdpt.training.finetune: OIDN fine-tuning learns, writes its run directory, resumes exactly."""
+"""gdpt.training.finetune: OIDN fine-tuning (the ``oidn-finetune`` family's plan) learns, writes
+its run directory, resumes exactly."""
 
 from __future__ import annotations
 
@@ -56,7 +57,9 @@ def test_three_steps_on_a_fixed_batch_reduce_the_loss(data, tiny, tmp_path, name
     assert losses[3] < losses[2] < losses[1] < losses[0], losses
 
 
-def test_run_directory_and_exact_resume(data, tiny, tmp_path, resume_after_a_lost_checkpoint):
+def test_run_directory_and_exact_resume(
+    data, tiny, tmp_path, resume_after_a_lost_checkpoint, assert_same_state
+):
     run = tmp_path / "run"
     config = tiny(data, run)
     train(config, progress=False)
@@ -68,9 +71,10 @@ def test_run_directory_and_exact_resume(data, tiny, tmp_path, resume_after_a_los
     net, design, card = load_model(run / "model.safetensors")
     assert design == DESIGNS["oidn-grad"] and card["steps"] == 3 and card["validation"]
 
-    resumed = resume_after_a_lost_checkpoint(run, config, train)
+    resumed, before, after = resume_after_a_lost_checkpoint(run, config, train)
     assert [r["step"] for r in resumed] == [1, 2, 3]
     assert resumed[2]["loss"] == log[2]["loss"]
+    assert_same_state(before, after)  # weights and Adam state, bit for bit
     again, _, _ = load_model(run / "model.safetensors")
     for k, v in net.state_dict().items():
         assert torch.equal(again.state_dict()[k], v), k

@@ -1,5 +1,6 @@
-"""gdpt.training (augment, schedule, batches, step, config, run_dir, train): gradient-correct
-augmentations, schedule, learning, exact resume, DDP, run dirs."""
+"""gdpt.training (augment, schedule, batches, step, config, run_dir, loop, train, dense):
+gradient-correct augmentations, schedule, learning, the family dispatch, exact resume, DDP, run
+dirs."""
 
 from __future__ import annotations
 
@@ -25,8 +26,8 @@ from gdpt.training.config import ConfigMismatchError, TrainConfig
 from gdpt.training.dataset import CropDataset
 from gdpt.training.run_dir import read_jsonl
 from gdpt.training.schedule import learning_rate
-from gdpt.training.step import make_optimizer, train_step
-from gdpt.training.train import train
+from gdpt.training.step import compute_loss, make_optimizer, update
+from gdpt.training.train import PLANS, train
 
 H = W = 8
 
@@ -168,12 +169,56 @@ def test_three_steps_on_a_fixed_batch_reduce_the_loss(data, tiny, tmp_path):
     optimizer = make_optimizer(model, config)
     loss_fn = get_loss("l1")
     losses = [
-        train_step(model, optimizer, loss_fn, x, target, border=10, lr=1e-3)[0] for _ in range(4)
+        update(model, optimizer, lambda: compute_loss(model, loss_fn, x, target, 10), lr=1e-3)[0]
+        for _ in range(4)
     ]
     assert losses[3] < losses[2] < losses[1] < losses[0], losses
 
 
-def test_run_directory_and_exact_resume(data, tiny, tmp_path, resume_after_a_lost_checkpoint):
+def test_an_update_with_non_finite_gradients_is_skipped():
+    net = torch.nn.Linear(2, 1)
+    optimizer = torch.optim.Adam(net.parameters())
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+    loss, updated = update(net, optimizer, lambda: net(torch.tensor([[math.inf, 1.0]])).sum(), 1.0)
+    assert not updated and not math.isfinite(loss)
+    assert all(torch.equal(v, before[k]) for k, v in net.state_dict().items())
+    assert not optimizer.state  # Adam has not counted the update
+
+
+def test_update_scale_multiplies_the_change_of_a_parameter():
+    torch.manual_seed(0)
+    plain, scaled = torch.nn.Linear(3, 1), torch.nn.Linear(3, 1)
+    scaled.load_state_dict(plain.state_dict())
+    x, multiplier = torch.rand(4, 3), torch.tensor([[2.0, 0.0, 1.0]])
+    changes = []
+    for net, scale in ((plain, ()), (scaled, [(scaled.weight, multiplier)])):
+        start = net.weight.detach().clone()
+        optimizer = torch.optim.SGD(net.parameters())
+        update(net, optimizer, lambda n=net: n(x).square().sum(), 0.1, scale)
+        changes.append(net.weight.detach() - start)
+    assert (changes[0] != 0).all()
+    torch.testing.assert_close(changes[1], changes[0] * multiplier)
+
+
+def test_every_family_has_a_training_plan():
+    from gdpt.reconstruct.families import FAMILIES
+
+    assert list(PLANS) == list(FAMILIES)
+
+
+def test_an_unknown_design_or_a_loss_of_another_family_is_refused_before_any_file(
+    data, tiny, tmp_path
+):
+    with pytest.raises(ValueError, match="unknown network design 'no-such'.*dense-unet: paper"):
+        train(tiny(data, tmp_path / "a", model="no-such"), progress=False)
+    with pytest.raises(ValueError, match="loss 'l1_rel' does not apply to fast_xs.*dense-unet"):
+        train(tiny(data, tmp_path / "b", loss="l1_rel"), progress=False)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_run_directory_and_exact_resume(
+    data, tiny, tmp_path, resume_after_a_lost_checkpoint, assert_same_state
+):
     run = tmp_path / "run"
     config = tiny(data, run)
     train(config, progress=False)
@@ -188,10 +233,10 @@ def test_run_directory_and_exact_resume(data, tiny, tmp_path, resume_after_a_los
     card = json.loads((run / "model.json").read_text())
     assert card["config_name"] == "fast_xs" and card["steps"] == 3 and card["validation"]
 
-    resumed = resume_after_a_lost_checkpoint(run, config, train)
+    resumed, before, after = resume_after_a_lost_checkpoint(run, config, train)
     assert [r["step"] for r in resumed] == [1, 2, 3]
-    assert resumed[2]["loss"] == pytest.approx(log[2]["loss"], rel=1e-6, abs=0)
-    assert resumed[2]["lr"] == log[2]["lr"]
+    assert resumed[2]["loss"] == log[2]["loss"] and resumed[2]["lr"] == log[2]["lr"]
+    assert_same_state(before, after)  # weights and Adam state, bit for bit
 
 
 def test_resume_with_another_config_is_refused(data, tiny, tmp_path, capsys):

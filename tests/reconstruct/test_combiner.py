@@ -98,7 +98,7 @@ def checkpoint(tmp_path):
     net = CombinerNet(design.in_channels, len(design.candidate_names))
     with torch.no_grad():
         net.head.weight.normal_(0.0, 0.5, generator=torch.Generator().manual_seed(4))
-    weights, text = encode_combiner(net, "combiner-grad", "base", {"steps": 7})
+    weights, text = encode_combiner(net, "combiner-grad", {"base_model": "base", "steps": 7})
     (tmp_path / "m.safetensors").write_bytes(weights)
     (tmp_path / "m.json").write_text(text)
     return tmp_path / "m.safetensors", net
