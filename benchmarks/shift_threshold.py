@@ -40,7 +40,6 @@ def main() -> None:
     import mitsuba as mi
 
     import gdpt
-    from gdpt.denoise import reconstruct
     from gdpt.metrics import relmse
     from gdpt.scene_io import load_scene
     from gdpt.scenes import builtin_scene
@@ -72,7 +71,7 @@ def main() -> None:
             seconds, b = run(t, 1 + r)
             dx, dy = b.dx.numpy()[:, :-1], b.dy.numpy()[:-1]
             mse = 0.5 * (np.mean((dx - ref_dx) ** 2) + np.mean((dy - ref_dy) ** 2))
-            image = reconstruct(b, method="l1").cpu()
+            image = gdpt.reconstruct_image(b, method="l1").cpu()
             import torch
 
             stats[t]["seconds"].append(seconds)

@@ -9,9 +9,11 @@ use; submodules keep their own names (no function shadows a module)::
     gdpt.set_variant()                      # cuda_ad_rgb if available, else llvm_ad_rgb
     buffers = gdpt.render("scene.xml", spp=64)   # or gdpt.load_buffers("render.exr")
     image = gdpt.render_and_denoise("scene.xml", spp=64, method="l1").image
+    image = gdpt.reconstruct_image(buffers, method="oidn")   # reconstruct existing buffers
 
-Reconstruction of existing buffers is :func:`gdpt.denoise.reconstruct` (``gdpt.reconstruct`` is
-the subpackage of reconstruction algorithms: Poisson solvers, networks, losses).
+:func:`reconstruct_image` is the one reconstruction call (methods: :data:`gdpt.denoise.METHODS`);
+``gdpt.reconstruct`` is the subpackage of reconstruction algorithms (Poisson solvers, networks,
+losses).
 
 The pipeline, one module per stage: :mod:`gdpt.scene_io` (load a scene) ->
 :mod:`gdpt.rendering` (integrator -> :class:`~gdpt.buffers.GradientBuffers`) ->
@@ -35,6 +37,7 @@ _LAZY: dict[str, str] = {
     "set_variant": "gdpt.backend",
     "render": "gdpt.rendering",
     "render_and_denoise": "gdpt.rendering",
+    "reconstruct_image": "gdpt.denoise",
 }
 
 __all__ = [
@@ -42,6 +45,7 @@ __all__ = [
     "__version__",
     "load_buffers",
     "load_scene",
+    "reconstruct_image",
     "render",
     "render_and_denoise",
     "save_buffers",
@@ -51,6 +55,7 @@ __all__ = [
 if TYPE_CHECKING:
     from gdpt.backend import set_variant
     from gdpt.buffers import GradientBuffers
+    from gdpt.denoise import reconstruct_image
     from gdpt.io.exr import load_buffers, save_buffers
     from gdpt.rendering import render, render_and_denoise
     from gdpt.scene_io import load_scene

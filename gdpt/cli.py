@@ -26,6 +26,7 @@ from pathlib import Path
 
 from gdpt.cli_config import add_config_arguments, config_from_args
 from gdpt.denoise import METHODS
+from gdpt.scene_io import DEFAULT_MAX_DEPTH
 from gdpt.version import __version__
 
 
@@ -90,9 +91,14 @@ def _run_info(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------------- reconstruct
 def _add_reconstruct_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", type=Path, help="an EXR file with primal, dx and dy buffers")
     parser.add_argument(
-        "--method", choices=list(METHODS), default="l1", help="reconstruction (default: l1)"
+        "file", type=Path, help="an EXR file of buffers (gdpt render): what --method reads"
+    )
+    parser.add_argument(
+        "--method",
+        choices=list(METHODS),
+        default="l1",
+        help="reconstruction, as gdpt.reconstruct_image (default: l1)",
     )
     parser.add_argument(
         "--alpha", type=float, default=0.2, help="weight of the primal term (default: 0.2)"
@@ -108,7 +114,7 @@ def _add_reconstruct_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_reconstruct(args: argparse.Namespace) -> int:
-    from gdpt.denoise import reconstruct
+    from gdpt.denoise import reconstruct_image
     from gdpt.io.exr import check_writable, load_buffers, save_image
     from gdpt.io.images import preview_path, save_png
 
@@ -122,7 +128,7 @@ def _run_reconstruct(args: argparse.Namespace) -> int:
 
     buffers = load_buffers(args.file)
     options = {"model": args.model} if args.model is not None else {}
-    image = reconstruct(buffers, method=args.method, alpha=args.alpha, **options)
+    image = reconstruct_image(buffers, method=args.method, alpha=args.alpha, **options)
     metadata = {
         "source": str(args.file),
         "method": args.method,
@@ -140,15 +146,65 @@ def _run_reconstruct(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------------- render
-def _add_render_arguments(parser: argparse.ArgumentParser) -> None:
+def _add_scene_arguments(parser: argparse.ArgumentParser) -> None:
+    """The scene and sampling options shared by ``render`` and ``render-and-denoise``."""
     parser.add_argument(
         "scene", help="Mitsuba XML file, builtin:NAME or random:SEED[:VIEW] (see gdpt.scene_io)"
     )
-    parser.add_argument("-o", "--output", type=Path, required=True, help="output buffers EXR")
     parser.add_argument("--spp", type=int, default=64, help="samples per pixel (default: 64)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     parser.add_argument("--integrator", choices=["gdpt", "gdpt_rr"], default="gdpt")
-    parser.add_argument("--max-depth", type=int, default=6, help="longest path (default: 6)")
+    parser.add_argument(
+        "--max-depth",
+        type=int,
+        help="longest path, -1: unbounded (default: the scene's integrator max_depth, else "
+        f"{DEFAULT_MAX_DEPTH})",
+    )
+    parser.add_argument(
+        "--box-filter",
+        action="store_true",
+        help="XML scenes: replace the film's pixel filter (Mitsuba's default is Gaussian) by "
+        "the box filter gradient-domain rendering needs",
+    )
+    parser.add_argument(
+        "--long-side",
+        type=int,
+        help="rescale the film to this many pixels on its long side (XML: aspect ratio kept; "
+        "builtin:/random: square)",
+    )
+
+
+def _load_scene(args: argparse.Namespace) -> tuple[object, int]:
+    """The scene of ``args`` (:func:`gdpt.scene_io.read_scene` with ``--box-filter`` and
+    ``--long-side``) and the max depth to render with; prints what loading changed and where
+    the depth comes from.
+
+    Raises:
+        UsageError: a bad option value, or a film without a box filter and no ``--box-filter``.
+    """
+    from gdpt.scene_io import BOX_FILTER, choose_max_depth, read_scene
+
+    if args.spp < 1:
+        raise UsageError(f"--spp must be >= 1, got {args.spp}")
+    if args.long_side is not None and args.long_side < 1:
+        raise UsageError(f"--long-side must be >= 1, got {args.long_side}")
+    if args.max_depth is not None and args.max_depth < -1:
+        raise UsageError(f"--max-depth must be -1 (unbounded) or >= 0, got {args.max_depth}")
+    loaded = read_scene(args.scene, box_filter=args.box_filter, long_side=args.long_side)
+    if loaded.original_filter != BOX_FILTER and not args.box_filter:
+        raise UsageError(
+            f"{args.scene}: the film's pixel filter is '{loaded.original_filter}', "
+            "gradient-domain rendering needs a box filter: add --box-filter to replace it"
+        )
+    depth, note = choose_max_depth(args.max_depth, loaded.max_depth, option="--max-depth")
+    for line in [*loaded.notes, note]:
+        print(f"{args.scene}: {line}")
+    return loaded.scene, depth
+
+
+def _add_render_arguments(parser: argparse.ArgumentParser) -> None:
+    _add_scene_arguments(parser)
+    parser.add_argument("-o", "--output", type=Path, required=True, help="output buffers EXR")
     parser.add_argument("--no-gradients", action="store_true", help="plain path tracing")
     parser.add_argument(
         "--primal-spp",
@@ -166,19 +222,18 @@ def _run_render(args: argparse.Namespace) -> int:
     from gdpt.io.exr import check_writable, save_buffers
     from gdpt.io.images import preview_path, save_png
     from gdpt.rendering import render
-    from gdpt.scene_io import load_scene
 
     if args.output.suffix.lower() != ".exr":
         raise UsageError(f"output must be an .exr file, got '{args.output}'")
     check_writable(args.output, force=args.force)
-    scene = load_scene(args.scene)
+    scene, max_depth = _load_scene(args)
     buffers = render(
         scene,
         spp=args.spp,
         seed=args.seed,
         integrator=args.integrator,
         progress=True,
-        max_depth=args.max_depth,
+        max_depth=max_depth,
         gradients=not args.no_gradients,
         variance=args.variance,
         primal_spp=args.primal_spp,
@@ -187,6 +242,82 @@ def _run_render(args: argparse.Namespace) -> int:
     save_buffers(args.output, buffers, half=args.half, force=args.force)
     save_png(preview_path(args.output), buffers.primal, force=True)
     print(f"wrote {args.output} ({buffers.metadata['render_seconds']:.2f} s)")
+    return 0
+
+
+# -------------------------------------------------------------------------- render-and-denoise
+def _add_render_and_denoise_arguments(parser: argparse.ArgumentParser) -> None:
+    _add_scene_arguments(parser)
+    parser.add_argument(
+        "--method",
+        choices=list(METHODS),
+        default="l1",
+        help="reconstruction (default: l1); the render has the buffers it reads",
+    )
+    parser.add_argument(
+        "--alpha", type=float, default=0.2, help="weight of the primal term (default: 0.2)"
+    )
+    parser.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        required=True,
+        help="output RGB EXR (R, G, B channels); a PNG preview is written next to it",
+    )
+    parser.add_argument(
+        "--save-buffers", type=Path, metavar="PATH", help="also write the render's buffers (EXR)"
+    )
+    parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
+
+
+def _run_render_and_denoise(args: argparse.Namespace) -> int:
+    from gdpt.io.exr import check_writable, save_buffers, save_image
+    from gdpt.io.images import preview_path, save_png
+    from gdpt.rendering import render_and_denoise
+
+    if not (math.isfinite(args.alpha) and args.alpha > 0):
+        raise UsageError(f"--alpha must be a finite number > 0, got {args.alpha}")
+    if reason := METHODS[args.method].check():
+        raise UsageError(f"--method {args.method} cannot run here: {reason}")
+    outputs = {"--output": args.output, "--save-buffers": args.save_buffers}
+    for option, path in outputs.items():
+        if path is not None and path.suffix.lower() != ".exr":
+            raise UsageError(f"{option} must be an .exr file, got '{path}'")
+        if path is not None and not path.parent.is_dir():
+            raise UsageError(f"{option} {path}: the folder {path.parent} does not exist")
+    if args.save_buffers is not None and args.save_buffers.resolve() == args.output.resolve():
+        raise UsageError(f"--save-buffers and --output are the same file: {args.output}")
+    for path in (args.output, preview_path(args.output), args.save_buffers):
+        if path is not None:  # fail before the render
+            check_writable(path, force=args.force)
+    scene, max_depth = _load_scene(args)
+
+    result = render_and_denoise(
+        scene,
+        spp=args.spp,
+        method=args.method,
+        seed=args.seed,
+        alpha=args.alpha,
+        progress=True,
+        integrator=args.integrator,
+        max_depth=max_depth,
+    )
+    metadata = {
+        "scene": args.scene,
+        "method": args.method,
+        "alpha": args.alpha,
+        "spp": args.spp,
+        "timings": result.timings,
+        "render": result.buffers.metadata,
+    }
+    save_image(args.output, result.image, metadata=metadata, force=args.force)
+    print(f"wrote {args.output}")
+    print(f"wrote {save_png(preview_path(args.output), result.image, force=args.force)}")
+    if args.save_buffers is not None:
+        save_buffers(args.save_buffers, result.buffers, force=args.force)
+        print(f"wrote {args.save_buffers}")
+    times = ", ".join(f"{k} {v:.2f} s" for k, v in result.timings.items())
+    print(f"timings: {times} (render includes kernel compilation)")
     return 0
 
 
@@ -531,6 +662,12 @@ COMMANDS: tuple[Command, ...] = (
         _run_reconstruct,
     ),
     Command("render", "render gradient-domain buffers to EXR", _add_render_arguments, _run_render),
+    Command(
+        "render-and-denoise",
+        "render and reconstruct in one go: image EXR + PNG preview (gdpt.render_and_denoise)",
+        _add_render_and_denoise_arguments,
+        _run_render_and_denoise,
+    ),
     Command(
         "demo", "every method on a built-in scene at equal time", _add_demo_arguments, _run_demo
     ),

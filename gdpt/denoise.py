@@ -11,10 +11,14 @@ those. Registered:
   ``$GDPT_NGPT_MODEL``, or shipped in ``gdpt/models/``: a dense U-Net
   (:mod:`gdpt.reconstruct.ngpt`) or OIDN's U-Net fine-tuned with gradient inputs
   (:mod:`gdpt.reconstruct.oidn_ngpt`, a delta to Intel's weights read from ``pyoidn``).
+* ``'oidn'``: Intel Open Image Denoise on the primal with albedo and normal (no gradients),
+  :func:`oidn_denoise`: ``pyoidn`` on CPU tensors, OIDN's U-Net in torch
+  (:mod:`gdpt.reconstruct.oidn_unet`, Intel's weights) on CUDA tensors.
 
-To add a method, write ``f(buffers, *, alpha, **options) -> (H, W, 3) tensor`` and
-``METHODS.register(name, Method(f, gradients=..., features=...))``, or register a trained
-checkpoint with :func:`register_checkpoint`; the CLI, the API and the study
+Reconstruct with :func:`reconstruct_image` (``gdpt.reconstruct_image``; :func:`reconstruct` is
+its deprecated old name). To add a method, write ``f(buffers, *, alpha, **options) -> (H, W, 3)
+tensor`` and ``METHODS.register(name, Method(f, gradients=..., features=...))``, or register a
+trained checkpoint with :func:`register_checkpoint`; the CLI, the API and the study
 (:mod:`gdpt.study.methods`, :func:`gdpt.study.methods.register_denoiser`) offer every registered
 name.
 """
@@ -199,6 +203,95 @@ def _ngpt_check(name: str) -> str | None:
         return str(err)
 
 
+#: Backends of :func:`oidn_denoise`.
+OIDN_BACKENDS = ("auto", "pyoidn", "torch")
+
+
+def oidn_check() -> str | None:
+    """``None`` when Intel Open Image Denoise (``pyoidn``, which also holds the weights of the
+    torch port) can run here, else why not."""
+    if importlib.util.find_spec("pyoidn") is None:
+        return "pyoidn is not installed (pip install pyoidn)"
+    return None
+
+
+def oidn_denoise(
+    primal: torch.Tensor,
+    albedo: torch.Tensor,
+    normal: torch.Tensor,
+    *,
+    backend: str = "auto",
+    weights: str | os.PathLike | None = None,
+) -> torch.Tensor:
+    """OIDN's ``RT`` filter, HDR, quality ``high``, with albedo and normal (Intel Open Image
+    Denoise, https://github.com/RenderKit/oidn).
+
+    Colour is clamped to >= 0, albedo to [0, 1] and normals to [-1, 1] as OIDN expects.
+
+    Args:
+        primal: ``(H, W, 3)`` float32 linear radiance, on the CPU or a CUDA device.
+        albedo: ``(H, W, 3)`` float32 albedo, same device.
+        normal: ``(H, W, 3)`` float32 normals in [-1, 1], same device.
+        backend: ``"pyoidn"``: ``pyoidn.denoise`` on the tensors' device (its CPU device, or
+            its own CUDA device for CUDA tensors); ``"torch"``: OIDN's U-Net re-implemented in
+            torch (:func:`gdpt.reconstruct.oidn_unet.denoise`, Intel's weights, agrees with
+            pyoidn to 1e-4 relative), run on the tensors' device without a host round trip;
+            ``"auto"``: ``pyoidn`` on the CPU, ``torch`` on CUDA (and wherever ``weights``
+            is given).
+        weights: the torch port only: a ``.tza`` file of Intel's ``rt_hdr_alb_nrm`` weights
+            (from https://github.com/RenderKit/oidn-weights), for machines without ``pyoidn``
+            (which otherwise supplies them).
+
+    Returns:
+        ``(H, W, 3)`` float32 on the device of ``primal``, no gradients.
+
+    Raises:
+        ValueError: unknown ``backend``, or ``weights`` with ``backend="pyoidn"``.
+        RuntimeError: ``pyoidn`` is needed (its package or weights) and not installed.
+    """
+    if backend not in OIDN_BACKENDS:
+        raise ValueError(f"oidn backend must be one of {', '.join(OIDN_BACKENDS)}, got {backend!r}")
+    if backend == "pyoidn" and weights is not None:
+        raise ValueError("oidn: weights= is an option of the torch backend, not of pyoidn")
+    import torch
+
+    if backend == "auto":
+        backend = "pyoidn" if primal.device.type == "cpu" and weights is None else "torch"
+    if backend == "torch":
+        from gdpt.reconstruct.oidn_unet import denoise
+
+        with torch.inference_mode():
+            return denoise(primal, albedo, normal, weights=weights, hdr=True, quality="high")
+    if reason := oidn_check():
+        raise RuntimeError(reason)
+    import pyoidn  # noqa: PLC0415 (optional dependency)
+
+    out = pyoidn.denoise(
+        primal.clamp_min(0.0).contiguous(),
+        albedo.clamp(0.0, 1.0).contiguous(),
+        normal.clamp(-1.0, 1.0).contiguous(),
+        hdr=True,
+        quality="high",
+    )
+    return torch.as_tensor(out, device=primal.device)
+
+
+def _oidn(buffers: GradientBuffers, *, alpha: float, **options: Any) -> torch.Tensor:
+    """:func:`oidn_denoise` of a render's primal, albedo and normal (``alpha`` does not apply;
+    ``options``: ``backend``, ``weights``).
+
+    Raises:
+        ValueError: the render has no albedo or normal (rendered with ``features=False``).
+    """
+    if missing := [n for n in ("albedo", "normal") if getattr(buffers, n) is None]:
+        raise ValueError(
+            f"method 'oidn' needs the {' and '.join(missing)} buffer{'s' * (len(missing) > 1)}; "
+            "this render has none: render with the integrator option features=True "
+            "(the default of gdpt.render and 'gdpt render')"
+        )
+    return oidn_denoise(buffers.primal, buffers.albedo, buffers.normal, **options)
+
+
 #: Method name -> :class:`Method`, in registration order.
 METHODS: Registry[Method] = Registry("reconstruction method")
 for _name, _detail in (
@@ -231,6 +324,16 @@ METHODS.register(
         True,
         "the NGPT ablation network trained without gradients",
         partial(_ngpt_check, "ngpt-nograd"),
+    ),
+)
+METHODS.register(
+    "oidn",
+    Method(
+        _oidn,
+        False,
+        True,
+        "Intel Open Image Denoise (pyoidn; albedo + normal, HDR, quality high)",
+        oidn_check,
     ),
 )
 
@@ -273,17 +376,19 @@ def register_checkpoint(name: str, path: str | os.PathLike) -> Method:
     )
 
 
-def reconstruct(
+def reconstruct_image(
     buffers: GradientBuffers, method: str = "l1", *, alpha: float = 0.2, **options: Any
 ) -> torch.Tensor:
-    """Reconstruct the final image from a gradient-domain render.
+    """Reconstruct the final image from a render (``gdpt.reconstruct_image``).
 
     Args:
-        buffers (GradientBuffers): the render; the Poisson methods need ``dx`` and ``dy``.
-        method (str): a key of :data:`METHODS` (``'l1'``, ``'l2'``, ...).
+        buffers (GradientBuffers): the render; the Poisson methods need ``dx`` and ``dy``,
+            ``oidn`` and the networks the features.
+        method (str): a key of :data:`METHODS` (``'l1'``, ``'l2'``, ``'oidn'``, ...).
         alpha (float): weight of the primal term relative to the gradient terms (screened
             Poisson); methods that have no such weight ignore it.
-        **options: method-specific options, passed through unchanged.
+        **options: method-specific options, passed through unchanged (``model=PATH`` for a
+            network, ``backend=`` for ``oidn``, solver options for the Poisson methods).
 
     Returns:
         ``(H, W, 3)`` float32 tensor on ``buffers.device``.
@@ -293,3 +398,19 @@ def reconstruct(
     """
     METHODS.check([method])
     return METHODS[method].run(buffers, alpha=alpha, **options)
+
+
+def reconstruct(
+    buffers: GradientBuffers, method: str = "l1", *, alpha: float = 0.2, **options: Any
+) -> torch.Tensor:
+    """Deprecated name of :func:`reconstruct_image` (same arguments and result); warns.
+
+    Raises:
+        ValueError: as :func:`reconstruct_image`.
+    """
+    warnings.warn(
+        "gdpt.denoise.reconstruct is deprecated; use gdpt.reconstruct_image (same arguments)",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    return reconstruct_image(buffers, method, alpha=alpha, **options)

@@ -1,7 +1,7 @@
 """Rendering gradient-domain buffers in-process: scene -> :class:`GradientBuffers` -> image.
 
 :func:`render` samples a scene (loaded by :func:`gdpt.scene_io.load_scene`) with ``gdpt`` or
-``gdpt_rr``; :func:`render_and_denoise` also reconstructs (:func:`gdpt.denoise.reconstruct`).
+``gdpt_rr``; :func:`render_and_denoise` also reconstructs (:func:`gdpt.reconstruct_image`).
 
 Sampling (Dr.Jit) and reconstruction (torch) run in the same process. The integrator's output
 tensor is handed to torch through DLPack without a copy (on a CUDA variant it stays on the GPU);
@@ -246,7 +246,7 @@ def render_and_denoise(
     Raises:
         ValueError: unknown ``method``, or ``props`` turn off a buffer the method needs.
     """
-    from gdpt.denoise import METHODS, reconstruct
+    from gdpt.denoise import METHODS, reconstruct_image
 
     METHODS.check([method])
     props = {**METHODS[method].sampling(spp), **props}
@@ -254,7 +254,7 @@ def render_and_denoise(
     buffers = render(scene, spp=spp, seed=seed, progress=progress, **props)
     t_render = time.perf_counter() - start
     t0 = time.perf_counter()
-    image = reconstruct(buffers, method=method, alpha=alpha)
+    image = reconstruct_image(buffers, method=method, alpha=alpha)
     if image.is_cuda:
         torch.cuda.synchronize(image.device)
     t_rec = time.perf_counter() - t0

@@ -9,7 +9,9 @@ A scene source is one of:
 
 Gradient-domain rendering needs a box pixel filter; Mitsuba XML scenes usually use the default
 Gaussian one. ``box_filter=True`` replaces it explicitly and ``long_side`` resizes the film; every
-change made is listed in :attr:`LoadedScene.notes` for the caller to report.
+change made is listed in :attr:`LoadedScene.notes` for the caller to report. The path length
+to render with is the caller's, else the scene's own integrator ``max_depth``, else
+:data:`DEFAULT_MAX_DEPTH` (:func:`choose_max_depth`).
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ BOX_FILTER = "box"
 _DEFAULT_FILM = {"width": 768, "height": 576}
 #: Source prefixes of the generated scenes.
 GENERATED_PREFIXES = ("builtin:", "random:")
+#: Longest path when neither the caller nor the scene's integrator sets one.
+DEFAULT_MAX_DEPTH = 6
 
 
 @dataclass
@@ -63,6 +67,28 @@ def load_scene(source: Any, *, box_filter: bool = False, long_side: int | None =
             ``builtin:``/``random:`` specification.
     """
     return read_scene(source, box_filter=box_filter, long_side=long_side).scene
+
+
+def choose_max_depth(
+    requested: int | None, scene_depth: int | None, *, option: str = "configured"
+) -> tuple[int, str]:
+    """The ``max_depth`` to render with and where it comes from.
+
+    Args:
+        requested: the caller's choice (``None``: none).
+        scene_depth: :attr:`LoadedScene.max_depth`, the scene's own integrator setting.
+        option: how to name the caller's choice in the note (e.g. ``"--max-depth"``).
+
+    Returns:
+        ``(depth, note)``: ``requested`` if given, else ``scene_depth`` if the scene sets one,
+        else :data:`DEFAULT_MAX_DEPTH`; ``note`` says which, e.g. ``"max_depth 8 (from the
+        scene's integrator)"``.
+    """
+    if requested is not None:
+        return requested, f"max_depth {requested} ({option})"
+    if scene_depth is not None:
+        return scene_depth, f"max_depth {scene_depth} (from the scene's integrator)"
+    return DEFAULT_MAX_DEPTH, f"max_depth {DEFAULT_MAX_DEPTH} (default; the scene sets none)"
 
 
 def read_scene(
@@ -113,7 +139,8 @@ def _from_dict(scene_dict: dict[str, Any], label: str = "scene dict") -> LoadedS
     if label != "scene dict" and rfilter != BOX_FILTER:
         raise ValueError(f"{label}: film filter is {rfilter!r}, expected box")
     size = (film["width"], film["height"]) if "width" in film and "height" in film else None
-    return LoadedScene(mi.load_dict(scene_dict), size, None, rfilter)
+    depth = scene_dict.get("integrator", {}).get("max_depth")
+    return LoadedScene(mi.load_dict(scene_dict), size, depth, rfilter)
 
 
 def _xml_value(element: ET.Element | None, defaults: dict[str, str]) -> str | None:

@@ -8,11 +8,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-#: Pixel filter the gradient-domain integrators need.
-
-#: Max depth used when neither the config nor the scene sets one.
-DEFAULT_MAX_DEPTH = 6
-
 
 @dataclass
 class EvaluateConfig:
@@ -56,6 +51,9 @@ class EvaluateConfig:
     """Reference cache; ``None`` means ``<out>/references`` (share it between runs)."""
     profile: str = "custom"
     """Name of the preset this config came from (recorded only)."""
+    keep_going: bool = False
+    """Record a failed scene, method or cell and continue; off: the study stops at the first
+    failure (:class:`gdpt.study.evaluate.StudyFailure`), after recording it."""
 
     def __post_init__(self) -> None:
         self.budgets = tuple(sorted(float(b) for b in self.budgets))

@@ -9,8 +9,9 @@ it took (sampling + reconstruction)::
 Registered methods:
 
 * ``pt``: path tracing, primal only (``gdpt`` with ``gradients=False, features=False``).
-* ``pt+oidn``: path tracing + Intel Open Image Denoise (``pyoidn``, albedo + normal, HDR,
-  quality ``high``).
+* ``pt+oidn``: path tracing + Intel Open Image Denoise (:data:`gdpt.denoise.METHODS`
+  ``oidn``: ``pyoidn`` on the CPU, OIDN's U-Net in torch on CUDA; albedo + normal, HDR, quality
+  ``high``).
 * ``gdpt+l2`` / ``gdpt+l1`` / ``gdpt+l1-fast``: gradient-domain path tracing + screened
   Poisson (L2; L1 with the reference IRLS schedule; L1 with the accelerated preset).
 * ``gdpt+ngpt``: gradient-domain path tracing + the shipped NGPT network.
@@ -40,7 +41,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from gdpt.denoise import METHODS as DENOISERS
-from gdpt.denoise import Method, reconstruct
+from gdpt.denoise import Method, reconstruct_image
 from gdpt.reconstruct.registry import Registry
 
 if TYPE_CHECKING:
@@ -158,73 +159,15 @@ def path_tracing(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     return _timed_run(scene, spp, seed, None, gradients=False, features=False)
 
 
-def oidn_check() -> str | None:
-    """``None`` when Intel Open Image Denoise (``pyoidn``) can run here, else why not."""
-    try:
-        import pyoidn  # noqa: F401, PLC0415 (optional dependency)
-    except ImportError:
-        return "pyoidn is not installed (pip install pyoidn)"
-    return None
-
-
-def oidn_denoise(primal: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
-    """OIDN ``RT`` filter, HDR, quality ``high``, on ``(H, W, 3)`` float32 CPU tensors.
-
-    Colour is clamped to >= 0, albedo to [0, 1] and normals to [-1, 1] as OIDN expects.
-    """
-    import pyoidn  # noqa: PLC0415 (optional dependency)
-
-    out = pyoidn.denoise(
-        primal.clamp_min(0.0).contiguous(),
-        albedo.clamp(0.0, 1.0).contiguous(),
-        normal.clamp(-1.0, 1.0).contiguous(),
-        hdr=True,
-        quality="high",
-    )
-    return torch.as_tensor(out)
-
-
-def _oidn(buffers: GradientBuffers) -> torch.Tensor:
-    return oidn_denoise(buffers.primal, buffers.albedo, buffers.normal)
-
-
-def path_tracing_oidn(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
-    """Path tracing with albedo and normal features, denoised by OIDN (``RT`` filter).
-
-    Args:
-        scene: the scene.
-        spp: samples per pixel.
-        seed: random seed.
-
-    Returns:
-        The image and its timing.
-
-    Raises:
-        MethodUnavailable: ``pyoidn`` is not installed.
-    """
-    if reason := oidn_check():
-        raise MethodUnavailable(reason)
-    return _timed_run(scene, spp, seed, _oidn, gradients=False, features=True)
-
-
 EVAL_METHODS.register(
     "pt",
     EvalMethod("pt", "path tracing, primal only (gdpt integrator, gradients=False)", path_tracing),
-)
-EVAL_METHODS.register(
-    "pt+oidn",
-    EvalMethod(
-        "pt+oidn",
-        "path tracing + Intel Open Image Denoise (pyoidn; albedo + normal, HDR, quality high)",
-        path_tracing_oidn,
-        oidn_check,
-    ),
 )
 
 
 def register_denoiser(name: str, method: Method) -> str:
     """Register ``gdpt+NAME`` (or ``pt+NAME`` for a method without gradients): the buffers
-    ``method`` reads, reconstructed by :func:`gdpt.denoise.reconstruct` with ``NAME`` (which
+    ``method`` reads, reconstructed by :func:`gdpt.reconstruct_image` with ``NAME`` (which
     must be in :data:`gdpt.denoise.METHODS`); returns the study method's name."""
     sampler = "gdpt" if method.gradients else "pt"
 
@@ -232,7 +175,7 @@ def register_denoiser(name: str, method: Method) -> str:
         if reason := method.check():
             raise MethodUnavailable(reason)
         props = method.sampling(spp)
-        return _timed_run(scene, spp, seed, partial(reconstruct, method=name), **props)
+        return _timed_run(scene, spp, seed, partial(reconstruct_image, method=name), **props)
 
     label = "gradient-domain path tracing" if method.gradients else "path tracing"
     if method.gradients and (factor := method.primal_spp_factor()):
@@ -246,5 +189,5 @@ def register_denoiser(name: str, method: Method) -> str:
     return f"{sampler}+{name}"
 
 
-for _name, _method in DENOISERS.items():
+for _name, _method in {"oidn": DENOISERS["oidn"], **DENOISERS}.items():  # pt+oidn next to pt
     register_denoiser(_name, _method)

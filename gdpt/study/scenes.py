@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Any
 
 from gdpt.scene_io import BOX_FILTER
-from gdpt.study.config import DEFAULT_MAX_DEPTH
 
 
 # ------------------------------------------------------------------------------------ scenes
@@ -102,17 +101,6 @@ def resolve_scenes(items: Iterable[str | os.PathLike[str]]) -> list[SceneSpec]:
     return list(unique.values())
 
 
-def _choose_depth(configured: int | None, scene_depth: int | None, notes: list[str]) -> int:
-    if configured is not None:
-        notes.append(f"max_depth {configured} (configured)")
-        return configured
-    if scene_depth is not None:
-        notes.append(f"max_depth {scene_depth} (from the scene's integrator)")
-        return scene_depth
-    notes.append(f"max_depth {DEFAULT_MAX_DEPTH} (default; the scene sets none)")
-    return DEFAULT_MAX_DEPTH
-
-
 def load_eval_scene(spec: SceneSpec, *, resolution: int, max_depth: int | None = None) -> EvalScene:
     """Load a scene for evaluation at ``resolution`` pixels on the long side.
 
@@ -128,14 +116,15 @@ def load_eval_scene(spec: SceneSpec, *, resolution: int, max_depth: int | None =
         FileNotFoundError: the XML file does not exist.
         ValueError: Mitsuba cannot load it, or an unknown builtin/random specification.
     """
-    from gdpt.scene_io import GENERATED_PREFIXES, read_scene
+    from gdpt.scene_io import GENERATED_PREFIXES, choose_max_depth, read_scene
 
     generated = spec.source.startswith(GENERATED_PREFIXES)
     loaded = read_scene(
         spec.source if generated else Path(spec.source), box_filter=True, long_side=resolution
     )
     notes = list(loaded.notes)
-    depth = _choose_depth(max_depth, loaded.max_depth, notes)
+    depth, note = choose_max_depth(max_depth, loaded.max_depth)
+    notes.append(note)
     return EvalScene(
         spec.name,
         loaded.scene,

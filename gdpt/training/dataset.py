@@ -267,7 +267,7 @@ def render_crop(
     from gdpt.backend import set_variant
 
     set_variant(variant)
-    from gdpt.denoise import reconstruct
+    from gdpt.denoise import reconstruct_image
     from gdpt.io.exr import save_buffers
     from gdpt.rendering import render
     from gdpt.scene_io import load_scene
@@ -317,7 +317,7 @@ def render_crop(
         store("target", target, primal="path_traced")
     else:
         start = time.perf_counter()
-        image = reconstruct(target, method="l1", alpha=float(content["alpha"]))
+        image = reconstruct_image(target, method="l1", alpha=float(content["alpha"]))
         solve = time.perf_counter() - start
         store(
             "target",

@@ -140,10 +140,9 @@ def compare_models(
     """
     from tqdm.auto import tqdm
 
-    from gdpt.denoise import load_reconstructor
+    from gdpt.denoise import load_reconstructor, oidn_check, oidn_denoise
     from gdpt.metrics import flip_ldr, relmse
     from gdpt.reconstruct.poisson import reconstruct as poisson
-    from gdpt.study.methods import oidn_check, oidn_denoise
     from gdpt.training.dataset import CropDataset
 
     held = lambda s: s % holdout_every == holdout_every - 1  # noqa: E731

@@ -136,8 +136,8 @@ def test_pooled_model_on_unpooled_buffers_warns(tmp_path, monkeypatch, random_bu
     model = str(tmp_path / "pooled.safetensors")
     buffers = random_buffers(names=("primal", "dx", "dy"))
     with pytest.warns(UserWarning, match=r"pooled.safetensors .* primal_spp=2.5 x spp"):
-        denoise.reconstruct(buffers, "ngpt", model=model)
+        denoise.reconstruct_image(buffers, "ngpt", model=model)
     pooled = buffers.replace(metadata={"primal_spp": 40})
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        denoise.reconstruct(pooled, "ngpt", model=model)
+        denoise.reconstruct_image(pooled, "ngpt", model=model)

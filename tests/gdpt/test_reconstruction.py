@@ -9,7 +9,7 @@ import gdpt.reconstruct
 import pytest
 import torch
 
-from gdpt.denoise import METHODS, reconstruct
+from gdpt.denoise import METHODS, reconstruct_image
 
 
 @pytest.fixture
@@ -29,17 +29,17 @@ def fake_poisson(monkeypatch):
 @pytest.mark.parametrize("method", ["l1", "l2"])
 def test_poisson_methods_dispatch(fake_poisson, method, random_buffers):
     buffers = random_buffers(names=("primal", "dx", "dy"))
-    out = reconstruct(buffers, method, alpha=0.5, iterations=3)
+    out = reconstruct_image(buffers, method, alpha=0.5, iterations=3)
     assert torch.equal(out, buffers.primal + 1)
     assert fake_poisson == [(method, 0.5, {"iterations": 3})]
 
 
 def test_primal_only_is_a_clear_error(fake_poisson, random_buffers):
     with pytest.raises(ValueError, match=r"'l1' needs dx and dy.*primal-only"):
-        reconstruct(random_buffers(names=("primal",)))
+        reconstruct_image(random_buffers(names=("primal",)))
     assert fake_poisson == []
 
 
 def test_unknown_method_lists_valid_ones(random_buffers):
     with pytest.raises(ValueError, match="valid names: " + ", ".join(METHODS)):
-        reconstruct(random_buffers(), "bilateral")
+        reconstruct_image(random_buffers(), "bilateral")

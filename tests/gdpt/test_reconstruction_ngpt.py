@@ -1,4 +1,4 @@
-"""``reconstruct(buffers, method="ngpt")``: checkpoint lookup, inference, errors."""
+"""``reconstruct_image(buffers, method="ngpt")``: checkpoint lookup, inference, errors."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 from gdpt.reconstruct.transforms import FEATURES_WITH_GRADIENTS, FEATURES_WITHOUT_GRADIENTS
 
-from gdpt.denoise import reconstruct
+from gdpt.denoise import reconstruct_image
 
 
 @pytest.fixture
@@ -33,22 +33,22 @@ def checkpoint(tmp_path):
 
 
 def test_ngpt_with_explicit_checkpoint(checkpoint, ngpt_buffers):
-    image = reconstruct(ngpt_buffers(), method="ngpt", model=checkpoint)
+    image = reconstruct_image(ngpt_buffers(), method="ngpt", model=checkpoint)
     assert image.shape == (13, 17, 3) and image.dtype == torch.float32
     assert torch.isfinite(image).all() and (image >= 0).all()  # radiance: clamped at 0
 
 
 def test_checkpoint_from_environment(checkpoint, monkeypatch, ngpt_buffers):
     monkeypatch.setenv("GDPT_NGPT_MODEL", str(checkpoint))
-    assert reconstruct(ngpt_buffers(), method="ngpt").shape == (13, 17, 3)
+    assert reconstruct_image(ngpt_buffers(), method="ngpt").shape == (13, 17, 3)
 
 
 def test_missing_checkpoint_says_what_to_provide(tmp_path, monkeypatch, ngpt_buffers):
     monkeypatch.delenv("GDPT_NGPT_MODEL", raising=False)
     with pytest.raises(FileNotFoundError, match="model=PATH"):
-        reconstruct(ngpt_buffers(), method="ngpt", model=tmp_path / "none.safetensors")
+        reconstruct_image(ngpt_buffers(), method="ngpt", model=tmp_path / "none.safetensors")
 
 
 def test_missing_gradients_named(checkpoint, ngpt_buffers):
     with pytest.raises((KeyError, ValueError), match="dx"):
-        reconstruct(ngpt_buffers(gradients=False), method="ngpt", model=checkpoint)
+        reconstruct_image(ngpt_buffers(gradients=False), method="ngpt", model=checkpoint)

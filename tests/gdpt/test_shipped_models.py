@@ -13,7 +13,7 @@ import pytest
 import torch
 
 import gdpt
-from gdpt.denoise import METHODS, MODEL_DIR, reconstruct
+from gdpt.denoise import METHODS, MODEL_DIR, reconstruct_image
 from gdpt.metrics import relmse
 from gdpt.scenes import builtin_scene
 from gdpt.training.model_report import MAX_SHIPPED_MIB
@@ -46,13 +46,13 @@ def _default_reconstruction(name, scene, monkeypatch):
     """8-spp buffers of ``scene`` and their reconstruction by ``method=name`` without model=."""
     monkeypatch.delenv("GDPT_NGPT_MODEL", raising=False)
     buffers = gdpt.render(scene, spp=8, seed=1, **METHODS[name].sampling(8))
-    return buffers, reconstruct(buffers, method=name)
+    return buffers, reconstruct_image(buffers, method=name)
 
 
 @pytest.mark.parametrize("name", SHIPPED)
 def test_shipped_model_is_the_default_and_finite(name, cbox, monkeypatch):
     buffers, image = _default_reconstruction(name, cbox[0], monkeypatch)
-    explicit = reconstruct(buffers, method=name, model=MODEL_DIR / f"{name}.safetensors")
+    explicit = reconstruct_image(buffers, method=name, model=MODEL_DIR / f"{name}.safetensors")
     assert torch.equal(image, explicit)
     assert torch.isfinite(image).all() and (image >= 0).all()
 
@@ -93,8 +93,8 @@ def test_shipped_model_beats_l1_poisson_on_generated_scenes(name, generated, mon
         else:
             g = gdpt.render(scene, spp=16, seed=2)
             b = gdpt.render(scene, spp=40, seed=3, gradients=False)
-        l1 += relmse(reconstruct(g, method="l1").cpu(), reference)
-        ours += relmse(reconstruct(b, method=name).cpu(), reference)
+        l1 += relmse(reconstruct_image(g, method="l1").cpu(), reference)
+        ours += relmse(reconstruct_image(b, method=name).cpu(), reference)
     assert ours < l1, (ours, l1)
 
 
@@ -102,7 +102,7 @@ def test_shipped_gradient_model_names_a_missing_buffer(cbox, monkeypatch):
     monkeypatch.delenv("GDPT_NGPT_MODEL", raising=False)
     buffers = gdpt.render(cbox[0], spp=2, seed=1, gradients=False)
     with pytest.raises(KeyError, match="dx"):
-        reconstruct(buffers, method="ngpt")
+        reconstruct_image(buffers, method="ngpt")
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -118,4 +118,4 @@ def test_missing_pyoidn_is_named_with_the_method(name, cbox, monkeypatch):
     assert reason is not None and "pyoidn" in reason and repr(name) in reason
     buffers = gdpt.render(cbox[0], spp=2, seed=1, gradients=SHIPPED[name])
     with pytest.raises(RuntimeError, match="pyoidn"):
-        reconstruct(buffers, method=name)
+        reconstruct_image(buffers, method=name)

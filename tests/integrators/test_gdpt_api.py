@@ -313,14 +313,13 @@ def test_render_and_denoise_renders_only_what_the_method_reads(variant):
     import torch
 
     import gdpt
-    from gdpt.denoise import reconstruct
     from gdpt.scenes import builtin_scene
 
     scene = builtin_scene("diffuse-box", resolution=(16, 12))
     res = gdpt.render_and_denoise(scene, spp=4, method="l1", seed=3)
     assert res.image.shape == (12, 16, 3) and torch.isfinite(res.image).all()
     assert res.buffers.dx is not None and res.buffers.albedo is None  # no features for Poisson
-    torch.testing.assert_close(res.image, reconstruct(res.buffers, method="l1"))
+    torch.testing.assert_close(res.image, gdpt.reconstruct_image(res.buffers, method="l1"))
     assert set(res.timings) == {"render", "reconstruct", "total"}
 
     res = gdpt.render_and_denoise(scene, spp=2, method="l2", features=True)  # explicit wins

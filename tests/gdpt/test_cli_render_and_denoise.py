@@ -1,0 +1,141 @@
+"""``gdpt render-and-denoise`` and the scene options of ``gdpt render`` (``--box-filter``,
+``--long-side``, the scene's own ``max_depth``): tiny renders (32 px, 1-2 spp)."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+import torch
+
+from gdpt import denoise
+from gdpt.cli import main
+from gdpt.io.exr import load_buffers, load_image
+
+pytestmark = pytest.mark.usefixtures("variant", "single_thread")
+
+#: A 64x32 XML scene with Mitsuba's Gaussian filter and a path integrator of max_depth 4.
+GAUSSIAN_XML = """<scene version="3.0.0">
+    <integrator type="path"><integer name="max_depth" value="4"/></integrator>
+    <sensor type="perspective">
+        <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/>
+        </transform>
+        <film type="hdrfilm">
+            <integer name="width" value="64"/>
+            <integer name="height" value="32"/>
+            <rfilter type="gaussian"/>
+        </film>
+    </sensor>
+    <emitter type="constant"/>
+    <shape type="sphere"><bsdf type="diffuse"/></shape>
+</scene>
+"""
+
+
+@pytest.fixture
+def gaussian_scene(tmp_path):
+    path = tmp_path / "scene.xml"
+    path.write_text(GAUSSIAN_XML)
+    return path
+
+
+def one_line_error(err: str) -> str:
+    lines = [line for line in err.splitlines() if line.startswith("gdpt ")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def test_writes_image_preview_buffers_and_timings(tmp_path, capsys):
+    out, saved = tmp_path / "l2.exr", tmp_path / "buffers.exr"
+    args = ["builtin:cbox-demo", "--long-side", "32", "--spp", "2", "--method", "l2"]
+    assert main(["render-and-denoise", *args, "-o", str(out), "--save-buffers", str(saved)]) == 0
+    stdout = capsys.readouterr().out
+    assert "builtin:cbox-demo: max_depth 6 (default; the scene sets none)" in stdout
+    assert f"wrote {out}" in stdout and f"wrote {saved}" in stdout
+    assert "timings: render " in stdout and ", reconstruct " in stdout and ", total " in stdout
+    assert out.with_suffix(".png").is_file()
+    image, buffers = load_image(out), load_buffers(saved)
+    assert image.shape == (32, 32, 3) and torch.isfinite(image).all()
+    assert buffers.spp == 2 and buffers.has_gradients and buffers.albedo is None  # what l2 reads
+    assert buffers.metadata["max_depth"] == 6
+    torch.testing.assert_close(image, denoise.reconstruct_image(buffers, "l2"))
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ({"-o": "{tmp}/missing/out.exr"}, "--output .*: the folder .*missing does not exist"),
+        ({"-o": "{tmp}/out.png"}, "--output must be an .exr file"),
+        ({"--save-buffers": "{tmp}/nowhere/b.exr"}, "--save-buffers .*nowhere does not exist"),
+        ({"--save-buffers": "{tmp}/out.exr"}, "--save-buffers and --output are the same file"),
+        ({"--spp": "0"}, "--spp must be >= 1, got 0"),
+        ({"--alpha": "0"}, "--alpha must be a finite number > 0"),
+        ({"--long-side": "0"}, "--long-side must be >= 1"),
+        ({"--max-depth": "-2"}, "--max-depth must be -1 .* or >= 0"),
+        ({"scene": "{tmp}/none.xml"}, "scene file not found: .*none.xml"),
+        ({"scene": "builtin:nope"}, "unknown builtin scene 'nope'"),
+        ({"existing": "out.exr"}, "out.exr: file exists .*--force"),
+        ({"existing": "out.png"}, "out.png: file exists .*--force"),
+    ],
+)
+def test_bad_options_fail_before_rendering(tmp_path, capsys, monkeypatch, change, match):
+    import gdpt.rendering
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("rendered despite a bad option")
+
+    monkeypatch.setattr(gdpt.rendering, "render_and_denoise", forbidden)
+    options = {"scene": "builtin:cbox-demo", "-o": "{tmp}/out.exr", "--spp": "1", **change}
+    if existing := options.pop("existing", None):
+        (tmp_path / existing).write_text("keep me")
+    argv = ["render-and-denoise", options.pop("scene").format(tmp=tmp_path), "--long-side", "16"]
+    for key, value in options.items():
+        argv += [key, value.format(tmp=tmp_path)]
+    assert main(argv) == 2
+    line = one_line_error(capsys.readouterr().err)
+    assert line.startswith("gdpt render-and-denoise: error: ")
+    assert re.search(match, line), line
+    if existing:
+        assert (tmp_path / existing).read_text() == "keep me"
+
+
+def test_a_method_that_cannot_run_here_fails_before_rendering(tmp_path, capsys, monkeypatch):
+    unavailable = denoise.Method(lambda b, **_: b.primal, True, False, "x", lambda: "no package")
+    monkeypatch.setitem(denoise.METHODS, "l2", unavailable)
+    argv = ["render-and-denoise", "builtin:nope", "--method", "l2", "-o", str(tmp_path / "a.exr")]
+    assert main(argv) == 2  # the method is checked before the scene is even loaded
+    assert "--method l2 cannot run here: no package" in one_line_error(capsys.readouterr().err)
+
+
+def test_unknown_method_is_a_usage_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["render-and-denoise", "builtin:cbox-demo", "--method", "x", "-o", str(tmp_path)])
+    assert exit_info.value.code == 2
+    assert "invalid choice: 'x'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["render", "render-and-denoise"])
+def test_gaussian_filter_needs_box_filter(gaussian_scene, tmp_path, capsys, command):
+    assert main([command, str(gaussian_scene), "-o", str(tmp_path / "out.exr")]) == 2
+    line = one_line_error(capsys.readouterr().err)
+    assert "pixel filter is 'gaussian'" in line and "add --box-filter" in line
+    assert not (tmp_path / "out.exr").exists()
+
+
+@pytest.mark.parametrize(
+    ("extra", "depth", "source"),
+    [([], 4, "from the scene's integrator"), (["--max-depth", "2"], 2, "--max-depth")],
+)
+def test_render_box_filter_long_side_and_the_scenes_depth(
+    gaussian_scene, tmp_path, capsys, extra, depth, source
+):
+    out = tmp_path / "buffers.exr"
+    argv = ["render", str(gaussian_scene), "--box-filter", "--long-side", "16", "--spp", "1"]
+    assert main([*argv, *extra, "-o", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    assert f"{gaussian_scene}: max_depth {depth} ({source})" in stdout
+    assert "film resized from 64x32 to 16x8" in stdout
+    assert "pixel filter overridden: 'gaussian' -> 'box'" in stdout
+    buffers = load_buffers(out)
+    assert (buffers.width, buffers.height) == (16, 8)
+    assert buffers.metadata["max_depth"] == depth
