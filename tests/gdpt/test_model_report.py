@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -147,3 +148,26 @@ def test_input_kind_follows_the_card_and_the_features():
     assert kind(SimpleNamespace(features=grad, card=pooled)) == "pool"
     assert kind(SimpleNamespace(features=grad, card={})) == "gdpt"
     assert kind(SimpleNamespace(features=grad[:3])) == "pt"
+
+
+def test_a_model_of_an_unknown_family_is_refused_by_name(runs, tmp_path, capsys):
+    """Shipping or comparing a checkpoint whose card has no known family's format fails with the
+    card's path and the known families, before anything is written or scored."""
+    from gdpt.reconstruct.families import FAMILIES
+
+    data, run_dirs = runs
+    run = tmp_path / "odd-run"
+    shutil.copytree(run_dirs["ngpt"], run)
+    card = json.loads((run / "model.json").read_text())
+    (run / "model.json").write_text(json.dumps({**card, "format": "someone-else/3"}))
+    with pytest.raises(ValueError, match="no known network family") as error:
+        model_report.ship_model(run, "odd", dest=tmp_path / "models")
+    assert str(run / "model.json") in str(error.value)
+    assert all(name in str(error.value) for name in FAMILIES)
+    assert not (tmp_path / "models").exists()
+    args = ["model-report", "--data", str(data), "--holdout-every", "1", "--out", str(tmp_path)]
+    args += [f"--run=ngpt={run_dirs['ngpt']}", f"--model=odd={run / 'model.safetensors'}"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "no known network family" in err and str(run / "model.json") in err
+    assert not (tmp_path / "comparison.json").exists()
