@@ -6,7 +6,7 @@ PY     := $(VENV)/bin/python
 TORCH_SPEC ?= torch==2.13.0
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup lint test test-all demo bench clean
+.PHONY: setup lint test test-all test-gpu demo bench clean
 
 $(STAMP): pyproject.toml Makefile tools/ensure_llvm.sh
 	@tools/ensure_llvm.sh >/dev/null
@@ -27,6 +27,10 @@ test: $(STAMP) lint
 
 test-all: $(STAMP)
 	$(PY) -m pytest -q
+
+# GPU readiness (tests marked gpu, on cuda_ad_rgb); each is skipped, with the reason, without CUDA.
+test-gpu: $(STAMP)
+	$(PY) -m pytest -m gpu -q
 
 demo: $(STAMP)
 	$(PY) -m gdpt demo --out out/demo --force
