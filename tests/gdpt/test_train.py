@@ -272,7 +272,20 @@ def test_nograd_model_trains_on_path_traced_inputs(data, tiny, tmp_path):
     assert val["count"] == 2 and math.isfinite(val["relmse"])
 
 
-def test_torchrun_ddp_two_processes(data, tmp_path):
+#: Family -> ``(dataset fixture, gdpt train options)`` of a 2-step torchrun run.
+DDP_RUNS = {
+    "dense-unet": ("tiny_dataset", ["--config", "fast_xs", "--loss", "l1"]),
+    "oidn-finetune": ("pt_dataset", ["--config", "oidn-grad", "--loss", "l1_rel", "--crop", "16"]),
+}
+
+
+@pytest.mark.parametrize(
+    "family", ["dense-unet", pytest.param("oidn-finetune", marks=pytest.mark.slow)]
+)
+def test_torchrun_ddp_two_processes(family, request, tmp_path):
+    """The one training loop runs any family's plan under torchrun (gloo on the CPU)."""
+    fixture, options = DDP_RUNS[family]
+    data = request.getfixturevalue(fixture)
     run = tmp_path / "ddp"
     command = [
         sys.executable,
@@ -285,16 +298,13 @@ def test_torchrun_ddp_two_processes(data, tmp_path):
         "-m",
         "gdpt",
         "train",
-        "--config",
-        "fast_xs",
+        *options,
         "--data",
         str(data),
         "--val-data",
         str(data),
         "--out",
         str(run),
-        "--loss",
-        "l1",
         "--steps",
         "2",
         "--batch",
