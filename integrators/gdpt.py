@@ -22,7 +22,13 @@ from .shifts import half_vector_shift, reconnection_jacobian
 #: here on its throughput and MIS ratio change exactly like the base's (two-phase fold).
 NOT_CONNECTED, RECENTLY_CONNECTED, CONNECTING, CONNECTED = 0, 1, 2, 3
 
+#: BSDF contexts: all lobes; one kind of delta lobe (an offset follows the base's delta lobe).
+_CTX = mi.BSDFContext()
+_CTX_REFLECT = mi.BSDFContext(mi.TransportMode.Radiance, mi.BSDFFlags.DeltaReflection)
+_CTX_TRANSMIT = mi.BSDFContext(mi.TransportMode.Radiance, mi.BSDFFlags.DeltaTransmission)
 
+
+# ------------------------------------------------------------------------------- loop state
 @dataclass
 class BaseState:
     """Loop state of the base path."""
@@ -61,6 +67,86 @@ class OffsetState:
     s: mi.Float  # after a reconnection y_{i-1} -> x_i: r_{i-1} / p̃(x_{i-1} -> x_i)
     sJ: mi.Float  # ... and the same times the reconnection Jacobian
     G: mi.Spectrum  # half-gradient accumulator
+
+
+# ------------------------------------------------------- per-vertex values (not loop state)
+@dataclass
+class Emission:
+    """Emission at the base's vertex x_i, reached by BSDF sampling from x_{i-1}."""
+
+    Le: mi.Spectrum  # emitted radiance towards x_{i-1}
+    pn: mi.Float  # light-sampling pdf of x_i from x_{i-1} (solid angle)
+    cone: mi.Bool  # the emitter is sampled by solid angle (spheres), not by area
+    ratio: mi.Float  # p_light / p_bsdf of the segment x_{i-1} -> x_i
+    c_main: mi.Spectrum  # β Le: the base's contribution before MIS
+
+
+@dataclass
+class LightSample:
+    """The base's light sample at x_i (next-event estimation) and its evaluation there."""
+
+    ds: mi.DirectionSample3f
+    wo: mi.Vector3f  # ds.d in x_i's local frame
+    active: mi.Bool  # a sample with nonzero pdf from a smooth x_i (visible or not)
+    visible: mi.Bool
+    weight: mi.Spectrum  # emitted radiance / pdf, 0 where occluded
+    em: mi.Spectrum  # emitted radiance at x_i (intensity / d^2 for point lights)
+    f: mi.Spectrum  # BSDF value times cosine at x_i (0 where not active)
+    pb: mi.Float  # BSDF pdf of ``wo`` (0 for delta lights)
+    mis: mi.Float  # balance weight of light sampling, p_light / (p_light + p_bsdf)
+    infinite: mi.Bool  # environment light: a direction, no point
+    cone: mi.Bool  # sampled by solid angle (spheres), not by area
+    fixed_point: mi.Bool  # the light "vertex" is shared exactly by the offsets: J = 1
+
+
+@dataclass
+class Segment:
+    """The base's BSDF sample at x_i and the next vertex x_{i+1} it reaches."""
+
+    bs: mi.BSDFSample3f
+    weight: mi.Spectrum  # f cos / pdf
+    u1: mi.Float  # the random numbers of ``bs`` (replayed by offsets)
+    u2: mi.Point2f
+    ray: mi.Ray3f  # x_i -> x_{i+1}
+    si: mi.SurfaceInteraction3f  # x_{i+1}
+    hit: mi.Bool  # x_{i+1} is a surface (else the ray escaped)
+    rough: mi.Bool  # x_{i+1} is rough, or the environment (a valid reconnection target)
+    delta: mi.Bool  # ``bs`` sampled a delta lobe
+    reflect: mi.Bool  # ... a delta reflection
+    null: mi.Bool  # ... a null lobe (opacity masks)
+    near: mi.Bool  # x_i is glossy at or below shift_threshold
+    half: mi.Bool  # a non-delta sample at a near-specular glossy x_i (half-vector copy)
+    inv_p: mi.Float  # 1 / bs.pdf (0 where the pdf is 0)
+    pb: mi.Float  # MIS pdf of the segment x_i -> x_{i+1} (1 for delta lobes)
+
+
+# ------------------------------------------------ per-offset results (dr.if_stmt state)
+@dataclass
+class LightShift:
+    """One offset's version of the base's light sample (both branches of its ``dr.if_stmt``)."""
+
+    f: mi.Spectrum  # BSDF value times cosine at the offset's vertex
+    em: mi.Spectrum  # emitted radiance reaching it (0 where occluded)
+    J: mi.Float  # Jacobian of the reconnection to the light point
+    Jp: mi.Float  # J (p_light + p_bsdf) of the offset, relative to the base's light pdf
+    pair: mi.Bool  # the light technique joins the pixel pair's MIS
+
+
+@dataclass
+class ShiftStep:
+    """One offset's step along the base's BSDF sample (both branches of its ``dr.if_stmt``)."""
+
+    q: mi.Spectrum  # new throughput ratio f(ȳ) J / p(x̄)
+    r: mi.Float  # new MIS ratio J p̃(ȳ) / p̃(x̄)
+    ok: mi.Bool  # the shift exists
+    pb: mi.Float  # MIS pdf of the offset's new segment
+    s: mi.Float  # OffsetState.s after a reconnection (else 0)
+    sJ: mi.Float  # OffsetState.sJ after a reconnection (else 0)
+    escaped: mi.Bool  # the offset's own ray left the scene while the base's hit
+    trace: mi.Bool  # the offset traced a vertex of its own: ``si``
+    si: mi.SurfaceInteraction3f
+    status: mi.UInt32
+    bsdf_only: mi.Bool  # the new segment leaves a near-specular pair
 
 
 class GDPTIntegrator(GradientIntegratorBase):
@@ -113,7 +199,7 @@ class GDPTIntegrator(GradientIntegratorBase):
     pair are combined with the balance heuristic over base/offset BSDF and light sampling,
     computed in a ratio form; a light sample joins that MIS only where the BSDF shift of the
     same path exists in both directions, and segments leaving a near-specular pair are
-    estimated by BSDF sampling alone (see the NEE section of ``sample_paths``). Failed shifts
+    estimated by BSDF sampling alone (see :meth:`_shift_light`). Failed shifts
     give the base full weight. Numerical guards are counted in ``guard_counts``.
 
     Cost: the loop runs in two phases. While some offset still has vertices of its own it runs
@@ -149,24 +235,12 @@ class GDPTIntegrator(GradientIntegratorBase):
     def prepared_state(self) -> tuple:
         return (self._active_threshold, self._has_null)
 
+    # ------------------------------------------------------------------ path loop
     def sample_paths(self, scene, sensor, sampler, rays, weights, active) -> PathSamples:
         n = dr.width(rays[0].d)
-        ctx = mi.BSDFContext()
-        ctx_refl = mi.BSDFContext()
-        ctx_refl.type_mask = int(mi.BSDFFlags.DeltaReflection)
-        ctx_trans = mi.BSDFContext()
-        ctx_trans.type_mask = int(mi.BSDFFlags.DeltaTransmission)
         to_camera = camera_transform(sensor)
-        n_off = len(rays) - 1
-        threshold = self._active_threshold
-        has_null = self._has_null
 
-        def near_glossy(si, bsdf, active):
-            """Glossy vertex with roughness <= shift_threshold (half-vector copy, features pass)."""
-            if threshold is None:
-                return mi.Bool(False)
-            return _near_specular_glossy(si, bsdf, threshold, active)
-
+        # -------------------- Configure loop state --------------------
         base = BaseState(
             ray_d=mi.Vector3f(rays[0].d),
             si=_primary_hit(scene, rays[0], active),
@@ -182,448 +256,550 @@ class GDPTIntegrator(GradientIntegratorBase):
             bad_term=dr.zeros(mi.UInt32, n),
         )
         base_hit = base.si.is_valid()
-        offsets = []
-        for k in range(1, n_off + 1):
-            si_k = _primary_hit(scene, rays[k], active)
-            offsets.append(
-                OffsetState(
-                    si=si_k,
-                    prev=dr.zeros(mi.Interaction3f, n),
-                    status=mi.UInt32(NOT_CONNECTED),
-                    alive=mi.Bool(active),
-                    escaped=base_hit & ~si_k.is_valid(),
-                    q=mi.Spectrum(weights[k]),
-                    r=mi.Float(1.0),
-                    pb_prev=mi.Float(1.0),
-                    bsdf_only=mi.Bool(False),
-                    s=mi.Float(0.0),
-                    sJ=mi.Float(0.0),
-                    G=dr.zeros(mi.Spectrum, n),
-                )
-            )
+        offsets = [
+            _initial_offset(_primary_hit(scene, ray, active), weight, base_hit, active, n)
+            for ray, weight in zip(rays[1:], weights[1:], strict=True)
+        ]
         feat = FeatureState.zeros(n) if self.features else None
 
-        def body(sampler, base, offsets, feat, beta_scale=None):
-            """One vertex of the base path and of ``offsets`` (``beta_scale``: the tail's
-            throughput scale, see phase 2)."""
-            si, active = base.si, base.active
-            bsdf = si.bsdf()
-            if feat is not None:
-                near = near_glossy(si, bsdf, active & feat.open)
-                update_features(feat, si, bsdf, base.ray_d, to_camera, active, near)
-
-            # ----------------------- Emission at x_i ------------------------
-            ds = mi.DirectionSample3f(scene, si, base.prev)
-            pn_x = scene.pdf_emitter_direction(base.prev, ds, active & ~base.delta_prev)
-            Le_x = ds.emitter.eval(si, active)
-            cone = _is_cone_sampled(ds.emitter)
-            ratio_x = pn_x / dr.select(base.pb_prev > 0, base.pb_prev, 1)  # p_light / p_bsdf
-            base.L += base.beta * Le_x / (1 + ratio_x)
-            c_main_num = base.beta * Le_x
-
-            def add_term(o, term, active):
-                """o.G += term where active; a non-finite term is dropped and counted."""
-                ok = dr.isfinite(dr.sum(term))
-                o.G += dr.select(active & ok, term, 0)
-                base.bad_term += dr.select(active & ~ok, 1, 0)
-
-            # The offset's current vertex: its own y_i (NOT_CONNECTED), or the base's x_i seen
-            # from the offset's previous vertex (RECENTLY_CONNECTED: o.si holds x_i, only wi
-            # differs; CONNECTED: unused). Merging both halves the virtual calls below.
-            views, near_ys = [], []
-            for o in offsets:
-                recent = o.status == RECENTLY_CONNECTED
-                view = dr.copy(o.si)
-                turn = recent & si.is_valid()
-                view.wi = dr.select(turn, si.to_local(dr.normalize(o.prev.p - si.p)), view.wi)
-                views.append(view)
-                # Own y_i glossy at or below shift_threshold (read once for NEE and the shift)
-                own_next = (o.status == NOT_CONNECTED) & o.alive & active
-                near_ys.append(
-                    near_glossy(o.si, o.si.bsdf(), own_next)
-                    if threshold is not None
-                    else mi.Bool(False)
-                )
-
-            for o, view in zip(offsets, views, strict=True):
-                own = o.status == NOT_CONNECTED
-                recent = o.status == RECENTLY_CONNECTED
-                act = active & (own | recent) & o.alive
-                ds_y = mi.DirectionSample3f(scene, view, o.prev)
-                pn_y = scene.pdf_emitter_direction(o.prev, ds_y, act & ~base.delta_prev)
-                Le_y = dr.select(own | recent, ds_y.emitter.eval(view, act), Le_x)
-                # The offset's light technique relative to the base's BSDF pdf, r p_light(y) /
-                # p_bsdf(y), without 0 * inf at grazing y: after a reconnection J p_light(y) =
-                # p_light(x) for area-sampled emitters (see NEE). Once connected, the segment
-                # pdf is the offset's own (pb_prev) for one more vertex (CONNECTING).
-                light_y = dr.select(
-                    own,
-                    o.r * pn_y / dr.select(o.pb_prev > 0, o.pb_prev, 1),
-                    dr.select(
-                        recent,
-                        dr.select(cone, o.sJ * pn_y, o.s * pn_x),
-                        o.r * pn_x / dr.select(o.pb_prev > 0, o.pb_prev, 1),
-                    ),
-                )
-                # A segment sampled at a near-specular pair is estimated by BSDF sampling alone.
-                den = 1 + dr.select(o.bsdf_only, 0, ratio_x + dr.select(o.alive, light_y, 0))
-                den += dr.select(o.alive, o.r, 0)
-                c_shift = dr.select(o.alive, o.q * Le_y, 0)
-                add_term(o, (c_shift - c_main_num) / den, active)
-                o.alive &= ~o.escaped
-
-            # --------------------- Next-event estimation --------------------
-            active_next = active & (base.depth + 1 < self.max_depth) & si.is_valid()
-            active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-            # Visibility is tested separately: an occluded base light sample still has offsets.
-            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False, active_em)
-            active_em &= ds.pdf != 0
-            visible_x = ~scene.ray_test(si.spawn_ray_to(ds.p), active_em)
-            em_weight = dr.select(visible_x, em_weight, 0)
-            wo_em = si.to_local(ds.d)
-            # One virtual call evaluates the light sample and samples the next direction.
-            u1, u2 = sampler.next_1d(), sampler.next_2d()
-            f_x, pb_x, bs, bsdf_weight = bsdf.eval_pdf_sample(ctx, si, wo_em, u1, u2, active_next)
-            f_x = dr.select(active_em, f_x, 0)
-            pb_x = dr.select(active_em & ~ds.delta, pb_x, 0)
-            pn_x = ds.pdf
-            em_val = em_weight * pn_x  # radiance (intensity / d^2 for point lights) at x_i
-            w_light = safe_div(pn_x, pn_x + pb_x)
-            base.L += dr.select(active_em, base.beta * f_x * em_weight * w_light, 0)
-            nee_main = base.beta * f_x * em_val
-            is_infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
-            cone = _is_cone_sampled(ds.emitter)
-            fixed_point = is_infinite | ds.delta  # light "vertex" shared exactly: J = 1
-            near_x = near_glossy(si, bsdf, active_next)
-
-            # Light samples join the MIS of a pixel pair only where the BSDF shift of the same
-            # path exists in both directions, so that the four techniques (base / offset x
-            # BSDF / light) see the same set of shifted paths: the light point visible from x_i
-            # and y_i, nonzero BSDF pdfs at both (delta lights have no BSDF technique), and a
-            # reconnection as the BSDF shift's mapping. At a near-specular pair (x_i or y_i at
-            # or below shift_threshold) the BSDF shift copies the half vector instead, so there
-            # the gradient takes the segment from BSDF sampling alone (bsdf_only) and drops the
-            # light technique of both paths; the primal keeps its own MIS.
-            for o, view, near_y in zip(offsets, views, near_ys, strict=True):
-                own = o.status == NOT_CONNECTED
-                recent = o.status == RECENTLY_CONNECTED
-                act = active_em & o.alive
-                # Recently connected: the base's BSDF at x_i towards the same light sample,
-                # arriving from y_{i-1}. Connected: the base's own values.
-                f_r, pb_r = bsdf.eval_pdf(ctx, view, wo_em, act & recent)
-                pb_r = dr.select(ds.delta, 0, pb_r)
-
-                def nee_own(o=o, act=act):
-                    """Own vertex y_i: reconnect it to the base's light point."""
-                    y = o.si
-                    bsdf_y = y.bsdf()
-                    to_light = ds.p - y.p
-                    dist_y = dr.norm(to_light)
-                    dir_y = dr.select(is_infinite, ds.d, to_light / dist_y)
-                    dist_y = dr.select(is_infinite, ds.dist, dist_y)
-                    ds_y = mi.DirectionSample3f(
-                        ds.p, ds.n, ds.uv, ds.time, ds.pdf, ds.delta, dir_y, dist_y, ds.emitter
-                    )
-                    act_own = act & mi.has_flag(bsdf_y.flags(), mi.BSDFFlags.Smooth)
-                    ray_y = dr.select(is_infinite, y.spawn_ray(dir_y), y.spawn_ray_to(ds.p))
-                    visible = ~scene.ray_test(ray_y, act_own)
-                    em = dr.select(visible, scene.eval_emitter_direction(y, ds_y, act_own), 0)
-                    J = dr.select(
-                        fixed_point,
-                        1.0,
-                        reconnection_jacobian(
-                            ds.n, ds.d, dr.square(ds.dist), dir_y, dr.square(dist_y)
-                        ),
-                    )
-                    # J p_light(y). Area-sampled emitters and fixed points: exactly p_light(x),
-                    # also when the light turns its back to y (Mitsuba samples such points with
-                    # nonzero pdf, although pdf_emitter_direction() reports 0), and free of
-                    # 0 * inf at grazing y. Spheres are sampled by cone, which never picks their
-                    # far side.
-                    front = dr.dot(ds.n, dir_y) < 0
-                    pn_cone = scene.pdf_emitter_direction(y, ds_y, act_own & cone & front)
-                    Jpn = dr.select(cone, J * pn_cone, pn_x)
-                    f, pb = bsdf_y.eval_pdf(ctx, y, y.to_local(dir_y), act_own)
-                    pair = act_own & (ds.delta | (visible & (pb > 0)))
-                    pb = dr.select(ds.delta, 0, pb)
-                    return f, em, J, dr.select(act_own, Jpn, 0) + J * pb, pair
-
-                def nee_follow(recent=recent, f_r=f_r, pb_r=pb_r):
-                    f = dr.select(recent, f_r, f_x)
-                    pair = ~recent | ds.delta | (pb_r > 0)
-                    return f, em_val, mi.Float(1.0), pn_x + dr.select(recent, pb_r, pb_x), pair
-
-                f_y, e_y, J, Jp_y, pair = dr.if_stmt((), act & own, nee_own, nee_follow)
-                # Connected offsets always pair (the two-phase fold relies on it).
-                pair &= o.alive & ((o.status >= CONNECTING) | ds.delta | (visible_x & (pb_x > 0)))
-                den = pn_x + pb_x + dr.select(pair, o.r * Jp_y, 0)
-                c_shift = dr.select(pair, o.q * f_y * e_y * J, 0)
-                bsdf_only = own & o.alive & (near_x | near_y) & ~ds.delta
-                add_term(o, (c_shift - nee_main) / den, active_em & ~bsdf_only)
-
-            # ------------------------ BSDF sampling -------------------------
-            delta_x = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-            ray_next = si.spawn_ray(si.to_world(bs.wo))
-            si_next = scene.ray_intersect(ray_next, active_next)
-            hit_next = si_next.is_valid()
-            bsdf_next = si_next.bsdf()
-            rough_next = ~hit_next | ~(
-                mi.has_flag(bsdf_next.flags(), mi.BSDFFlags.Delta)
-                | near_glossy(si_next, bsdf_next, hit_next & active_next)
-            )
-            reflect = mi.has_flag(bs.sampled_type, mi.BSDFFlags.DeltaReflection)
-            null_x = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null) if has_null else mi.Bool(False)
-            # A non-delta sample at a near-specular glossy x_i: offsets copy its half vector.
-            half_x = ~delta_x & near_x
-
-            inv_p = safe_div(1.0, bs.pdf)
-            pb_next = dr.select(delta_x, 1.0, bs.pdf)  # MIS pdf of the segment x_i -> x_{i+1}
-            for o, view, near_y in zip(offsets, views, near_ys, strict=True):
-                # No base sample, no shift (the reverse shift finds a zero pdf at x_i)
-                act = active_next & o.alive & (bs.pdf > 0)
-                own = o.status == NOT_CONNECTED
-                recent = o.status == RECENTLY_CONNECTED
-                # Recently connected: the base's BSDF at x_i towards the base's sample,
-                # arriving from y_{i-1}.
-                f_r, p_r = bsdf.eval_pdf(ctx, view, bs.wo, act & recent)
-
-                def shift_own(o=o, act=act, near_y=near_y):
-                    """Own vertex y_i: reconnect, follow a delta lobe, copy the half vector, or
-                    replay the numbers."""
-                    y = o.si
-                    bsdf_y = y.bsdf()
-                    y_smooth = mi.has_flag(bsdf_y.flags(), mi.BSDFFlags.Smooth)
-                    half_y = near_y & ~delta_x
-                    reconnect = ~delta_x & ~half_x & rough_next & y_smooth & ~half_y
-
-                    # Reconnection y_i -> x_{i+1} (or environment shift: copy the direction)
-                    act_rc = act & reconnect
-                    to_next = si_next.p - y.p
-                    d_y2 = dr.squared_norm(to_next)
-                    dir_rc = dr.select(hit_next, to_next * dr.rsqrt(d_y2), ray_next.d)
-                    ray_rc = dr.select(hit_next, y.spawn_ray_to(si_next.p), y.spawn_ray(dir_rc))
-                    J_rc = dr.select(
-                        hit_next,
-                        reconnection_jacobian(
-                            si_next.n, ray_next.d, dr.square(si_next.t), dir_rc, d_y2
-                        ),
-                        1.0,
-                    )
-                    f_rc, p_rc = bsdf_y.eval_pdf(ctx, y, y.to_local(dir_rc), act_rc)
-
-                    # Delta lobe: sample the offset's lobe of the same kind; f_d is its delta
-                    # coefficient (weight x pdf of the restricted sample).
-                    act_d = act & delta_x & ~null_x
-                    bs_r, w_r = bsdf_y.sample(ctx_refl, y, u1, u2, act_d & reflect)
-                    bs_t, w_t = bsdf_y.sample(ctx_trans, y, u1, u2, act_d & ~reflect)
-                    bs_d = dr.select(reflect, bs_r, bs_t)
-                    f_d = dr.select(reflect, w_r, w_t) * bs_d.pdf
-                    # The sample must be of the requested kind: a mask BSDF answers a restricted
-                    # context with its null lobe.
-                    kind = mi.has_flag(bs_d.sampled_type, mi.BSDFFlags.DeltaReflection)
-                    kind = dr.select(
-                        reflect,
-                        kind,
-                        mi.has_flag(bs_d.sampled_type, mi.BSDFFlags.DeltaTransmission),
-                    )
-                    ok_d = (bs_d.pdf > 0) & (dr.max(f_d) > 0) & kind
-                    if has_null:
-                        # Null lobe (opacity masks): straight on, f = the null transmission
-                        wo_d = dr.select(null_x, -y.wi, bs_d.wo)
-                        f_null = bsdf_y.eval_null_transmission(y, act & null_x)
-                        f_d = dr.select(null_x, f_null, f_d)
-                        ok_d = dr.select(null_x, dr.max(f_null) > 0, ok_d)
-                    else:
-                        wo_d = bs_d.wo
-
-                    # Near-specular glossy x_i and y_i: copy the base's half vector
-                    act_h = act & half_x
-                    wo_h, J_h, ok_h = half_vector_shift(si.wi, bs.wo, bs.eta, y.wi)
-                    ok_h &= half_y & ((bs.eta == 1) | (bsdf_y == bsdf))  # refraction: same IOR
-                    f_h, p_h = bsdf_y.eval_pdf(ctx, y, wo_h, act_h & ok_h)
-                    ok_h &= p_h > 0
-
-                    # Rough x_i before a near-specular x_{i+1}: replay the base's random numbers
-                    act_s = act & ~delta_x & ~half_x & ~reconnect
-                    bs_s, w_s = bsdf_y.sample(ctx, y, u1, u2, act_s)
-                    # A near-specular y_i under a rough x_i fails: from y the shift would copy
-                    # the half vector, so replay would not be the inverse of the reverse shift.
-                    ok_s = y_smooth & (bs_s.pdf > 0) & ~half_y
-                    ok_s &= ~mi.has_flag(bs_s.sampled_type, mi.BSDFFlags.Delta)
-
-                    trace = act & ~reconnect
-                    # Shadow test (any hit) for a reconnection; closest hit for a new vertex
-                    visible = ~scene.ray_test(ray_rc, act_rc)
-                    wo_y = dr.select(delta_x, wo_d, dr.select(half_x, wo_h, bs_s.wo))
-                    si_y = scene.ray_intersect(y.spawn_ray(y.to_world(wo_y)), trace)
-                    hit_y = si_y.is_valid()
-                    bsdf_ny = si_y.bsdf()
-                    rough_y = ~hit_y | ~(
-                        mi.has_flag(bsdf_ny.flags(), mi.BSDFFlags.Delta)
-                        | near_glossy(si_y, bsdf_ny, hit_y & act_s)
-                    )
-                    # Non-invertible: the reverse shift from y would reconnect at this vertex
-                    ok_s &= ~rough_y
-
-                    # Reconnection and half-vector copy: f J / p_x and p_y J / p_x. Delta lobes
-                    # (J = 1) and replay (J = p_x / p_y in solid angle) simplify to sample weights.
-                    mapped = reconnect | half_x
-                    f_m = dr.select(half_x, f_h, f_rc)
-                    J_m = dr.select(half_x, J_h, J_rc)
-                    p_m = dr.select(half_x, p_h, p_rc)
-                    q = dr.select(
-                        mapped,
-                        o.q * f_m * (J_m * inv_p),
-                        dr.select(delta_x, o.q * f_d * inv_p, o.q * w_s),
-                    )
-                    r = dr.select(mapped, o.r * p_m * J_m * inv_p, o.r)
-                    # A mapping whose Jacobian is 0 or not finite (grazing, coincident vertices)
-                    # fails (safe_div returns 0 there).
-                    ok = dr.select(reconnect, visible & (p_rc > 0) & (J_rc > 0), ok_s)
-                    ok = dr.select(half_x, ok_h & (J_h > 0), dr.select(delta_x, ok_d, ok))
-                    pb = dr.select(mapped, p_m, dr.select(delta_x, 1.0, bs_s.pdf))
-                    s_rc = dr.select(reconnect, o.r * inv_p, 0)
-                    status = dr.select(reconnect, mi.UInt32(RECENTLY_CONNECTED), NOT_CONNECTED)
-                    return (
-                        q,
-                        r,
-                        ok,
-                        pb,
-                        s_rc,
-                        s_rc * J_rc,
-                        trace & ~hit_y & hit_next,
-                        trace,
-                        si_y,
-                        status,
-                        act & (near_x | near_y),
-                    )
-
-                def follow(o=o, recent=recent, f_r=f_r, p_r=p_r):
-                    """Recently connected or connected: the offset shares the base's next vertex."""
-                    q = dr.select(recent, o.q * f_r * inv_p, o.q * bsdf_weight)
-                    r = dr.select(recent, o.r * p_r * inv_p, o.r)
-                    pb = dr.select(recent, p_r, pb_next)
-                    zero = dr.zeros(mi.Float, n)
-                    # The offset's own segment pdf matters for one more vertex, unless it equals
-                    # the base's (diffuse x_i: the pdf does not depend on wi)
-                    status = dr.select(
-                        recent & (p_r != pb_next), mi.UInt32(CONNECTING), mi.UInt32(CONNECTED)
-                    )
-                    return (
-                        q,
-                        r,
-                        ~recent | (p_r > 0),
-                        pb,
-                        zero,
-                        zero,
-                        mi.Bool(False),
-                        mi.Bool(False),
-                        dr.zeros(mi.SurfaceInteraction3f, n),
-                        status,
-                        mi.Bool(False),
-                    )
-
-                (q, r, ok, o.pb_prev, o.s, o.sJ, o.escaped, trace, si_y, o.status, o.bsdf_only) = (
-                    dr.if_stmt((), act & own, shift_own, follow)
-                )
-                # A throughput or MIS ratio that is not finite fails the shift (counted). An
-                # overflowing r (+inf: the offset's pdf dwarfs the base's) is capped, so that the
-                # base's weight goes to 0, its correct limit.
-                numeric = dr.isfinite(dr.sum(q)) & ~dr.isnan(r)
-                base.bad_shift += dr.select(act & ok & ~numeric, 1, 0)
-                o.q = dr.select(numeric, q, 0)
-                o.r = dr.select(numeric, dr.minimum(r, 1e30), 0)
-                o.alive = act & ok & numeric
-                # Selected here, not in the branches: returning the outer si_next from one branch
-                # of dr.if_stmt corrupted the base path's copy of it (Dr.Jit 1.5).
-                o.si = dr.select(trace, si_y, si_next)
-                o.prev = _vertex(view)  # y_i (own) or x_i
-
-            # ----------------------- Russian roulette -----------------------
-            base.beta *= bsdf_weight
-            base.eta *= bs.eta
-            # Roulette and termination follow the largest throughput of the base and its live
-            # offsets: a base of zero throughput (a black surface) still carries offsets whose
-            # share of the pair's MIS is counted on this side only.
-            carried = base.beta if beta_scale is None else base.beta * beta_scale
-            for o in offsets:
-                carried = dr.maximum(carried, dr.select(o.alive, o.q, 0))
-            beta_max = dr.max(carried)
-            rr_active = base.depth >= self.rr_depth
-            rr_prob = dr.minimum(beta_max * dr.square(base.eta), 0.95)
-            rr_scale = dr.select(rr_active, safe_div(1.0, rr_prob), 1.0)
-            base.beta *= rr_scale
-            for o in offsets:
-                o.q *= rr_scale
-            survive = sampler.next_1d() < rr_prob
-
-            # ----------------------- Advance the base -----------------------
-            base.prev = _vertex(si)
-            base.si = si_next
-            base.ray_d = ray_next.d
-            base.pb_prev = pb_next
-            base.delta_prev = delta_x
-            base.depth += 1
-            base.active = active_next & (beta_max != 0) & (~rr_active | survive)
-            return sampler, base, offsets, feat
-
+        # ------------- Phase 1: the hybrid shift, vertex by vertex -------------
         # The sampler is loop state: its RNG must advance from one iteration to the next.
         if offsets:
-            # Phase 1: the full hybrid shift while some offset still has vertices of its own.
-            def pending(sampler, base, offsets, feat):
-                own = mi.Bool(False)
-                for o in offsets:
-                    own |= o.alive & (o.status != CONNECTED)
-                    if threshold is not None:
-                        # The next emission of a segment from a near-specular pair has its own
-                        # MIS (BSDF sampling alone), also when that shift failed.
-                        own |= o.bsdf_only
-                return base.active & own
-
             sampler, base, offsets, feat = dr.while_loop(
                 (sampler, base, offsets, feat),
-                pending,
-                body,
+                self._pending,
+                lambda sampler, base, offsets, feat: self._step(
+                    scene, to_camera, sampler, base, offsets, feat
+                ),
                 labels=("sampler", "base", "offsets", "features"),
                 label="gdpt_shift",
             )
 
-        # Phase 2: every offset is connected (it shares all further vertices with the base) or
-        # failed. A connected offset's throughput q and MIS ratio r then change exactly like the
+        # ---------------- Phase 2: the tail shared by all offsets ----------------
+        # Every offset is connected (it shares all further vertices with the base) or failed.
+        # A connected offset's throughput q and MIS ratio r then change exactly like the
         # base's, so each further contribution c of the base adds (q - beta) c / ((1 + r) beta)
         # to the half-gradient (a failed one: q = r = 0). Trace the tail once as a plain path
         # with throughput relative to here (no division by beta, whose channels may be 0).
         head_beta, head_L = base.beta, base.L
         base.beta = dr.full(mi.Spectrum, 1.0, n)
         base.L = dr.zeros(mi.Spectrum, n)
-        carried = head_beta  # the tail's roulette scale (see the roulette in body)
+        carried = head_beta  # the tail's roulette scale (see the roulette in _step)
         for o in offsets:
             carried = dr.maximum(carried, dr.select(o.alive, o.q, 0))
 
-        def tail_body(sampler, base, feat):
-            sampler, base, _, feat = body(sampler, base, [], feat, carried)
+        def tail_step(sampler, base, feat):
+            sampler, base, _, feat = self._step(scene, to_camera, sampler, base, [], feat, carried)
             return sampler, base, feat
 
         sampler, base, feat = dr.while_loop(
             (sampler, base, feat),
             lambda sampler, base, feat: base.active,
-            tail_body,
+            tail_step,
             labels=("sampler", "base", "features"),
             label="gdpt_tail",
         )
+
+        # --------------------------- Outputs ---------------------------
         tail = base.L
         gradients = [
             o.G + (dr.select(o.alive, o.q, 0) - head_beta) * tail / (1 + dr.select(o.alive, o.r, 0))
             for o in offsets
         ]
         return PathSamples(
-            primal=head_L + head_beta * tail,
-            gradients=gradients,
+            primal=head_L + head_beta * tail,  # base-path radiance
+            gradients=gradients,  # half-gradients towards the four offsets
             albedo=feat.albedo if feat is not None else None,
             normal=feat.normal if feat is not None else None,
             depth=feat.depth if feat is not None else None,
             guards={"shift_nonfinite": base.bad_shift, "term_nonfinite": base.bad_term},
         )
+
+    def _pending(self, sampler, base: BaseState, offsets: list[OffsetState], feat) -> mi.Bool:
+        """Condition of phase 1: the base is active and some offset still has vertices of its
+        own (or, with near-specular glossy lobes, a pending segment of BSDF sampling alone)."""
+        own = mi.Bool(False)
+        for o in offsets:
+            own |= o.alive & (o.status != CONNECTED)
+            if self._active_threshold is not None:
+                # The next emission of a segment from a near-specular pair has its own MIS
+                # (BSDF sampling alone), also when that shift failed.
+                own |= o.bsdf_only
+        return base.active & own
+
+    def _step(self, scene, to_camera, sampler, base, offsets, feat, beta_scale=None):
+        """One vertex x_i of the base path and the offsets' vertices that go with it.
+
+        ``sampler, base, offsets, feat`` are the loop state (returned updated); ``beta_scale``
+        is the tail's throughput scale in phase 2 of :meth:`sample_paths` (None in phase 1).
+        """
+        si, active = base.si, base.active
+        bsdf = si.bsdf()
+        n = dr.width(base.L)
+        if feat is not None:
+            near = self._near_glossy(si, bsdf, active & feat.open)
+            update_features(feat, si, bsdf, base.ray_d, to_camera, active, near)
+
+        # ---------------------- Emission at x_i ----------------------
+        emission = self._emission(scene, base)
+        base.L += base.beta * emission.Le / (1 + emission.ratio)
+        # The offsets' current vertices (own y_i, or x_i seen from y_{i-1}) and whether an own
+        # y_i is near-specular glossy (read once for the NEE and the BSDF shift)
+        views = [_offset_view(o, si) for o in offsets]
+        near_ys = [self._own_near_glossy(o, active) for o in offsets]
+        for o, view in zip(offsets, views, strict=True):
+            self._shift_emission(scene, base, o, view, emission)
+
+        # -------------------- Next-event estimation --------------------
+        active_next = active & (base.depth + 1 < self.max_depth) & si.is_valid()
+        light, bs, bsdf_weight, u1, u2 = self._sample_light(scene, sampler, si, bsdf, active_next)
+        base.L += dr.select(light.active, base.beta * light.f * light.weight * light.mis, 0)
+        c_main = base.beta * light.f * light.em
+        near_x = self._near_glossy(si, bsdf, active_next)
+        for o, view, near_y in zip(offsets, views, near_ys, strict=True):
+            self._shift_light(scene, base, o, view, near_y, bsdf, light, near_x, c_main)
+
+        # ----------------------- BSDF sampling -----------------------
+        seg = self._trace_segment(scene, si, bs, bsdf_weight, u1, u2, near_x, active_next)
+        for o, view, near_y in zip(offsets, views, near_ys, strict=True):
+            self._shift_segment(scene, base, o, view, near_y, si, bsdf, seg, active_next, n)
+
+        # ---------------------- Russian roulette ----------------------
+        base.beta *= seg.weight
+        base.eta *= seg.bs.eta
+        # Roulette and termination follow the largest throughput of the base and its live
+        # offsets: a base of zero throughput (a black surface) still carries offsets whose
+        # share of the pair's MIS is counted on this side only.
+        carried = base.beta if beta_scale is None else base.beta * beta_scale
+        for o in offsets:
+            carried = dr.maximum(carried, dr.select(o.alive, o.q, 0))
+        beta_max = dr.max(carried)
+        rr_active = base.depth >= self.rr_depth
+        rr_prob = dr.minimum(beta_max * dr.square(base.eta), 0.95)
+        rr_scale = dr.select(rr_active, safe_div(1.0, rr_prob), 1.0)
+        base.beta *= rr_scale
+        for o in offsets:
+            o.q *= rr_scale
+        survive = sampler.next_1d() < rr_prob
+
+        # ---------------------- Advance the base ----------------------
+        base.prev = _vertex(si)
+        base.si = seg.si
+        base.ray_d = seg.ray.d
+        base.pb_prev = seg.pb
+        base.delta_prev = seg.delta
+        base.depth += 1
+        base.active = active_next & (beta_max != 0) & (~rr_active | survive)
+        return sampler, base, offsets, feat
+
+    # ------------------------------------------------------------------ emission
+    def _emission(self, scene: mi.Scene, base: BaseState) -> Emission:
+        """Emission at the base's vertex x_i with the MIS ratio of its segment."""
+        ds = mi.DirectionSample3f(scene, base.si, base.prev)
+        pn = scene.pdf_emitter_direction(base.prev, ds, base.active & ~base.delta_prev)
+        Le = ds.emitter.eval(base.si, base.active)
+        return Emission(
+            Le=Le,
+            pn=pn,
+            cone=_is_cone_sampled(ds.emitter),
+            ratio=pn / dr.select(base.pb_prev > 0, base.pb_prev, 1),
+            c_main=base.beta * Le,
+        )
+
+    def _shift_emission(
+        self, scene: mi.Scene, base: BaseState, o: OffsetState, view, emission: Emission
+    ) -> None:
+        """The offset's emission at its current vertex ``view``: adds the half-gradient term of
+        the pair (base and offset, BSDF and light technique) to ``o.G``."""
+        own = o.status == NOT_CONNECTED
+        recent = o.status == RECENTLY_CONNECTED
+        act = base.active & (own | recent) & o.alive
+        ds_y = mi.DirectionSample3f(scene, view, o.prev)
+        pn_y = scene.pdf_emitter_direction(o.prev, ds_y, act & ~base.delta_prev)
+        Le_y = dr.select(own | recent, ds_y.emitter.eval(view, act), emission.Le)
+        # The offset's light technique relative to the base's BSDF pdf, r p_light(y) /
+        # p_bsdf(y), without 0 * inf at grazing y: after a reconnection J p_light(y) =
+        # p_light(x) for area-sampled emitters (see _light_own). Once connected, the segment
+        # pdf is the offset's own (pb_prev) for one more vertex (CONNECTING).
+        light_y = dr.select(
+            own,
+            o.r * pn_y / dr.select(o.pb_prev > 0, o.pb_prev, 1),
+            dr.select(
+                recent,
+                dr.select(emission.cone, o.sJ * pn_y, o.s * emission.pn),
+                o.r * emission.pn / dr.select(o.pb_prev > 0, o.pb_prev, 1),
+            ),
+        )
+        # A segment sampled at a near-specular pair is estimated by BSDF sampling alone.
+        den = 1 + dr.select(o.bsdf_only, 0, emission.ratio + dr.select(o.alive, light_y, 0))
+        den += dr.select(o.alive, o.r, 0)
+        c_shift = dr.select(o.alive, o.q * Le_y, 0)
+        _add_term(base, o, (c_shift - emission.c_main) / den, base.active)
+        o.alive &= ~o.escaped
+
+    # ------------------------------------------------------------------ next-event estimation
+    def _sample_light(self, scene, sampler, si, bsdf, active_next):
+        """The base's light sample at x_i and its BSDF sample for the next direction (one
+        virtual call evaluates the first and draws the second). Returns ``(light, bs,
+        bsdf_weight, u1, u2)``: the :class:`LightSample`, the BSDF sample with its weight
+        ``f cos / pdf`` and the random numbers it used."""
+        active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        # Visibility is tested separately: an occluded base light sample still has offsets.
+        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False, active_em)
+        active_em &= ds.pdf != 0
+        visible = ~scene.ray_test(si.spawn_ray_to(ds.p), active_em)
+        em_weight = dr.select(visible, em_weight, 0)
+        wo = si.to_local(ds.d)
+        u1, u2 = sampler.next_1d(), sampler.next_2d()
+        f, pb, bs, bsdf_weight = bsdf.eval_pdf_sample(_CTX, si, wo, u1, u2, active_next)
+        f = dr.select(active_em, f, 0)
+        pb = dr.select(active_em & ~ds.delta, pb, 0)
+        infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
+        light = LightSample(
+            ds=ds,
+            wo=wo,
+            active=active_em,
+            visible=visible,
+            weight=em_weight,
+            em=em_weight * ds.pdf,
+            f=f,
+            pb=pb,
+            mis=safe_div(ds.pdf, ds.pdf + pb),
+            infinite=infinite,
+            cone=_is_cone_sampled(ds.emitter),
+            fixed_point=infinite | ds.delta,
+        )
+        return light, bs, bsdf_weight, u1, u2
+
+    def _shift_light(self, scene, base, o, view, near_y, bsdf, light, near_x, c_main) -> None:
+        """The offset's version of the base's light sample (``c_main``: the base's
+        contribution ``β f Le`` before MIS): adds its half-gradient term to ``o.G``.
+
+        Light samples join the MIS of a pixel pair only where the BSDF shift of the same path
+        exists in both directions, so that the four techniques (base / offset x BSDF / light)
+        see the same set of shifted paths: the light point visible from x_i and y_i, nonzero
+        BSDF pdfs at both (delta lights have no BSDF technique), and a reconnection as the
+        BSDF shift's mapping. At a near-specular pair (``near_x`` or ``near_y``: x_i or y_i at
+        or below shift_threshold) the BSDF shift copies the half vector instead, so there the
+        gradient takes the segment from BSDF sampling alone (``bsdf_only``) and drops the light
+        technique of both paths; the primal keeps its own MIS.
+        """
+        own = o.status == NOT_CONNECTED
+        recent = o.status == RECENTLY_CONNECTED
+        act = light.active & o.alive
+        # Recently connected: the base's BSDF at x_i towards the same light sample, arriving
+        # from y_{i-1}. Connected: the base's own values.
+        f_r, pb_r = bsdf.eval_pdf(_CTX, view, light.wo, act & recent)
+        pb_r = dr.select(light.ds.delta, 0, pb_r)
+        shifted = dr.if_stmt(
+            (),
+            act & own,
+            lambda: self._light_own(scene, o, light, act),
+            lambda: _light_follow(light, recent, f_r, pb_r),
+        )
+        # Connected offsets always pair (the two-phase fold relies on it).
+        pair = shifted.pair & (
+            o.alive & ((o.status >= CONNECTING) | light.ds.delta | (light.visible & (light.pb > 0)))
+        )
+        den = light.ds.pdf + light.pb + dr.select(pair, o.r * shifted.Jp, 0)
+        c_shift = dr.select(pair, o.q * shifted.f * shifted.em * shifted.J, 0)
+        bsdf_only = own & o.alive & (near_x | near_y) & ~light.ds.delta
+        _add_term(base, o, (c_shift - c_main) / den, light.active & ~bsdf_only)
+
+    def _light_own(
+        self, scene: mi.Scene, o: OffsetState, light: LightSample, act: mi.Bool
+    ) -> LightShift:
+        """Own vertex y_i: reconnect it to the base's light point."""
+        y = o.si
+        bsdf_y = y.bsdf()
+        ds = light.ds
+        to_light = ds.p - y.p
+        dist_y = dr.norm(to_light)
+        dir_y = dr.select(light.infinite, ds.d, to_light / dist_y)
+        dist_y = dr.select(light.infinite, ds.dist, dist_y)
+        ds_y = mi.DirectionSample3f(
+            ds.p, ds.n, ds.uv, ds.time, ds.pdf, ds.delta, dir_y, dist_y, ds.emitter
+        )
+        act_own = act & mi.has_flag(bsdf_y.flags(), mi.BSDFFlags.Smooth)
+        ray_y = dr.select(light.infinite, y.spawn_ray(dir_y), y.spawn_ray_to(ds.p))
+        visible = ~scene.ray_test(ray_y, act_own)
+        em = dr.select(visible, scene.eval_emitter_direction(y, ds_y, act_own), 0)
+        J = dr.select(
+            light.fixed_point,
+            1.0,
+            reconnection_jacobian(ds.n, ds.d, dr.square(ds.dist), dir_y, dr.square(dist_y)),
+        )
+        # J p_light(y). Area-sampled emitters and fixed points: exactly p_light(x), also when
+        # the light turns its back to y (Mitsuba samples such points with nonzero pdf, although
+        # pdf_emitter_direction() reports 0), and free of 0 * inf at grazing y. Spheres are
+        # sampled by cone, which never picks their far side.
+        front = dr.dot(ds.n, dir_y) < 0
+        pn_cone = scene.pdf_emitter_direction(y, ds_y, act_own & light.cone & front)
+        Jpn = dr.select(light.cone, J * pn_cone, ds.pdf)
+        f, pb = bsdf_y.eval_pdf(_CTX, y, y.to_local(dir_y), act_own)
+        pair = act_own & (ds.delta | (visible & (pb > 0)))
+        pb = dr.select(ds.delta, 0, pb)
+        return LightShift(f=f, em=em, J=J, Jp=dr.select(act_own, Jpn, 0) + J * pb, pair=pair)
+
+    # ------------------------------------------------------------------ BSDF sampling
+    def _trace_segment(self, scene, si, bs, bsdf_weight, u1, u2, near_x, active_next) -> Segment:
+        """Trace the base's BSDF sample ``bs`` from x_i (near-specular glossy: ``near_x``) to
+        x_{i+1} and classify both ends for the shift."""
+        delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        si_next = scene.ray_intersect(ray, active_next)
+        hit = si_next.is_valid()
+        bsdf_next = si_next.bsdf()
+        rough = ~hit | ~(
+            mi.has_flag(bsdf_next.flags(), mi.BSDFFlags.Delta)
+            | self._near_glossy(si_next, bsdf_next, hit & active_next)
+        )
+        null = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null) if self._has_null else mi.Bool(False)
+        return Segment(
+            bs=bs,
+            weight=bsdf_weight,
+            u1=u1,
+            u2=u2,
+            ray=ray,
+            si=si_next,
+            hit=hit,
+            rough=rough,
+            delta=delta,
+            reflect=mi.has_flag(bs.sampled_type, mi.BSDFFlags.DeltaReflection),
+            null=null,
+            near=near_x,
+            half=~delta & near_x,
+            inv_p=safe_div(1.0, bs.pdf),
+            pb=dr.select(delta, 1.0, bs.pdf),
+        )
+
+    def _shift_segment(self, scene, base, o, view, near_y, si, bsdf, seg, active_next, n) -> None:
+        """Move the offset along the base's segment ``seg`` from x_i (``si``, ``bsdf``):
+        its own vertex y_i shifts (:meth:`_shift_own`), a connected one follows."""
+        # No base sample, no shift (the reverse shift finds a zero pdf at x_i)
+        act = active_next & o.alive & (seg.bs.pdf > 0)
+        own = o.status == NOT_CONNECTED
+        recent = o.status == RECENTLY_CONNECTED
+        # Recently connected: the base's BSDF at x_i towards the base's sample, arriving from
+        # y_{i-1}.
+        f_r, p_r = bsdf.eval_pdf(_CTX, view, seg.bs.wo, act & recent)
+        step = dr.if_stmt(
+            (),
+            act & own,
+            lambda: self._shift_own(scene, o, near_y, si, bsdf, seg, act),
+            lambda: _shift_follow(o, seg, recent, f_r, p_r, n),
+        )
+        o.pb_prev = step.pb
+        o.s = step.s
+        o.sJ = step.sJ
+        o.escaped = step.escaped
+        o.status = step.status
+        o.bsdf_only = step.bsdf_only
+        # A throughput or MIS ratio that is not finite fails the shift (counted). An
+        # overflowing r (+inf: the offset's pdf dwarfs the base's) is capped, so that the
+        # base's weight goes to 0, its correct limit.
+        numeric = dr.isfinite(dr.sum(step.q)) & ~dr.isnan(step.r)
+        base.bad_shift += dr.select(act & step.ok & ~numeric, 1, 0)
+        o.q = dr.select(numeric, step.q, 0)
+        o.r = dr.select(numeric, dr.minimum(step.r, 1e30), 0)
+        o.alive = act & step.ok & numeric
+        # Selected here, not in the branches: returning the outer seg.si from one branch of
+        # dr.if_stmt corrupted the base path's copy of it (Dr.Jit 1.5).
+        o.si = dr.select(step.trace, step.si, seg.si)
+        o.prev = _vertex(view)  # y_i (own) or x_i
+
+    def _shift_own(self, scene, o, near_y, si, bsdf, seg, act) -> ShiftStep:
+        """Own vertex y_i: reconnect, follow a delta lobe, copy the half vector, or replay the
+        base's random numbers."""
+        y = o.si
+        bsdf_y = y.bsdf()
+        y_smooth = mi.has_flag(bsdf_y.flags(), mi.BSDFFlags.Smooth)
+        half_y = near_y & ~seg.delta
+        reconnect = ~seg.delta & ~seg.half & seg.rough & y_smooth & ~half_y
+
+        # Reconnection y_i -> x_{i+1} (or environment shift: copy the direction)
+        act_rc = act & reconnect
+        to_next = seg.si.p - y.p
+        d_y2 = dr.squared_norm(to_next)
+        dir_rc = dr.select(seg.hit, to_next * dr.rsqrt(d_y2), seg.ray.d)
+        ray_rc = dr.select(seg.hit, y.spawn_ray_to(seg.si.p), y.spawn_ray(dir_rc))
+        J_rc = dr.select(
+            seg.hit,
+            reconnection_jacobian(seg.si.n, seg.ray.d, dr.square(seg.si.t), dir_rc, d_y2),
+            1.0,
+        )
+        f_rc, p_rc = bsdf_y.eval_pdf(_CTX, y, y.to_local(dir_rc), act_rc)
+
+        # Delta lobe: sample the offset's lobe of the same kind; f_d is its delta coefficient
+        # (weight x pdf of the restricted sample).
+        act_d = act & seg.delta & ~seg.null
+        bs_r, w_r = bsdf_y.sample(_CTX_REFLECT, y, seg.u1, seg.u2, act_d & seg.reflect)
+        bs_t, w_t = bsdf_y.sample(_CTX_TRANSMIT, y, seg.u1, seg.u2, act_d & ~seg.reflect)
+        bs_d = dr.select(seg.reflect, bs_r, bs_t)
+        f_d = dr.select(seg.reflect, w_r, w_t) * bs_d.pdf
+        # The sample must be of the requested kind: a mask BSDF answers a restricted context
+        # with its null lobe.
+        kind = mi.has_flag(bs_d.sampled_type, mi.BSDFFlags.DeltaReflection)
+        kind = dr.select(
+            seg.reflect, kind, mi.has_flag(bs_d.sampled_type, mi.BSDFFlags.DeltaTransmission)
+        )
+        ok_d = (bs_d.pdf > 0) & (dr.max(f_d) > 0) & kind
+        if self._has_null:
+            # Null lobe (opacity masks): straight on, f = the null transmission
+            wo_d = dr.select(seg.null, -y.wi, bs_d.wo)
+            f_null = bsdf_y.eval_null_transmission(y, act & seg.null)
+            f_d = dr.select(seg.null, f_null, f_d)
+            ok_d = dr.select(seg.null, dr.max(f_null) > 0, ok_d)
+        else:
+            wo_d = bs_d.wo
+
+        # Near-specular glossy x_i and y_i: copy the base's half vector
+        act_h = act & seg.half
+        wo_h, J_h, ok_h = half_vector_shift(si.wi, seg.bs.wo, seg.bs.eta, y.wi)
+        ok_h &= half_y & ((seg.bs.eta == 1) | (bsdf_y == bsdf))  # refraction: same IOR
+        f_h, p_h = bsdf_y.eval_pdf(_CTX, y, wo_h, act_h & ok_h)
+        ok_h &= p_h > 0
+
+        # Rough x_i before a near-specular x_{i+1}: replay the base's random numbers
+        act_s = act & ~seg.delta & ~seg.half & ~reconnect
+        bs_s, w_s = bsdf_y.sample(_CTX, y, seg.u1, seg.u2, act_s)
+        # A near-specular y_i under a rough x_i fails: from y the shift would copy the half
+        # vector, so replay would not be the inverse of the reverse shift.
+        ok_s = y_smooth & (bs_s.pdf > 0) & ~half_y
+        ok_s &= ~mi.has_flag(bs_s.sampled_type, mi.BSDFFlags.Delta)
+
+        trace = act & ~reconnect
+        # Shadow test (any hit) for a reconnection; closest hit for a new vertex
+        visible = ~scene.ray_test(ray_rc, act_rc)
+        wo_y = dr.select(seg.delta, wo_d, dr.select(seg.half, wo_h, bs_s.wo))
+        si_y = scene.ray_intersect(y.spawn_ray(y.to_world(wo_y)), trace)
+        hit_y = si_y.is_valid()
+        bsdf_ny = si_y.bsdf()
+        rough_y = ~hit_y | ~(
+            mi.has_flag(bsdf_ny.flags(), mi.BSDFFlags.Delta)
+            | self._near_glossy(si_y, bsdf_ny, hit_y & act_s)
+        )
+        # Non-invertible: the reverse shift from y would reconnect at this vertex
+        ok_s &= ~rough_y
+
+        # Reconnection and half-vector copy: f J / p_x and p_y J / p_x. Delta lobes (J = 1)
+        # and replay (J = p_x / p_y in solid angle) simplify to sample weights.
+        mapped = reconnect | seg.half
+        f_m = dr.select(seg.half, f_h, f_rc)
+        J_m = dr.select(seg.half, J_h, J_rc)
+        p_m = dr.select(seg.half, p_h, p_rc)
+        q = dr.select(
+            mapped,
+            o.q * f_m * (J_m * seg.inv_p),
+            dr.select(seg.delta, o.q * f_d * seg.inv_p, o.q * w_s),
+        )
+        r = dr.select(mapped, o.r * p_m * J_m * seg.inv_p, o.r)
+        # A mapping whose Jacobian is 0 or not finite (grazing, coincident vertices) fails
+        # (safe_div returns 0 there).
+        ok = dr.select(reconnect, visible & (p_rc > 0) & (J_rc > 0), ok_s)
+        ok = dr.select(seg.half, ok_h & (J_h > 0), dr.select(seg.delta, ok_d, ok))
+        s_rc = dr.select(reconnect, o.r * seg.inv_p, 0)
+        return ShiftStep(
+            q=q,
+            r=r,
+            ok=ok,
+            pb=dr.select(mapped, p_m, dr.select(seg.delta, 1.0, bs_s.pdf)),
+            s=s_rc,
+            sJ=s_rc * J_rc,
+            escaped=trace & ~hit_y & seg.hit,
+            trace=trace,
+            si=si_y,
+            status=dr.select(reconnect, mi.UInt32(RECENTLY_CONNECTED), NOT_CONNECTED),
+            bsdf_only=act & (seg.near | near_y),
+        )
+
+    # ------------------------------------------------------------------ vertex classification
+    def _near_glossy(self, si, bsdf, active) -> mi.Bool:
+        """Glossy vertex with roughness <= shift_threshold (half-vector copy, features pass)."""
+        if self._active_threshold is None:
+            return mi.Bool(False)
+        return _near_specular_glossy(si, bsdf, self._active_threshold, active)
+
+    def _own_near_glossy(self, o: OffsetState, active: mi.Bool) -> mi.Bool:
+        """Whether the offset's own vertex y_i is near-specular glossy."""
+        if self._active_threshold is None:
+            return mi.Bool(False)
+        own_next = (o.status == NOT_CONNECTED) & o.alive & active
+        return self._near_glossy(o.si, o.si.bsdf(), own_next)
+
+
+# ---------------------------------------------------------------------- shift helpers
+def _initial_offset(
+    si: mi.SurfaceInteraction3f, weight: mi.Spectrum, base_hit: mi.Bool, active: mi.Bool, n: int
+) -> OffsetState:
+    """Loop state of an offset whose camera ray hit ``si`` (``n`` lanes)."""
+    return OffsetState(
+        si=si,
+        prev=dr.zeros(mi.Interaction3f, n),
+        status=mi.UInt32(NOT_CONNECTED),
+        alive=mi.Bool(active),
+        escaped=base_hit & ~si.is_valid(),
+        q=mi.Spectrum(weight),
+        r=mi.Float(1.0),
+        pb_prev=mi.Float(1.0),
+        bsdf_only=mi.Bool(False),
+        s=mi.Float(0.0),
+        sJ=mi.Float(0.0),
+        G=dr.zeros(mi.Spectrum, n),
+    )
+
+
+def _offset_view(o: OffsetState, si: mi.SurfaceInteraction3f) -> mi.SurfaceInteraction3f:
+    """The offset's current vertex: its own y_i (NOT_CONNECTED), or the base's x_i (``si``)
+    seen from the offset's previous vertex (RECENTLY_CONNECTED: ``o.si`` holds x_i, only wi
+    differs; CONNECTED: unused). Merging both halves the virtual calls of the shift."""
+    recent = o.status == RECENTLY_CONNECTED
+    view = dr.copy(o.si)
+    turn = recent & si.is_valid()
+    view.wi = dr.select(turn, si.to_local(dr.normalize(o.prev.p - si.p)), view.wi)
+    return view
+
+
+def _add_term(base: BaseState, o: OffsetState, term: mi.Spectrum, active: mi.Bool) -> None:
+    """``o.G += term`` where ``active``; a term that is not finite is dropped and counted in
+    ``base.bad_term``."""
+    ok = dr.isfinite(dr.sum(term))
+    o.G += dr.select(active & ok, term, 0)
+    base.bad_term += dr.select(active & ~ok, 1, 0)
+
+
+def _light_follow(light: LightSample, recent: mi.Bool, f_r, pb_r) -> LightShift:
+    """Recently connected (``f_r``, ``pb_r``: the base's BSDF at x_i seen from y_{i-1}) or
+    connected (the base's own values): the offset shares the base's light point."""
+    return LightShift(
+        f=dr.select(recent, f_r, light.f),
+        em=light.em,
+        J=mi.Float(1.0),
+        Jp=light.ds.pdf + dr.select(recent, pb_r, light.pb),
+        pair=~recent | light.ds.delta | (pb_r > 0),
+    )
+
+
+def _shift_follow(o: OffsetState, seg: Segment, recent: mi.Bool, f_r, p_r, n: int) -> ShiftStep:
+    """Recently connected (``f_r``, ``p_r``: the base's BSDF at x_i towards its sample, seen
+    from y_{i-1}) or connected: the offset shares the base's next vertex."""
+    zero = dr.zeros(mi.Float, n)
+    # The offset's own segment pdf matters for one more vertex, unless it equals the base's
+    # (diffuse x_i: the pdf does not depend on wi)
+    status = dr.select(recent & (p_r != seg.pb), mi.UInt32(CONNECTING), mi.UInt32(CONNECTED))
+    return ShiftStep(
+        q=dr.select(recent, o.q * f_r * seg.inv_p, o.q * seg.weight),
+        r=dr.select(recent, o.r * p_r * seg.inv_p, o.r),
+        ok=~recent | (p_r > 0),
+        pb=dr.select(recent, p_r, seg.pb),
+        s=zero,
+        sJ=zero,
+        escaped=mi.Bool(False),
+        trace=mi.Bool(False),
+        si=dr.zeros(mi.SurfaceInteraction3f, n),
+        status=status,
+        bsdf_only=mi.Bool(False),
+    )
 
 
 def _roughness(bsdf: mi.BSDFPtr, si: mi.SurfaceInteraction3f, active: mi.Bool) -> mi.Float:
