@@ -56,12 +56,19 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def median_seconds(fn, repeats: int) -> float:
-    """Median wall time of ``repeats`` calls of ``fn`` after one untimed call."""
-    fn()
+    """Median wall time of ``repeats`` calls of ``fn`` after one untimed call (each call waits
+    for the CUDA device, where torch has one: its kernels run asynchronously)."""
+
+    def call() -> None:
+        fn()
+        if torch.cuda.is_available():
+            torch.cuda.synchronize()
+
+    call()
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
-        fn()
+        call()
         times.append(time.perf_counter() - start)
     return statistics.median(times)
 
