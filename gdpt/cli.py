@@ -410,6 +410,12 @@ def _add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
         help="only render the cached references (no timing: safe on a busy "
         "machine); run again without it on an idle machine for the cells",
     )
+    parser.add_argument(
+        "--keep-going",
+        action="store_true",
+        help="record a scene, method or budget cell that fails and continue (exit status 0); "
+        "without it the study stops at the first failure with exit status 1",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -420,7 +426,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     from gdpt.denoise import register_checkpoint
     from gdpt.metrics import METRICS
     from gdpt.study.config import PRESETS
-    from gdpt.study.evaluate import evaluate, render_references
+    from gdpt.study.evaluate import StudyFailure, evaluate, failures, render_references
     from gdpt.study.methods import EVAL_METHODS, register_denoiser
     from gdpt.study.report import best_methods
 
@@ -444,6 +450,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
         "max_depth": args.max_depth,
         "seed": args.seed,
         "reference_dir": args.references,
+        "keep_going": args.keep_going,
     }
     cfg = PRESETS["quick" if args.quick else "full"]
     cfg = dataclasses.replace(cfg, **{k: v for k, v in changes.items() if v is not None})
@@ -454,13 +461,23 @@ def _run_evaluate(args: argparse.Namespace) -> int:
             print(f"{scene}: {path}")
         return 1 if any(p.startswith("failed:") for p in status.values()) else 0
     command = shlex.join(["gdpt", *sys.argv[1:]]) if sys.argv[1:2] == ["evaluate"] else None
-    results = evaluate(args.scenes, args.out, cfg, progress=not args.no_progress, command=command)
+    try:
+        results = evaluate(
+            args.scenes, args.out, cfg, progress=not args.no_progress, command=command
+        )
+    except StudyFailure as failure:
+        message = " ".join(str(failure).split())
+        print(
+            f"gdpt evaluate: failed: {message} (recorded in {args.out}/results.json; a run "
+            "with the same --out retries it; --keep-going records failures and continues)",
+            file=sys.stderr,
+        )
+        return 1
     for scene, row in best_methods(results).items():
         best = ", ".join(f"{k} s: {v[0] if v else 'n/a'}" for k, v in row.items())
         print(f"{scene}: {best}")
-    for scene, entry in results["scenes"].items():
-        if entry.get("status") != "ok":
-            print(f"{scene}: FAILED ({entry.get('error')})")
+    for line in failures(results):
+        print(f"FAILED {line}")
     print(f"wrote {args.out}/ (results.json, results.md, plots/, crops/, index.html)")
     return 0
 

@@ -31,8 +31,12 @@ Protocol, per scene:
 4. Metrics of every cell; ``results.json`` is rewritten after each cell, so an interrupted run
    resumes without recomputing finished cells.
 
-Failures are data: a scene that fails to load or render, or a method that cannot run (package
-missing, no shipped model), is recorded with the reason and the study continues.
+A method that cannot run here (package missing, no shipped model) is recorded with the reason
+and skipped. A failure (a scene that fails to load or render its reference, a method that raises
+while calibrating or rendering a cell) is recorded too, and then stops the study with
+:class:`StudyFailure` naming the scene, method and budget, unless ``cfg.keep_going`` is set:
+then it is data and the study continues (:func:`failures` lists them). Either way a resumed run
+retries what failed.
 """
 
 from __future__ import annotations
@@ -61,6 +65,26 @@ from gdpt.study.results import (
     write_json,
 )
 from gdpt.study.scenes import EvalScene, SceneSpec, load_eval_scene, resolve_scenes
+
+
+class StudyFailure(RuntimeError):
+    """A scene or method of the study failed and ``keep_going`` is off (the failure is recorded
+    in ``results.json`` first, so that a resumed run retries it)."""
+
+
+def failures(results: dict[str, Any]) -> list[str]:
+    """One line per failure recorded in ``results`` (the content of ``results.json``): a scene
+    that failed, a method that raised while calibrating, a budget cell that raised."""
+    lines = []
+    for scene, entry in results["scenes"].items():
+        if entry.get("status") == "failed":
+            lines.append(f"{scene}: {entry.get('stage')} failed: {entry.get('error')}")
+        for method, info in entry.get("methods", {}).items():
+            if info.get("failed"):
+                lines.append(f"{scene} / {method}: calibration failed: {info['note']}")
+            for key, error in info.get("errors", {}).items():
+                lines.append(f"{scene} / {method} at {key} s: {error}")
+    return lines
 
 
 def _method_list(cfg: EvaluateConfig) -> list[str]:
@@ -271,6 +295,8 @@ def _evaluate_scene(
         entry.pop("reference", None)
         write_json(results_path, results)
         bar.update(len(methods) * len(cfg.budgets))
+        if not cfg.keep_going:
+            raise StudyFailure(f"{spec.name}: {stage} failed: {entry['error']}") from err
         return
     entry.update(status="ok", reference=ref_meta)
     entry.pop("error", None)
@@ -314,6 +340,7 @@ def _evaluate_method(
     bar.set_postfix_str(f"{scene.name}/{method.name}: calibrating")
     reason = method.check()
     model = None
+    error = None
     if reason is None:
         try:
             seed = cell_seed(cfg.seed, scene.name, method.name, "calibration")
@@ -324,12 +351,15 @@ def _evaluate_method(
             reason = str(err)
         except Exception as err:  # e.g. a model that fails to load, an unsupported plugin
             reason = f"could not run: {type(err).__name__}: {' '.join(str(err).split())}"
+            error = err
     if model is None:
-        info.update(status="skipped", note=reason)
+        info.update(status="skipped", note=reason, failed=error is not None)
         write_json(results_path, results)
         bar.update(len(todo))
+        if error is not None and not cfg.keep_going:
+            raise StudyFailure(f"{scene.name} / {method.name}: calibration: {reason}") from error
         return
-    info.update(status="ok", note=None, calibration=dataclasses.asdict(model))
+    info.update(status="ok", note=None, failed=False, calibration=dataclasses.asdict(model))
     for budget in todo:
         key = budget_key(budget)
         bar.set_postfix_str(f"{scene.name}/{method.name}: {key} s")
@@ -348,6 +378,9 @@ def _evaluate_method(
             info.setdefault("errors", {})[key] = f"{type(err).__name__}: {err}"
             write_json(results_path, results)
             bar.update(1)
+            if not cfg.keep_going:
+                message = f"{scene.name} / {method.name} at {key} s: {info['errors'][key]}"
+                raise StudyFailure(message) from err
             continue
         info.get("errors", {}).pop(key, None)
         metrics = compute_metrics(result.image, reference, cfg.metrics, options=cfg.metric_options)
