@@ -1,5 +1,6 @@
-"""The random augmentations of a training sample, after NGPT's (Kettunen et al. 2019;
-``reconstruct/run_training.py`` of the public NGPT code, ``github.com/mkettune/ngpt``).
+"""The random augmentations of a training sample, after NGPT's (Kettunen et al. 2019; the
+augmentations and padding variation enabled in ``reconstruct/config.py`` of the public code,
+``github.com/mkettune/ngpt``).
 
 :func:`sample_augmentation` draws an :class:`AugmentParams`: a random sub-crop, x/y flips and
 transposition (applied with the gradient rules of :mod:`gdpt.reconstruct.transforms`), RGB

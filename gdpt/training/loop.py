@@ -145,7 +145,7 @@ def _resume(
     path = found[1].with_suffix(".pt")
     state = torch.load(path, map_location=device, weights_only=True)
     if "model" not in state:
-        raise ValueError(f"{path} holds no network state (an older gdpt's run); start a new run")
+        raise ValueError(f"{path}: no network state (an older gdpt's run); start a new run")
     net.load_state_dict(state["model"])
     optimizer.load_state_dict(state["optimizer"])
     if state["world_size"] != world:

@@ -1,5 +1,5 @@
-"""The learning-rate schedule of NGPT (Kettunen et al. 2019; ``reconstruct/config.py`` and
-``reconstruct/run_training.py`` of the public NGPT code, ``github.com/mkettune/ngpt``).
+"""The learning-rate schedule of NGPT (Kettunen et al. 2019; its learning-rate options in
+``reconstruct/config.py`` of the public code, ``github.com/mkettune/ngpt``).
 
 Base learning rate ``5e-4``, geometric warm-up from ``lr / 1e4`` and an exponential ramp-down
 (:func:`learning_rate`). The reference warms up over 10 k minibatches and halves the rate every

@@ -1,7 +1,7 @@
 """One optimizer update (every family), the optimizer, and the dense U-Net's batch loss.
 
-The optimizer is Adam with NGPT's ``beta2 = 0.99`` (Kettunen et al. 2019; ``reconstruct/
-config.py`` of the public code, ``github.com/mkettune/ngpt``). :func:`update` is the step of
+The optimizer is Adam with the run's settings (:class:`~gdpt.training.config.TrainConfig`,
+whose defaults follow NGPT, Kettunen et al. 2019). :func:`update` is the step of
 :func:`gdpt.training.loop.training_loop`; an update whose gradients are not all finite is
 skipped (weights and Adam state stay as they were).
 

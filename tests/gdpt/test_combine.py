@@ -119,6 +119,14 @@ def test_run_directory_is_a_complete_model_and_resumes_exactly(
         assert torch.equal(again.state_dict()[k], v), k
 
 
+def test_resuming_with_a_changed_copy_of_the_base_is_refused(pt_dataset, tiny, tmp_path):
+    run = tmp_path / "run"
+    train(tiny(pt_dataset, run, steps=1, val_every=0), progress=False)
+    (run / "base.json").write_text("{}")
+    with pytest.raises(ValueError, match="base.json differs from the one this run needs"):
+        train(tiny(pt_dataset, run, steps=2, val_every=0), resume=True, progress=False)
+
+
 def test_a_shipped_combiner_carries_its_base_network(pt_dataset, tiny, tmp_path):
     run = tmp_path / "run"
     train(tiny(pt_dataset, run, steps=1, val_every=0), progress=False)

@@ -8,6 +8,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 from collections.abc import Callable
@@ -237,6 +238,18 @@ def test_run_directory_and_exact_resume(
     assert [r["step"] for r in resumed] == [1, 2, 3]
     assert resumed[2]["loss"] == log[2]["loss"] and resumed[2]["lr"] == log[2]["lr"]
     assert_same_state(before, after)  # weights and Adam state, bit for bit
+
+
+def test_resume_from_a_state_without_the_network_is_refused(data, tiny, tmp_path):
+    """A ``.pt`` without the exact weights (written by an older gdpt) cannot resume exactly."""
+    run = tmp_path / "run"
+    train(tiny(data, run, steps=1, val_every=0), progress=False)
+    state = run / "checkpoints" / "ckpt-0000001.pt"
+    payload = torch.load(state, weights_only=True)
+    del payload["model"]
+    torch.save(payload, state)
+    with pytest.raises(ValueError, match=re.escape(f"{state}: no network state")):
+        train(tiny(data, run, steps=2, val_every=0), resume=True, progress=False)
 
 
 def test_resume_with_another_config_is_refused(data, tiny, tmp_path, capsys):
