@@ -179,7 +179,6 @@ def test_rerun_with_other_settings_is_refused(copy_of, tiny_dataset_config, caps
 
 
 def test_ray_local_mode(tiny_dataset, tiny_dataset_config, tmp_path):
-    pytest.importorskip("ray")
     root = tmp_path / "ray"
     summary = build_dataset(tiny_dataset_config(views=1), root, ray_address="local", progress=False)
     assert summary.rendered == 1

@@ -394,7 +394,6 @@ def registries_restored():
 
 
 def test_model_option_compares_a_checkpoint(variant, tmp_path, capsys, registries_restored):
-    pytest.importorskip("pyoidn")
     from gdpt.reconstruct.oidn_ngpt import DESIGNS, base_model, encode_delta
 
     from gdpt.training.checkpoint import write_checkpoint

@@ -25,7 +25,7 @@ from gdpt.training.augment import AugmentParams, augment, sample_augmentation
 from gdpt.training.batches import make_batch
 from gdpt.training.config import ConfigMismatchError, TrainConfig
 from gdpt.training.dataset import CropDataset
-from gdpt.training.run_dir import read_jsonl
+from gdpt.training.run_dir import checkpoint_base, prune_checkpoints, read_jsonl
 from gdpt.training.schedule import learning_rate
 from gdpt.training.step import compute_loss, make_optimizer, update
 from gdpt.training.train import PLANS, train
@@ -238,6 +238,40 @@ def test_run_directory_and_exact_resume(
     assert [r["step"] for r in resumed] == [1, 2, 3]
     assert resumed[2]["loss"] == log[2]["loss"] and resumed[2]["lr"] == log[2]["lr"]
     assert_same_state(before, after)  # weights and Adam state, bit for bit
+
+
+def test_prune_checkpoints_keeps_the_newest_complete_ones(tmp_path):
+    """All three files of every checkpoint but the newest ``keep`` are deleted; files of other
+    names stay."""
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    for step in (1, 2, 10, 100, 1000):
+        for suffix in (".pt", ".safetensors", ".json"):
+            checkpoint_base(run, step).with_suffix(suffix).write_text("x")
+    (run / "checkpoints" / "notes.txt").write_text("kept")
+    prune_checkpoints(run, 2)
+    left = sorted(p.name for p in (run / "checkpoints").iterdir())
+    assert left == [
+        *(
+            f"ckpt-{step:07d}{suffix}"
+            for step in (100, 1000)
+            for suffix in (".json", ".pt", ".safetensors")
+        ),
+        "notes.txt",
+    ]
+    prune_checkpoints(run, 2)  # nothing more to delete
+    assert len(list((run / "checkpoints").iterdir())) == 7
+
+
+def test_training_keeps_keep_checkpoints_and_resumes_from_the_last(data, tiny, tmp_path):
+    run = tmp_path / "run"
+    train(tiny(data, run, keep_checkpoints=1, val_every=0), progress=False)
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == [
+        f"ckpt-0000003{suffix}" for suffix in (".json", ".pt", ".safetensors")
+    ]
+    train(tiny(data, run, keep_checkpoints=1, val_every=0, steps=4), resume=True, progress=False)
+    assert [r["step"] for r in read_jsonl(run / "log.jsonl")] == [1, 2, 3, 4]
+    assert sorted(p.name for p in (run / "checkpoints").iterdir())[0] == "ckpt-0000004.json"
 
 
 def test_resume_from_a_state_without_the_network_is_refused(data, tiny, tmp_path):

@@ -14,16 +14,10 @@ from __future__ import annotations
 import struct
 
 import numpy as np
+import pyoidn  # a test dependency: the reference and Intel's weights
 import pytest
 import torch
 from gdpt.reconstruct import oidn_unet, tza
-
-try:
-    import pyoidn
-except ImportError:  # pragma: no cover - depends on the environment
-    pyoidn = None
-
-needs_pyoidn = pytest.mark.skipif(pyoidn is None, reason="pyoidn is not installed")
 
 
 def _buffers(h: int, w: int, seed: int = 0) -> tuple[torch.Tensor, ...]:
@@ -49,7 +43,6 @@ def _reference(color, albedo=None, normal=None) -> torch.Tensor:
     return torch.as_tensor(pyoidn.denoise(color, albedo, normal, hdr=True, quality="high"))
 
 
-@needs_pyoidn
 @pytest.mark.parametrize("size", [(37, 53), (64, 48)])
 @pytest.mark.parametrize("features", ["albedo+normal", "colour only"])
 def test_matches_pyoidn(size, features):
@@ -62,7 +55,6 @@ def test_matches_pyoidn(size, features):
     assert err <= 1e-4 and err_px <= 1e-4, (err, err_px)
 
 
-@needs_pyoidn
 def test_zero_extra_channels_reproduce_oidn():
     color, albedo, normal = _buffers(37, 53, seed=1)
     base = oidn_unet.OIDNUNet.from_weights("rt_hdr_alb_nrm")
@@ -100,7 +92,6 @@ def test_extra_input_masks_cover_exactly_the_weights_reading_the_extra_inputs(ki
     assert oidn_unet.OIDNUNet(9, 3, kind).extra_input_masks() == {}
 
 
-@needs_pyoidn
 def test_non_finite_inputs_give_finite_output():
     color, albedo, normal = _buffers(37, 53, seed=3)
     color[3, 4] = float("nan")
@@ -217,7 +208,6 @@ def test_unrecognised_library_and_missing_pyoidn(tmp_path, monkeypatch):
         tza.load_weights("rt_hdr_alb_nrm")
 
 
-@needs_pyoidn
 def test_builtin_blobs_identified():
     by_symbol = tza.builtin_weights()
     assert {"rt_hdr_alb_nrm", "rt_hdr", "rt_ldr_alb_nrm", "rt_hdr_alb_nrm_small"} <= set(by_symbol)
