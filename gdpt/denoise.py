@@ -260,7 +260,7 @@ def oidn_denoise(
     if backend == "torch":
         from gdpt.reconstruct.oidn_unet import denoise
 
-        with torch.inference_mode():
+        with torch.no_grad():  # (not inference mode: callers may change the image in place)
             return denoise(primal, albedo, normal, weights=weights, hdr=True, quality="high")
     if reason := oidn_check():
         raise RuntimeError(reason)
@@ -281,8 +281,11 @@ def _oidn(buffers: GradientBuffers, *, alpha: float, **options: Any) -> torch.Te
     ``options``: ``backend``, ``weights``).
 
     Raises:
-        ValueError: the render has no albedo or normal (rendered with ``features=False``).
+        ValueError: an option other than those, or the render has no albedo or normal
+            (rendered with ``features=False``).
     """
+    if unknown := sorted(set(options) - {"backend", "weights"}):
+        raise ValueError(f"method 'oidn' has no option {', '.join(unknown)} (backend, weights)")
     if missing := [n for n in ("albedo", "normal") if getattr(buffers, n) is None]:
         raise ValueError(
             f"method 'oidn' needs the {' and '.join(missing)} buffer{'s' * (len(missing) > 1)}; "

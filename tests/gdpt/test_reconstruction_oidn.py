@@ -74,9 +74,17 @@ def test_missing_features_name_the_buffer_and_the_render_option(random_buffers, 
         reconstruct_image(random_buffers(names=names), method="oidn")
 
 
-def test_unknown_backend_is_an_error(random_buffers):
-    with pytest.raises(ValueError, match="oidn backend must be one of auto, pyoidn, torch"):
-        reconstruct_image(random_buffers(names=OIDN_INPUTS), method="oidn", backend="cuda")
+@pytest.mark.parametrize(
+    ("options", "match"),
+    [
+        ({"backend": "cuda"}, "oidn backend must be one of auto, pyoidn, torch, got 'cuda'"),
+        ({"backend": "pyoidn", "weights": "w.tza"}, "weights= is an option of the torch backend"),
+        ({"model": "x.safetensors"}, "method 'oidn' has no option model"),
+    ],
+)
+def test_bad_options_are_errors(random_buffers, options, match):
+    with pytest.raises(ValueError, match=match):
+        reconstruct_image(random_buffers(names=OIDN_INPUTS), method="oidn", **options)
 
 
 @needs_pyoidn
