@@ -14,7 +14,14 @@ import numpy as np
 import pytest
 
 STEP = 1e-3
-RTOL = 2e-2  # float32 central differences with STEP 1e-3 are good to ~1e-3
+#: The half-vector mapping runs in float32 (Mitsuba), so its central differences carry rounding
+#: of about 2^-24 / STEP = 6e-5 per component, more where refraction near total internal
+#: reflection magnifies it (measured max relative differences: reflect 1.9e-4, refract outside
+#: 6.3e-5, inside 1.2e-3; larger steps are worse there: 1.2e-2 at 3e-3).
+RTOL_HALF_VECTOR = 2e-3
+#: The reconnection mapping is differenced in float64, the Jacobian is float32 (measured max
+#: relative difference 5.4e-6).
+RTOL_RECONNECTION = 2e-5
 
 
 def _unit(v):
@@ -73,7 +80,7 @@ def test_half_vector_jacobian_matches_finite_differences(variant, kind):
 
     assert ok.sum() >= len(ok) // 2, f"only {ok.sum()} of {len(ok)} shifts valid"
     np.testing.assert_allclose(np.linalg.norm(wo_y[ok], axis=-1), 1.0, atol=1e-5)
-    np.testing.assert_allclose(J[ok], J_fd[ok], rtol=RTOL)
+    np.testing.assert_allclose(J[ok], J_fd[ok], rtol=RTOL_HALF_VECTOR)
     # the offset keeps the base's lobe on the shared microfacet: reflected or transmitted
     h = _unit(wi + np.where(kind == "reflect", 1.0, eta)[:, None] * wo)
     side = np.sign(np.sum(wo_y * h, -1) * np.sum(wi_y * h, -1))[ok]
@@ -139,4 +146,4 @@ def test_reconnection_jacobian_matches_finite_differences(variant):
         )
     )
     assert len(J) > n_cases // 4
-    np.testing.assert_allclose(J, J_fd, rtol=RTOL)
+    np.testing.assert_allclose(J, J_fd, rtol=RTOL_RECONNECTION)
