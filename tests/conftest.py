@@ -31,6 +31,7 @@ def pytest_configure(config: pytest.Config) -> None:
     )
 
 
+@pytest.hookimpl(trylast=True)  # after -m and -k deselected tests
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Skip the selected ``shared_scenes`` tests when the folder is missing (fail in CI)."""
     shared = [item for item in items if item.get_closest_marker(MARKER)]
