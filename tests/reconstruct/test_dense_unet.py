@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from gdpt.reconstruct import dense_unet
 from gdpt.reconstruct.dense_unet import CONFIGS, DenseUNet, ModelConfig, build_model
 
-PAPER_PARAMETERS = 4_360_054  # W, s and b of every layer in gdpt-notes.md section 3.2 (~4.36 M)
+PAPER_PARAMETERS = 4_360_054  # W, s and b of every layer of the paper's network (~4.36 M)
 
 
 def _perturbed(model: DenseUNet, seed: int = 0) -> DenseUNet:
