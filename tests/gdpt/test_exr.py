@@ -55,9 +55,11 @@ def test_conventional_channel_names_and_header(tmp_path, random_buffers):
     save_buffers(tmp_path / "r.exr", random_buffers(spp=4, metadata={"k": 1}))
     f = OpenEXR.File(str(tmp_path / "r.exr"), separate_channels=True)
     assert len(f.parts) == 1
+    rgb = [*(f"{n}{h}" for n in ("primal", "albedo") for h in ("", "_a", "_b")), "dx", "dy"]
     expected = {
-        *(f"{n}.{c}" for n in ("primal", "dx", "dy", "albedo") for c in "RGB"),
-        "normal.X", "normal.Y", "normal.Z", "depth.Y", "var_primal.Y", "var_dx.Y", "var_dy.Y",
+        *(f"{n}.{c}" for n in rgb for c in "RGB"),
+        *(f"normal{h}.{c}" for h in ("", "_a", "_b") for c in "XYZ"),
+        "depth.Y", "depth_a.Y", "depth_b.Y", "var_primal.Y", "var_dx.Y", "var_dy.Y",
     }  # fmt: skip
     assert set(f.channels()) == expected
     header = f.header()
@@ -255,7 +257,8 @@ def buffers_strategy(draw):
     names = ["primal"]
     if draw(st.booleans()):
         names += ["dx", "dy"]
-    names += [n for n in OPTIONAL if draw(st.booleans())]
+    names += [n for n in OPTIONAL if not n.endswith("_b") and draw(st.booleans())]
+    names += [f"{n[:-2]}_b" for n in names if n.endswith("_a")]  # halves come in pairs
     floats = st.floats(width=32, allow_nan=False)
     tensors = {}
     for name in names:
