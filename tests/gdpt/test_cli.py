@@ -113,6 +113,7 @@ def test_primal_only_render_is_a_clear_error(tmp_path, capsys, random_buffers):
     [
         (["info", "{missing}"], "missing.exr: no such file"),
         (["info", "{text}"], "notes.exr: not an OpenEXR file"),
+        (["info", "{tmp}"], ": is a directory"),
         (["reconstruct", "{missing}", "-o", "{out}"], "missing.exr: no such file"),
         (["reconstruct", "{text}", "-o", "{out}"], "notes.exr: not an OpenEXR file"),
         (["reconstruct", "{render}", "-o", "{tmp}/o.png"], "must be an .exr"),
