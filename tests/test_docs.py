@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -59,3 +60,32 @@ def test_readme_python_block_runs_as_written(index, tmp_path):
         env={**os.environ, "OMP_NUM_THREADS": "1"},
     )
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+def _quick_start_commands() -> list[str]:
+    """The ``gdpt ...`` lines of the README's quick start (comments dropped)."""
+    text = README.read_text()
+    section = text.split("## Quick start", 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"```sh\n(.*?)```", section, re.S)
+    lines = (line.split("#")[0].strip() for block in blocks for line in block.splitlines())
+    return [line for line in lines if line.startswith("gdpt ")]
+
+
+@pytest.mark.slow
+def test_readme_quick_start_commands_run(tmp_path):
+    """Every quick-start command, in order, in an empty folder holding the README's scene.xml."""
+    xml = re.findall(r"```xml\n(.*?)```", README.read_text(), re.S)
+    (tmp_path / "scene.xml").write_text(xml[0])
+    commands = _quick_start_commands()
+    assert len(commands) >= 4, commands
+    for command in commands:
+        result = subprocess.run(
+            [sys.executable, "-m", "gdpt", *shlex.split(command)[1:]],
+            check=False,
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=900,
+            env={**os.environ, "OMP_NUM_THREADS": "1"},
+        )
+        assert result.returncode == 0, f"{command}: {result.stderr[-2000:]}"
