@@ -52,10 +52,11 @@ reduced precision of OIDN's ``balanced``/``fast`` modes on some devices.
 Extra input channels (the gradient inputs of ``gdpt.reconstruct.oidn_ngpt``):
 ``OIDNUNet(..., extra_channels=k)`` / ``OIDNUNet.from_weights(..., extra_channels=k)`` appends
 ``k`` input channels after OIDN's (``enc_conv0`` reads ``[oidn inputs, extra]``; so does
-``dec_conv1a`` after the upsampled features, since the input joins the last skip). Their weights in both layers are initialised to zero, so
-at step 0 the network's output equals OIDN's bit for bit regardless of the extra inputs;
-fine-tuning then learns to use them. Pass them to :func:`denoise` as ``extra=`` (``(H, W, k)``,
-already transformed as the caller wishes, e.g. signed-log gradients).
+``dec_conv1a`` after the upsampled features, since the input joins the last skip). Their
+weights in both layers are initialised to zero, so at step 0 the network's output equals OIDN's
+bit for bit regardless of the extra inputs; fine-tuning then learns to use them. Pass them to
+:func:`denoise` as ``extra=`` (``(H, W, k)``, already transformed as the caller wishes, e.g.
+signed-log gradients).
 
 All tensors are float32 on the device of the input colour (no device is hard-coded).
 """
