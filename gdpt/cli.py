@@ -402,6 +402,12 @@ def _add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--seed", type=int, help="base seed")
     parser.add_argument(
+        "--seeds",
+        type=int,
+        help="replicates per cell (paired: every method renders the same seeds); the report "
+        "gives their mean and a 95%% interval (default: 1)",
+    )
+    parser.add_argument(
         "--references", type=Path, help="reference cache folder (default: OUT/references)"
     )
     parser.add_argument(
@@ -449,6 +455,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
         "reference_spp": args.reference_spp,
         "max_depth": args.max_depth,
         "seed": args.seed,
+        "seeds": args.seeds,
         "reference_dir": args.references,
         "keep_going": args.keep_going,
     }

@@ -25,6 +25,7 @@ name.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import os
 import warnings
@@ -56,6 +57,7 @@ class Method:
         primal_spp_factor: ``f(**options) -> float``: plain path samples per gradient sample
             that the method's input pools into its primal (0: none; see
             :func:`gdpt.buffers.pool_primal`); a trained network reads it from its card.
+        statistics: reads the variances of the means and the half-buffers.
     """
 
     run: Callable[..., torch.Tensor]
@@ -64,11 +66,14 @@ class Method:
     description: str
     check: Callable[[], str | None] = lambda: None
     primal_spp_factor: Callable[..., float] = lambda **_: 0.0
+    statistics: bool = False
 
     @property
     def needs(self) -> dict[str, bool]:
-        """The ``gdpt`` integrator properties that render what this method reads."""
-        return {"gradients": self.gradients, "features": self.features}
+        """The ``gdpt`` integrator properties that render what this method reads
+        (``statistics``: the variances and half-buffers, ``variance`` and ``halves``)."""
+        needs = {"gradients": self.gradients, "features": self.features}
+        return {**needs, "variance": True, "halves": True} if self.statistics else needs
 
     def sampling(self, spp: int, **options: Any) -> dict[str, Any]:
         """Keyword arguments of :func:`gdpt.render` that render this method's input with
@@ -337,6 +342,84 @@ METHODS.register(
         True,
         "Intel Open Image Denoise (pyoidn; albedo + normal, HDR, quality high)",
         oidn_check,
+    ),
+)
+
+
+#: Plain path samples pooled per gradient sample in the input of ``fuse`` (as ``ngpt``'s card).
+FUSE_PRIMAL_SPP_FACTOR = 2.5
+
+
+def _fuse(
+    buffers: GradientBuffers,
+    *,
+    alpha: float,
+    denoiser: str | None = None,
+    trust_ratio: float | None = None,
+    **_: Any,
+) -> torch.Tensor:
+    """Denoise the primal and its two halves with a primal-only denoiser, then fuse the result
+    with the gradients by variance-weighted screened Poisson
+    (:func:`gdpt.reconstruct.fuse.fuse_halves`; ``alpha`` does not apply).
+    ``buffers.metadata["fuse"]`` receives the denoiser, the share of gradients used, the solver
+    iterations and the guard counts.
+
+    Raises:
+        ValueError: the buffers lack gradients, variances or half-buffers (named, with the
+            render option that makes them), or ``denoiser`` reads gradients.
+    """
+    from gdpt.reconstruct.fuse import TRUST_RATIO, fuse_halves
+
+    missing = [
+        (name, option)
+        for name, option in (
+            ("dx", "gradients=True"),
+            ("var_dx", "variance=True"),
+            ("primal_a", "halves=True"),
+        )
+        if getattr(buffers, name) is None
+    ]
+    if missing:
+        raise ValueError(
+            "method 'fuse' reads "
+            + ", ".join(f"'{n}' (render with {o})" for n, o in missing)
+            + "; these buffers have none"
+        )
+    name = denoiser or ("ngpt-nograd" if _ngpt_check("ngpt-nograd") is None else "oidn")
+    METHODS.check([name])
+    if METHODS[name].gradients:
+        raise ValueError(f"fuse: denoiser {name!r} reads gradients; give a primal-only one")
+    plain = buffers.replace(dx=None, dy=None)
+    denoised = [reconstruct_image(b, name) for b in (plain, buffers.half("a"), buffers.half("b"))]
+    image, info = fuse_halves(
+        *denoised,
+        buffers.primal_a,
+        buffers.primal_b,
+        buffers.dx,
+        buffers.dy,
+        buffers.var_dx,
+        buffers.var_dy,
+        trust_ratio=TRUST_RATIO if trust_ratio is None else trust_ratio,
+    )
+    buffers.metadata["fuse"] = {"denoiser": name, **dataclasses.asdict(info)}
+    return image
+
+
+METHODS.register(
+    "fuse",
+    Method(
+        _fuse,
+        True,
+        True,
+        "variance-weighted screened Poisson of the gradients around the primal-only network "
+        "(ngpt-nograd, else OIDN) denoise, per-pixel error from its half-buffer denoises",
+        lambda: (
+            None
+            if oidn_check() is None or _ngpt_check("ngpt-nograd") is None
+            else ("fuse needs a primal-only denoiser: ngpt-nograd or pyoidn")
+        ),
+        lambda **_: FUSE_PRIMAL_SPP_FACTOR,
+        statistics=True,
     ),
 )
 

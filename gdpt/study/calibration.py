@@ -72,7 +72,7 @@ class TimeModel:
 WARM_UP_SEED_OFFSET = 7_777_777
 
 
-def _run(method: EvalMethod, scene: EvalScene, spp: int, seed: int) -> MethodResult:
+def timed_run(method: EvalMethod, scene: EvalScene, spp: int, seed: int) -> MethodResult:
     """A timed render, after an untimed one at the same ``spp`` (another seed).
 
     The warm-up records what a configuration needs once (kernel compilation, and the Python
@@ -116,14 +116,14 @@ def calibrate(
     Raises:
         MethodUnavailable: the method cannot run here.
     """
-    _run(method, scene, 1, seed)
-    _run(method, scene, 2, seed)
-    t = statistics.median(_run(method, scene, 1, seed + i).seconds for i in range(repeats))
+    timed_run(method, scene, 1, seed)
+    timed_run(method, scene, 2, seed)
+    t = statistics.median(timed_run(method, scene, 1, seed + i).seconds for i in range(repeats))
     measurements = [(1, t)]
     spp, target = 1, probe_fraction * budget
     while (t < target or len(measurements) < 3) and spp < max_probe_spp:
         spp = min(max_probe_spp, spp * min(8, max(2, round(target / max(t, 1e-6)))))
-        t = _run(method, scene, spp, seed + spp).seconds
+        t = timed_run(method, scene, spp, seed + spp).seconds
         measurements.append((spp, t))
     return TimeModel.fit(measurements)
 
@@ -163,7 +163,7 @@ def run_at_budget(
     best: tuple[float, MethodResult, int, int] | None = None
     spp = model.spp_for(budget)
     for k in range(max_rounds):
-        result = _run(method, scene, spp, seed + k)
+        result = timed_run(method, scene, spp, seed + k)
         attempts.append(
             {
                 "spp": spp,

@@ -41,6 +41,9 @@ class EvaluateConfig:
     """Names from :data:`gdpt.study.methods.EVAL_METHODS`; empty means all registered."""
     seed: int = 0
     """Base seed; every cell and the reference derive distinct seeds from it."""
+    seeds: int = 1
+    """Replicates per cell, paired across methods (replicate ``r`` of a scene and budget has
+    the same seed for every method); a cell reports their mean and a 95% interval."""
     tolerance: float = 0.2
     """Relative deviation of the achieved time from the budget that triggers a re-render."""
     max_rounds: int = 3
@@ -67,6 +70,8 @@ class EvaluateConfig:
             raise ValueError("reference_spp and reference_chunk_spp must be >= 1")
         if not self.metrics:
             raise ValueError("at least one metric is needed")
+        if self.seeds < 1:
+            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
         # options of metrics not requested are dropped (e.g. elpips when --metrics omits it)
         self.metric_options = {k: v for k, v in self.metric_options.items() if k in self.metrics}
         if not 0 < self.tolerance < 1 or self.max_rounds < 1:

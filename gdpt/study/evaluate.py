@@ -50,9 +50,9 @@ from typing import Any
 
 import torch
 
-from gdpt.study.calibration import calibrate, run_at_budget
+from gdpt.study.calibration import calibrate, run_at_budget, timed_run
 from gdpt.study.config import PRESETS, EvaluateConfig
-from gdpt.study.methods import EVAL_METHODS, EvalMethod, MethodUnavailable
+from gdpt.study.methods import EVAL_METHODS, EvalMethod, MethodResult, MethodUnavailable
 from gdpt.study.references import reference_seed, render_reference
 from gdpt.study.results import (
     CONVENTIONS,
@@ -61,6 +61,8 @@ from gdpt.study.results import (
     finite,
     load_results,
     machine_info,
+    mean_interval,
+    replicate_seed,
     versions,
     write_json,
 )
@@ -315,6 +317,47 @@ def _evaluate_scene(
         )
 
 
+def _run_replicates(
+    method: EvalMethod, scene: EvalScene, model: Any, budget: float, cfg: EvaluateConfig
+) -> tuple[MethodResult, dict[str, Any], list[dict[str, Any]]]:
+    """One budget cell: the sample count that fills ``budget`` (:func:`run_at_budget`), then
+    ``cfg.seeds`` replicates at that count with the paired seeds of
+    :func:`~gdpt.study.results.replicate_seed`.
+
+    Returns:
+        The first replicate's result (its image is saved), the :func:`run_at_budget` record
+        and per replicate ``{"seed", "spp", "seconds", "render_seconds",
+        "reconstruct_seconds", "result"}``.
+    """
+    key = budget_key(budget)
+    seeds = [replicate_seed(cfg.seed, scene.name, key, r) for r in range(cfg.seeds)]
+    result, record = run_at_budget(
+        method,
+        scene,
+        model,
+        budget=budget,
+        seed=seeds[0],
+        tolerance=cfg.tolerance,
+        max_rounds=cfg.max_rounds,
+    )
+    spp = record["spp"]
+    runs = [result if record["seed"] == seeds[0] else None] + [None] * (cfg.seeds - 1)
+    runs = [r or timed_run(method, scene, spp, seed) for r, seed in zip(runs, seeds, strict=True)]
+    replicates = [
+        {
+            "seed": seed,
+            "spp": spp,
+            "seconds": run.seconds,
+            "render_seconds": run.render_seconds,
+            "reconstruct_seconds": run.reconstruct_seconds,
+            "result": run,
+        }
+        for run, seed in zip(runs, seeds, strict=True)
+    ]
+    record["seed"] = seeds[0]
+    return runs[0], record, replicates
+
+
 def _evaluate_method(
     method: EvalMethod,
     scene: EvalScene,
@@ -363,17 +406,8 @@ def _evaluate_method(
     for budget in todo:
         key = budget_key(budget)
         bar.set_postfix_str(f"{scene.name}/{method.name}: {key} s")
-        seed = cell_seed(cfg.seed, scene.name, method.name, key)
         try:
-            result, record = run_at_budget(
-                method,
-                scene,
-                model,
-                budget=budget,
-                seed=seed,
-                tolerance=cfg.tolerance,
-                max_rounds=cfg.max_rounds,
-            )
+            result, record, replicates = _run_replicates(method, scene, model, budget, cfg)
         except Exception as err:  # e.g. out of memory at a large spp: report, retry on resume
             info.setdefault("errors", {})[key] = f"{type(err).__name__}: {err}"
             write_json(results_path, results)
@@ -383,11 +417,23 @@ def _evaluate_method(
                 raise StudyFailure(message) from err
             continue
         info.get("errors", {}).pop(key, None)
-        metrics = compute_metrics(result.image, reference, cfg.metrics, options=cfg.metric_options)
+        for replicate in replicates:
+            values = compute_metrics(
+                replicate.pop("result").image, reference, cfg.metrics, options=cfg.metric_options
+            )
+            replicate["metrics"] = {k: finite(v) for k, v in values.values.items()}
+            skipped = values.skipped
+        summary = {
+            k: mean_interval([r["metrics"][k] for r in replicates])
+            for k in replicates[0]["metrics"]
+            if all(r["metrics"][k] is not None for r in replicates)
+        }
         record.update(
             budget=budget,
-            metrics={k: finite(v) for k, v in metrics.values.items()},
-            skipped_metrics=metrics.skipped,
+            metrics={k: finite(v[0]) for k, v in summary.items()},
+            interval={k: [finite(v[1]), finite(v[2])] for k, v in summary.items()},
+            replicates=replicates,
+            skipped_metrics=skipped,
             nonfinite_pixels=int((~torch.isfinite(result.image)).any(-1).sum()),
             image=f"images/{scene.name}/{method.name}-{key}s.exr",
         )
