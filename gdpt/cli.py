@@ -250,9 +250,11 @@ def _add_render_and_denoise_arguments(parser: argparse.ArgumentParser) -> None:
     _add_scene_arguments(parser)
     parser.add_argument(
         "--method",
-        choices=list(METHODS),
-        default="l1",
-        help="reconstruction (default: l1); the render has the buffers it reads",
+        choices=["auto", *METHODS],
+        default="auto",
+        help="reconstruction (default: auto: a pilot render chooses between fuse on "
+        "gradient-domain samples and the primal-only denoiser on plain samples); the render "
+        "has the buffers it reads",
     )
     parser.add_argument(
         "--alpha", type=float, default=0.2, help="weight of the primal term (default: 0.2)"
@@ -277,7 +279,7 @@ def _run_render_and_denoise(args: argparse.Namespace) -> int:
 
     if not (math.isfinite(args.alpha) and args.alpha > 0):
         raise UsageError(f"--alpha must be a finite number > 0, got {args.alpha}")
-    if reason := METHODS[args.method].check():
+    if args.method != "auto" and (reason := METHODS[args.method].check()):
         raise UsageError(f"--method {args.method} cannot run here: {reason}")
     outputs = {"--output": args.output, "--save-buffers": args.save_buffers}
     for option, path in outputs.items():
@@ -310,6 +312,9 @@ def _run_render_and_denoise(args: argparse.Namespace) -> int:
         "timings": result.timings,
         "render": result.buffers.metadata,
     }
+    if result.route is not None:
+        metadata["route"] = result.route.to_json()
+        print(f"auto: {result.route.route} route ({result.route.method}): {result.route.reason}")
     save_image(args.output, result.image, metadata=metadata, force=args.force)
     print(f"wrote {args.output}")
     print(f"wrote {save_png(preview_path(args.output), result.image, force=args.force)}")

@@ -30,12 +30,15 @@ class RenderResult:
         image: ``(H, W, 3)`` float32 reconstruction on the buffers' device.
         buffers: the render.
         timings: wall-clock seconds: ``render`` (sampling, kernel compilation included),
-            ``reconstruct``, ``total``.
+            ``reconstruct``, ``total`` (and ``pilot`` for ``method="auto"``).
+        route: for ``method="auto"``, the :class:`gdpt.route.RouteChoice` (also in
+            ``buffers.metadata["route"]``); else ``None``.
     """
 
     image: torch.Tensor
     buffers: GradientBuffers
     timings: dict[str, float] = field(default_factory=dict)
+    route: Any = None
 
 
 def make_integrator(name: str = "gdpt", **props: Any):
@@ -76,6 +79,9 @@ def shared_integrator(scene: Any, name: str = "gdpt", **props: Any):
 _SHARED: OrderedDict[tuple, tuple[Any, Any]] = OrderedDict()
 _SHARED_SIZE = 8
 
+
+#: Mixed into the seed of the pilot render of ``method="auto"`` (independent of the main render).
+PILOT_SEED_SALT = 0x2C1B3C6D
 
 #: Mixed into the seed of the primal-only render that ``render(..., primal_spp=N)`` pools in, so
 #: that its samples are independent of the gradient render's (the integrators derive every pass
@@ -220,7 +226,7 @@ def render_and_denoise(
     scene: Any,
     *,
     spp: int,
-    method: str = "l1",
+    method: str = "auto",
     seed: int = 0,
     alpha: float = 0.2,
     progress: bool = False,
@@ -230,8 +236,11 @@ def render_and_denoise(
 
     Args:
         scene: as in :func:`render`.
-        spp (int): samples per pixel.
-        method (str): reconstruction, a key of :data:`gdpt.denoise.METHODS`.
+        spp (int): samples per pixel (for ``"auto"``: gradient samples; the plain route
+            renders plain samples of the same cost, :func:`gdpt.route.route_sampling`).
+        method (str): ``"auto"`` (a pilot render chooses between ``fuse`` on gradient-domain
+            samples and the primal-only denoiser on plain samples, :mod:`gdpt.route`), or a
+            key of :data:`gdpt.denoise.METHODS`.
         seed (int): random seed.
         alpha (float): screened-Poisson data weight.
         progress (bool): progress bar while rendering.
@@ -248,15 +257,32 @@ def render_and_denoise(
     """
     from gdpt.denoise import METHODS, reconstruct_image
 
-    METHODS.check([method])
-    props = {**METHODS[method].sampling(spp), **props}
+    if method != "auto":
+        METHODS.check([method])
+    if spp < 1:
+        raise ValueError(f"spp must be >= 1, got {spp}")
+    choice, timings = None, {}
+    if method == "auto":
+        from gdpt.route import choose_route, route_sampling
+
+        scene = load_scene(scene)
+        choice = choose_route(scene, seed=(int(seed) ^ PILOT_SEED_SALT) & 0xFFFFFFFF, **props)
+        timings["pilot"] = choice.pilot_seconds
+        sampling, method = route_sampling(choice, spp), choice.method
+        spp = sampling.pop("spp")
+    else:
+        sampling = METHODS[method].sampling(spp)
+    props = {**sampling, **props}
     start = time.perf_counter()
     buffers = render(scene, spp=spp, seed=seed, progress=progress, **props)
     t_render = time.perf_counter() - start
+    if choice is not None:
+        buffers.metadata["route"] = choice.to_json()
     t0 = time.perf_counter()
     image = reconstruct_image(buffers, method=method, alpha=alpha)
     if image.is_cuda:
         torch.cuda.synchronize(image.device)
     t_rec = time.perf_counter() - t0
-    timings = {"render": t_render, "reconstruct": t_rec, "total": t_render + t_rec}
-    return RenderResult(image=image, buffers=buffers, timings=timings)
+    timings.update(render=t_render, reconstruct=t_rec)
+    timings["total"] = sum(timings.values())
+    return RenderResult(image=image, buffers=buffers, timings=timings, route=choice)

@@ -350,6 +350,7 @@ def _run_replicates(
             "seconds": run.seconds,
             "render_seconds": run.render_seconds,
             "reconstruct_seconds": run.reconstruct_seconds,
+            **({"route": run.route} if run.route is not None else {}),
             "result": run,
         }
         for run, seed in zip(runs, seeds, strict=True)

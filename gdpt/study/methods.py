@@ -16,6 +16,9 @@ Registered methods:
   Poisson (L2; L1 with the reference IRLS schedule; L1 with the accelerated preset).
 * ``gdpt+ngpt``: gradient-domain path tracing + the shipped NGPT network.
 * ``pt+ngpt-nograd``: path tracing (features, no gradients) + the NGPT ablation network.
+* ``gdpt+fuse``: pooled gradient-domain samples + variance-weighted fusion of the gradients
+  around the primal-only network (:mod:`gdpt.reconstruct.fuse`).
+* ``auto``: a pilot render chooses the route per image (:mod:`gdpt.route`); all of it timed.
 
 A method that cannot run here (package not installed, no shipped model) says so through its
 ``check`` function and is skipped with that note. A reconstruction registered in
@@ -71,6 +74,7 @@ class MethodResult:
         reconstruct_seconds: part of ``seconds`` spent reconstructing (denoising).
         compile_seconds: Dr.Jit kernel compilation observed during the call (not in
             ``seconds``).
+        route: for ``auto``, the route it chose (:class:`gdpt.route.RouteChoice` as a dict).
     """
 
     image: torch.Tensor
@@ -78,6 +82,7 @@ class MethodResult:
     render_seconds: float = 0.0
     reconstruct_seconds: float = 0.0
     compile_seconds: float = 0.0
+    route: dict[str, Any] | None = None
 
 
 #: ``f(scene, *, spp, seed) -> MethodResult``.
@@ -191,3 +196,40 @@ def register_denoiser(name: str, method: Method) -> str:
 
 for _name, _method in {"oidn": DENOISERS["oidn"], **DENOISERS}.items():  # pt+oidn next to pt
     register_denoiser(_name, _method)
+
+
+def auto_route(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+    """``render_and_denoise(method="auto")``: the pilot, the route's render and its
+    reconstruction, all timed (kernel compilation excluded as for every method); ``spp`` are
+    gradient samples, the plain route renders plain samples of the same cost."""
+    from gdpt.rendering import render_and_denoise
+
+    if reason := DENOISERS["oidn"].check() and DENOISERS["ngpt-nograd"].check():
+        raise MethodUnavailable(reason)
+    _drain_compile_seconds()
+    start = time.perf_counter()
+    result = render_and_denoise(scene.scene, spp=spp, seed=seed, max_depth=scene.max_depth)
+    image = result.image.detach().to("cpu", torch.float32).contiguous()
+    seconds = time.perf_counter() - start
+    compile_seconds = _drain_compile_seconds()
+    reconstruct_seconds = result.timings["reconstruct"]
+    return MethodResult(
+        image=image,
+        seconds=max(0.0, seconds - compile_seconds),
+        render_seconds=max(0.0, seconds - compile_seconds - reconstruct_seconds),
+        reconstruct_seconds=reconstruct_seconds,
+        compile_seconds=compile_seconds,
+        route=result.route.to_json(),
+    )
+
+
+EVAL_METHODS.register(
+    "auto",
+    EvalMethod(
+        "auto",
+        "a pilot render chooses per image between gradient-domain path tracing + fuse and path "
+        "tracing + the primal-only network (gdpt.route)",
+        auto_route,
+        lambda: DENOISERS["oidn"].check() and DENOISERS["ngpt-nograd"].check(),
+    ),
+)

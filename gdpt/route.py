@@ -1,0 +1,174 @@
+"""Gradients only where they pay: a short pilot render chooses the route of ``method="auto"``.
+
+Two routes fill the same render time:
+
+* ``gradient``: gradient-domain samples with ``FUSE_PRIMAL_SPP_FACTOR`` plain path samples
+  pooled into the primal per gradient sample, reconstructed by ``fuse``
+  (:func:`gdpt.reconstruct.fuse.fuse_halves`);
+* ``plain``: plain path samples (features on), reconstructed by the primal-only denoiser
+  (``ngpt-nograd``, else ``oidn``).
+
+The pilot renders the gradient route's input at ``pilot_spp`` (with variances and halves),
+measures the cost of a gradient sample relative to a plain one (from its two passes), and
+predicts the fusion's gain on that input (:func:`gdpt.reconstruct.fuse.predicted_gain`, times
+:data:`PREDICTION_BIAS`). At equal time the gradient route's primal has ``sample_ratio =
+(1 + f) / (c + f)`` of the plain route's samples (``c`` the cost ratio, ``f`` the pooling
+factor), so its denoise has about ``1 / sample_ratio`` the error; the gradient route is taken
+when ``gain < sample_ratio``. Kettunen et al. 2019, Fig. 5: where gradients are noisy relative
+to the primal, they hurt; the pilot states that switch instead of learning it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+#: Measured fusion gain over the per-pixel prediction on the calibration scenes (procedural
+#: ``random:5`` and the built-in ``cbox-demo``, 128 px, 8 and 32 gradient spp): 10.6-26.3.
+#: The per-pixel model treats the denoiser's errors as independent between pixels; they are
+#: spatially correlated, and gradients correct only their differences. 20 keeps both
+#: calibration scenes on the plain route at the pilot's 4 spp (raw predictions 0.04-0.09),
+#: where the measured fusion gain (0.88-1.12) does not repay the gradient samples' cost.
+PREDICTION_BIAS = 20.0
+
+#: Range of the measured gradient/plain sample cost ratio (2-3 on warm renders; a first render
+#: also records its frozen passes, which inflates the ratio up to ~13).
+COST_RATIO_RANGE = (1.0, 4.0)
+
+#: Gradient spp of the pilot render (plus its pooled plain samples).
+PILOT_SPP = 4
+
+
+@dataclass
+class RouteChoice:
+    """The route ``method="auto"`` took and why.
+
+    Attributes:
+        route: ``"gradient"`` or ``"plain"``.
+        method: the reconstruction method of that route (``"fuse"`` or the denoiser).
+        gain: predicted relative MSE of the fusion over the plain denoise of the same input
+            (bias-corrected, capped at 1).
+        sample_ratio: primal samples of the gradient route over the plain route's at equal time.
+        cost_ratio: measured cost of a gradient sample over a plain one (clamped to
+            :data:`COST_RATIO_RANGE`).
+        pilot_seconds: wall time of the pilot (render and statistics).
+        reason: one line for the CLI and the metadata.
+    """
+
+    route: str
+    method: str
+    gain: float
+    sample_ratio: float
+    cost_ratio: float
+    pilot_seconds: float
+    reason: str
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def plain_denoiser() -> str:
+    """The primal-only denoiser of the plain route: ``ngpt-nograd`` where its model and
+    weights are found, else ``oidn``."""
+    from gdpt.denoise import METHODS
+
+    return "ngpt-nograd" if METHODS["ngpt-nograd"].check() is None else "oidn"
+
+
+def decide(gain: float, cost_ratio: float, factor: float) -> tuple[str, float]:
+    """``(route, sample_ratio)`` for a predicted (bias-corrected) ``gain``, a gradient/plain
+    ``cost_ratio`` and the pooling ``factor`` (see the module docstring)."""
+    sample_ratio = (1.0 + factor) / (cost_ratio + factor)
+    return ("gradient" if gain < sample_ratio else "plain"), sample_ratio
+
+
+def choose_route(
+    scene: Any, *, seed: int = 0, pilot_spp: int = PILOT_SPP, **props: Any
+) -> RouteChoice:
+    """Render the pilot of ``scene`` and choose the route (module docstring).
+
+    Args:
+        scene: an ``mi.Scene`` (or anything :func:`gdpt.render` accepts).
+        seed: the pilot's seed.
+        pilot_spp: gradient samples per pixel of the pilot (>= 2: it needs halves).
+        **props: integrator properties (``max_depth``, ...).
+
+    Returns:
+        The :class:`RouteChoice`. A pilot that renders black (no light reaches the film)
+        takes the plain route and says so.
+
+    Raises:
+        ValueError: ``pilot_spp < 2``.
+    """
+    from gdpt.denoise import FUSE_PRIMAL_SPP_FACTOR, reconstruct_image
+    from gdpt.reconstruct.fuse import (
+        ERROR_RADIUS,
+        ERROR_SCALE,
+        GUIDE_SIGMA,
+        VARIANCE_RADIUS,
+        cross_half_error,
+        edge_aware_mean,
+        log_luminance,
+        predicted_gain,
+    )
+    from gdpt.rendering import render
+
+    if pilot_spp < 2:
+        raise ValueError(f"pilot_spp must be >= 2 (the pilot needs halves), got {pilot_spp}")
+    start = time.perf_counter()
+    factor = FUSE_PRIMAL_SPP_FACTOR
+    plain_spp = max(1, round(factor * pilot_spp))
+    pilot = render(
+        scene,
+        spp=pilot_spp,
+        seed=seed,
+        primal_spp=plain_spp,
+        variance=True,
+        halves=True,
+        **{k: v for k, v in props.items() if k not in ("variance", "halves")},
+    )
+    t_gradient = pilot.metadata["render_seconds"] - pilot.metadata["primal_only"]["render_seconds"]
+    t_plain = pilot.metadata["primal_only"]["render_seconds"]
+    cost_ratio = (t_gradient / pilot_spp) / max(t_plain / plain_spp, 1e-9)
+    cost_ratio = min(max(cost_ratio, COST_RATIO_RANGE[0]), COST_RATIO_RANGE[1])
+    denoiser = plain_denoiser()
+    if float(pilot.primal.abs().max()) == 0.0:
+        seconds = time.perf_counter() - start
+        _, ratio = decide(1.0, cost_ratio, factor)
+        reason = "the pilot rendered black (no light reaches the film): nothing to fuse"
+        return RouteChoice("plain", denoiser, 1.0, ratio, cost_ratio, seconds, reason)
+    plain = pilot.replace(dx=None, dy=None)
+    d, d_a, d_b = (
+        reconstruct_image(b, denoiser) for b in (plain, pilot.half("a"), pilot.half("b"))
+    )
+    guide = log_luminance(d)
+    raw = cross_half_error(d_a, d_b, pilot.primal_a, pilot.primal_b, radius=0)
+    floor = max(1e-4 * float(d.mean(-1).square().mean()), 1e-12)
+    error = (ERROR_SCALE * edge_aware_mean(raw, guide, ERROR_RADIUS, GUIDE_SIGMA)).clamp_min(floor)
+    v_x, v_y = (
+        edge_aware_mean(v.nan_to_num(posinf=0.0), guide, VARIANCE_RADIUS, GUIDE_SIGMA)
+        for v in (pilot.var_dx, pilot.var_dy)
+    )
+    gain = min(1.0, PREDICTION_BIAS * predicted_gain(d, error, v_x, v_y))
+    route, ratio = decide(gain, cost_ratio, factor)
+    seconds = time.perf_counter() - start
+    verdict = "<" if route == "gradient" else ">="
+    reason = (
+        f"predicted fusion gain {gain:.2f} {verdict} primal sample ratio {ratio:.2f} at equal "
+        f"time (a gradient sample costs {cost_ratio:.1f} plain ones)"
+    )
+    method = "fuse" if route == "gradient" else denoiser
+    return RouteChoice(route, method, gain, ratio, cost_ratio, seconds, reason)
+
+
+def route_sampling(choice: RouteChoice, spp: int) -> dict[str, Any]:
+    """Keyword arguments of :func:`gdpt.render` for the main render of ``choice`` at ``spp``
+    gradient samples per pixel: the gradient route's pooled input, or the plain route's
+    samples of the same cost (``spp * (cost_ratio + f)``, at least ``spp``)."""
+    from gdpt.denoise import FUSE_PRIMAL_SPP_FACTOR, METHODS
+
+    if choice.route == "gradient":
+        return {"spp": spp, **METHODS["fuse"].sampling(spp)}
+    plain_spp = max(spp, round(spp * (choice.cost_ratio + FUSE_PRIMAL_SPP_FACTOR)))
+    return {"spp": plain_spp, **METHODS[choice.method].sampling(plain_spp)}
