@@ -63,7 +63,7 @@ class OffsetState:
     q: mi.Spectrum
     r: mi.Float
     pb_prev: mi.Float  # MIS pdf of the segment y_{i-1} -> y_i
-    bsdf_only: mi.Bool  # that segment left a near-specular pair: no light technique (see NEE)
+    bsdf_only: mi.Bool  # that segment left a near-specular pair: no light technique (_shift_light)
     s: mi.Float  # after a reconnection y_{i-1} -> x_i: r_{i-1} / p̃(x_{i-1} -> x_i)
     sJ: mi.Float  # ... and the same times the reconnection Jacobian
     G: mi.Spectrum  # half-gradient accumulator
