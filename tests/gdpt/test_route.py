@@ -1,0 +1,78 @@
+"""``method="auto"`` (gdpt.route): the decision rule, the pilot on scenes whose answer is known,
+and the replicate statistics of the study that measures it."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import scipy.stats
+import torch
+
+import gdpt
+from gdpt import route
+from gdpt.scenes import builtin_scene
+from gdpt.study.results import mean_interval, replicate_seed
+
+pytestmark = pytest.mark.usefixtures("variant", "single_thread")
+
+
+@pytest.mark.parametrize(
+    "gain, cost, expected",
+    [(0.5, 2.0, "gradient"), (0.9, 2.0, "plain"), (0.9, 1.0, "gradient"), (1.0, 1.0, "plain")],
+)
+def test_decision_weighs_the_predicted_gain_against_the_samples_gradients_cost(
+    gain, cost, expected
+):
+    chosen, ratio = route.decide(gain, cost, factor=2.5)
+    assert chosen == expected
+    assert ratio == pytest.approx(3.5 / (cost + 2.5))
+
+
+def test_a_black_scene_takes_the_plain_route_and_says_why():
+    film = {"type": "hdrfilm", "width": 16, "height": 16, "rfilter": {"type": "box"}}
+    scene = {
+        "type": "scene",
+        "sensor": {"type": "perspective", "film": film},
+        "shape": {"type": "sphere", "bsdf": {"type": "diffuse"}},  # no emitter anywhere
+    }
+    choice = route.choose_route(gdpt.load_scene(scene), seed=1)
+    assert choice.route == "plain" and "rendered black" in choice.reason
+
+
+def test_pilot_on_glass_takes_the_plain_route():
+    """Caustics through a glass sphere: gradients are unreliable there, the plain route wins."""
+    scene = gdpt.load_scene(builtin_scene("glass", resolution=(32, 32)))
+    choice = route.choose_route(scene, seed=2)
+    assert choice.route == "plain", choice.reason
+    assert 1.0 <= choice.cost_ratio <= 4.0 and choice.pilot_seconds > 0
+
+
+def test_auto_records_its_choice_and_renders_what_the_route_reads():
+    scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
+    result = gdpt.render_and_denoise(scene, spp=2)  # auto is the default
+    assert result.route is not None and result.buffers.metadata["route"]["route"] in (
+        "gradient",
+        "plain",
+    )
+    assert "pilot" in result.timings and torch.isfinite(result.image).all()
+    if result.route.route == "plain":
+        assert not result.buffers.has_gradients and result.buffers.spp >= 2
+    with pytest.raises(ValueError, match="pilot_spp must be >= 2"):
+        route.choose_route(scene, pilot_spp=1)
+
+
+def test_mean_interval_matches_student_t():
+    values = [1.0, 1.4, 0.7, 1.1]
+    mean, low, high = mean_interval(values)
+    t = scipy.stats.t.interval(0.95, len(values) - 1, loc=mean, scale=scipy.stats.sem(values))
+    assert mean == pytest.approx(1.05) and (low, high) == pytest.approx(t, rel=1e-3)
+    assert mean_interval([2.0]) == (2.0, 2.0, 2.0)
+    assert not math.isnan(mean_interval([1.0] * 40)[1])
+
+
+def test_replicate_seeds_are_paired_across_methods_and_distinct_across_replicates():
+    seeds = [replicate_seed(0, "cornell-box", "1", r) for r in range(3)]
+    assert len(set(seeds)) == 3
+    assert seeds == [replicate_seed(0, "cornell-box", "1", r) for r in range(3)]
+    assert replicate_seed(0, "cornell-box", "2", 0) != seeds[0]
