@@ -1,17 +1,23 @@
-"""Summarise an equal-time study (``gdpt evaluate``) against the bar of the reconstruction issue.
+"""Summarise a replicated equal-time study (``gdpt evaluate --seeds N``): wins that hold up.
 
-For one method (default ``gdpt+ngpt``) and each metric, over every scene x budget cell of
-``results.json``: in how many cells it has the lowest error of all methods, in how many it is
-within 1.25x of ``pt+oidn``, below ``gdpt+l1`` and below its ablation (default
-``pt+ngpt-nograd``); the geometric mean and range of its ratio to ``pt+oidn``; and which method is
-lowest how often. Cells where a method is missing or was skipped are left out of that comparison
-(and counted). ``--only`` restricts "lowest" to the methods named, e.g. to count a pair of
-networks registered with ``gdpt evaluate --model`` against the baselines without the shipped
-pair.
+Per metric, over every scene x budget cell of ``results.json``:
 
-    .venv/bin/python benchmarks/study_summary.py out/eval-v11/results.json [--method gdpt+ngpt]
-        [--ablation pt+ngpt-nograd] [--only METHOD ...] [--metrics relmse flip_ldr]
-        [--out out/eval-v11-summary.md]
+* each method's mean over the replicates and its 95% interval (as recorded by the study);
+* which method has the lowest mean, and in how many cells that lead is *separated*: the paired
+  95% interval of ``log(best / second)`` over the replicates (the study renders the same seeds
+  for every method) lies below 0;
+* for each candidate (``--candidates``, default ``gdpt+fuse auto``) against a baseline
+  (``--against``, default ``pt+ngpt-nograd``): separated wins and losses, the geometric mean of
+  the ratio of means per scene and overall, and the largest per-cell ratio.
+
+``relmse`` is also given corrected for the reference's own noise: with ``n_r`` reference and
+``n`` ``pt`` samples, ``E[relMSE(pt)] = v (1/n + 1/n_r)``, so the reference adds
+``relMSE(pt) n / (n + n_r)`` to every method's relMSE (per cell), which is subtracted
+(``relmse-corrected``; the noise of a 4096-spp reference pulls every ratio toward 1).
+
+    .venv/bin/python benchmarks/study_summary.py out/eval/results.json \\
+        [--candidates gdpt+fuse auto] [--against pt+ngpt-nograd] [--metrics relmse flip_ldr] \\
+        [--out out/eval/summary.md]
 """
 
 from __future__ import annotations
@@ -22,81 +28,138 @@ import math
 from collections import Counter
 from pathlib import Path
 
+#: Two-sided 95% quantiles of Student's t for 1..10 degrees of freedom.
+T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228)
 
-def cells(
-    results: dict, metric: str, only: set[str] | None = None
-) -> dict[tuple[str, str], dict[str, float]]:
-    """``(scene, budget) -> {method: error}`` of every scored cell (methods in ``only``, if
-    given)."""
-    out: dict[tuple[str, str], dict[str, float]] = {}
+
+def replicate_values(cell: dict, metric: str) -> list[float] | None:
+    """The per-replicate values of ``metric`` (a single-run study: its one value)."""
+    reps = cell.get("replicates") or [cell]
+    values = [r.get("metrics", {}).get(metric) for r in reps]
+    if any(v is None or not math.isfinite(v) for v in values):
+        return None
+    return values
+
+
+def table(results: dict, metric: str) -> dict[tuple[str, str], dict[str, list[float]]]:
+    """``(scene, budget) -> {method: per-replicate values}``; ``relmse-corrected`` subtracts the
+    reference noise estimated from the cell's ``pt`` (see the module docstring)."""
+    base = "relmse" if metric == "relmse-corrected" else metric
+    ref_spp = results["config"]["reference_spp"]
+    out: dict[tuple[str, str], dict[str, list[float]]] = {}
     for scene, entry in results["scenes"].items():
         for method, data in entry.get("methods", {}).items():
-            if only is not None and method not in only:
-                continue
             for budget, cell in data.get("cells", {}).items():
-                value = cell.get("metrics", {}).get(metric)
-                if value is not None and math.isfinite(value):
-                    out.setdefault((scene, budget), {})[method] = value
+                values = replicate_values(cell, base)
+                if values is not None:
+                    out.setdefault((scene, budget), {})[method] = values
+        if metric == "relmse-corrected":
+            for (s, budget), errors in out.items():
+                pt = entry.get("methods", {}).get("pt", {}).get("cells", {}).get(budget)
+                if s != scene or "pt" not in errors or pt is None:
+                    continue
+                noise = sum(errors["pt"]) / len(errors["pt"]) * pt["spp"] / (pt["spp"] + ref_spp)
+                out[(s, budget)] = {m: [v - noise for v in vs] for m, vs in errors.items()}
     return out
 
 
-def summarise(
-    results: dict,
-    method: str,
-    metric: str,
-    ablation: str = "pt+ngpt-nograd",
-    only: set[str] | None = None,
-) -> list[str]:
-    """Markdown lines for ``method`` under ``metric``, against ``ablation`` and the baselines,
-    among the methods in ``only`` (all if ``None``)."""
-    table = cells(results, metric, only)
-    lowest = Counter(min(errors, key=errors.get) for errors in table.values())
-    lines = [f"### {method}, {metric} ({len(table)} cells)", ""]
+def mean(values: list[float]) -> float:
+    return sum(values) / len(values)
 
-    def count(other: str, test) -> str:
-        pairs = [(e[method], e[other]) for e in table.values() if method in e and other in e]
-        return f"{sum(test(a, b) for a, b in pairs)} / {len(pairs)}"
 
-    ratios = [e[method] / e["pt+oidn"] for e in table.values() if {method, "pt+oidn"} <= set(e)]
-    geo = math.exp(sum(math.log(r) for r in ratios) / len(ratios)) if ratios else float("nan")
+def paired_log_interval(a: list[float], b: list[float]) -> tuple[float, float] | None:
+    """95% t-interval of the mean of ``log(a_r / b_r)`` over paired replicates (``None``:
+    fewer than 2 replicates or a non-positive value)."""
+    if len(a) != len(b) or len(a) < 2 or min(a + b) <= 0:
+        return None
+    d = [math.log(x / y) for x, y in zip(a, b, strict=True)]
+    m = mean(d)
+    sd = math.sqrt(sum((x - m) ** 2 for x in d) / (len(d) - 1))
+    half = T975[min(len(d) - 2, len(T975) - 1)] * sd / math.sqrt(len(d))
+    return m - half, m + half
+
+
+def separated(a: list[float], b: list[float]) -> int:
+    """+1 where ``a`` is lower than ``b`` with a separated interval, -1 higher, 0 otherwise."""
+    interval = paired_log_interval(a, b)
+    if interval is None:
+        return 0
+    return 1 if interval[1] < 0 else -1 if interval[0] > 0 else 0
+
+
+def geo(ratios: list[float]) -> float:
+    return math.exp(mean([math.log(r) for r in ratios])) if ratios else float("nan")
+
+
+def summarise(results: dict, metric: str, candidates: list[str], against: str) -> list[str]:
+    cells = table(results, metric)
+    lowest, firm = Counter(), Counter()
+    for errors in cells.values():
+        ranked = sorted(errors, key=lambda m: mean(errors[m]))
+        lowest[ranked[0]] += 1
+        if len(ranked) > 1 and separated(errors[ranked[0]], errors[ranked[1]]) == 1:
+            firm[ranked[0]] += 1
+    lines = [f"## {metric} ({len(cells)} cells)", ""]
+    lines.append(
+        "Lowest mean per cell (separated from the second by the paired 95% interval): "
+        + ", ".join(f"{m} {n} ({firm[m]})" for m, n in lowest.most_common())
+        + "."
+    )
+    lines.append("")
     lines += [
-        "| criterion | cells |",
-        "|---|---|",
-        f"| lowest of all methods | {lowest.get(method, 0)} / {len(table)} |",
-        f"| within 1.25x of pt+oidn | {count('pt+oidn', lambda a, b: a <= 1.25 * b)} |",
-        f"| below gdpt+l1 | {count('gdpt+l1', lambda a, b: a < b)} |",
-        f"| below {ablation} | {count(ablation, lambda a, b: a < b)} |",
-        f"| below pt+oidn | {count('pt+oidn', lambda a, b: a < b)} |",
-        "",
-        f"Ratio to pt+oidn: geometric mean {geo:.3f}, range "
-        f"{min(ratios, default=float('nan')):.2f}-{max(ratios, default=float('nan')):.2f}. "
-        "Lowest per cell: " + ", ".join(f"{m} {n}" for m, n in lowest.most_common()) + ".",
-        "",
-        "| scene | budget | lowest | " + method + " / pt+oidn |",
+        f"| candidate | vs {against}: wins / losses (separated) | geo. mean ratio | max ratio |",
         "|---|---|---|---|",
     ]
-    for (scene, budget), errors in sorted(table.items()):
-        best = min(errors, key=errors.get)
-        ratio = errors[method] / errors["pt+oidn"] if {method, "pt+oidn"} <= set(errors) else None
-        shown = f"{ratio:.2f}" if ratio is not None else "-"
-        lines.append(f"| {scene} | {budget} s | {best} ({errors[best]:.3g}) | {shown} |")
+    for c in candidates:
+        pairs = [(e[c], e[against]) for e in cells.values() if c in e and against in e]
+        wins = sum(separated(a, b) == 1 for a, b in pairs)
+        losses = sum(separated(a, b) == -1 for a, b in pairs)
+        ratios = [mean(a) / mean(b) for a, b in pairs if mean(b) > 0 and mean(a) > 0]
+        lines.append(
+            f"| {c} | {wins} / {losses} of {len(pairs)} | {geo(ratios):.3f} | "
+            f"{max(ratios, default=float('nan')):.2f} |"
+        )
+    lines += ["", f"Geometric-mean ratio to {against} per scene:", ""]
+    scenes = sorted({s for s, _ in cells})
+    lines += ["| scene | " + " | ".join(candidates) + " |", "|---" * (len(candidates) + 1) + "|"]
+    for scene in scenes:
+        row = []
+        for c in candidates:
+            ratios = [
+                mean(e[c]) / mean(e[against])
+                for (s, _), e in cells.items()
+                if s == scene and c in e and against in e and mean(e[against]) > 0
+            ]
+            row.append(f"{geo(ratios):.2f}" if ratios else "-")
+        lines.append(f"| {scene} | " + " | ".join(row) + " |")
+    methods = sorted({m for e in cells.values() for m in e})
+    lines += ["", "| scene | budget | " + " | ".join(methods) + " |"]
+    lines.append("|---|---" + "|---" * len(methods) + "|")
+    for (scene, budget), errors in sorted(cells.items()):
+        shown = []
+        for m in methods:
+            if m not in errors:
+                shown.append("-")
+                continue
+            v = errors[m]
+            m_, lo, hi = mean(v), min(v), max(v)
+            shown.append(f"{m_:.4g}" + (f" [{lo:.3g}, {hi:.3g}]" if len(v) > 1 else ""))
+        lines.append(f"| {scene} | {budget} s | " + " | ".join(shown) + " |")
     return lines + [""]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("results", type=Path, help="results.json of gdpt evaluate")
-    parser.add_argument("--method", default="gdpt+ngpt", help="the method to summarise")
-    parser.add_argument("--ablation", default="pt+ngpt-nograd", help="its no-gradient ablation")
-    parser.add_argument("--only", nargs="+", help="count only these methods (default: all)")
-    parser.add_argument("--metrics", nargs="+", default=["relmse", "flip_ldr"])
+    parser.add_argument("--candidates", nargs="+", default=["gdpt+fuse", "auto"])
+    parser.add_argument("--against", default="pt+ngpt-nograd")
+    parser.add_argument("--metrics", nargs="+", default=["relmse", "relmse-corrected", "flip_ldr"])
     parser.add_argument("--out", type=Path, help="also write the Markdown here")
     args = parser.parse_args()
     results = json.loads(args.results.read_text())
-    lines = [f"# {args.results}", ""]
+    lines = [f"# {args.results}", "", "Per-cell values: mean [min, max] of the replicates.", ""]
     for metric in args.metrics:
-        only = set(args.only) | {args.method, args.ablation} if args.only else None
-        lines += summarise(results, args.method, metric, args.ablation, only)
+        lines += summarise(results, metric, args.candidates, args.against)
     text = "\n".join(lines)
     print(text)
     if args.out is not None:

@@ -130,6 +130,11 @@ class GradientBuffers:
                 "halves=True (gdpt render --halves)"
             )
         half_spp = self.metadata.get("half_spp", (0, 0))[0 if which == "a" else 1]
+        if half_spp < 1:
+            raise ValueError(
+                f"half {which!r} of these buffers has no samples (half_spp "
+                f"{self.metadata.get('half_spp')}); render at least 2 spp"
+            )
         fields = {
             n: getattr(self, f"{n}_{which}")
             if getattr(self, f"{n}_{which}") is not None
@@ -277,7 +282,7 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
                 a = getattr(gradient, f"{name}_{which}")
                 b = getattr(primal_only, f"{name}_{which}")
                 if a is not None:
-                    pooled[f"{name}_{which}"] = (n_gh * a + n_ph * b) / (n_gh + n_ph)
+                    pooled[f"{name}_{which}"] = (n_gh * a + n_ph * b) / max(n_gh + n_ph, 1)
                 elif b is not None:
                     pooled[f"{name}_{which}"] = b
     metadata = {**gradient.metadata, "primal_spp": n_g + n_p, "primal_only": primal_only.metadata}

@@ -220,7 +220,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
     ``gradients`` (bool, true: trace offset paths; false = plain path tracing with features),
     ``features`` (bool, true), ``variance`` (bool, false),
     ``halves`` (bool, false: also output the primal and features of two independent halves of
-    the samples, ``primal_a``/``primal_b``, ...; needs spp >= 2),
+    the samples, ``primal_a``/``primal_b``, ...; at 1 spp half ``b`` has no sample and is 0),
     ``samples_per_pass`` (int, 2^20: samples traced per kernel launch),
     ``freeze`` (bool, true: replay the recorded kernels of a pass instead of tracing it again),
     ``shift_threshold`` (float, 0.001: microfacet roughness at or below which a glossy vertex
@@ -348,8 +348,6 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         check_scene(scene, self.plugin_name)
         self.prepare(scene)
         spp = int(spp) if spp else int(sensor.sampler().sample_count())
-        if self.halves and spp < 2:
-            raise ValueError(f"{self.plugin_name}: 'halves' needs spp >= 2, got {spp}")
         width, height = (int(v) for v in film.crop_size())
         n_pix = width * height
         passes = plan_passes(n_pix, spp, self.samples_per_pass)
@@ -586,8 +584,8 @@ class _Accumulator:
                 if f"half_{name}" in self.sums:
                     half, total = self.sums[f"half_{name}"], self.sums[name]
                     out[f"{name}_a"] = [mi.Float(h / n_a) for h in half]
-                    out[f"{name}_b"] = [
-                        mi.Float((t - h) / n_b) for t, h in zip(total, half, strict=True)
+                    out[f"{name}_b"] = [  # zeros when half b has no sample (spp 1)
+                        mi.Float((t - h) / max(n_b, 1)) for t, h in zip(total, half, strict=True)
                     ]
 
         comps = [c for name, _ in channels for c in out[name]]

@@ -13,7 +13,9 @@ control variate weighted by the inverse variances). ``t`` is the trust mask: a g
 only where its variance is at most ``trust_ratio`` times the denoised image's error at both of
 its pixels (the regime where the paper's Fig. 5 shows gradients help); elsewhere the result
 follows ``D``. With ``v -> 0`` and exact gradients the solve recovers the image up to the
-``1/e``-weighted mean error of ``D``; with ``v -> inf`` it returns ``D`` exactly.
+``1/e``-weighted mean error of ``D``; with ``v -> inf`` it returns ``D`` exactly. The result
+differs from ``D`` by at most :data:`CORRECTION_BOUND` ``sqrt(e)`` per pixel (a trust region
+against wrong statistics).
 
 The error of ``D`` comes from two independent half-buffers ``(p_a, D_a)``, ``(p_b, D_b)`` of
 the same render (:func:`cross_half_error`): ``D_a`` is independent of ``p_b``, so
@@ -56,6 +58,11 @@ VARIANCE_RADIUS = 1
 GUIDE_SIGMA = 0.3
 TRUST_RATIO = 4.0
 
+#: The fusion moves a pixel of ``D`` by at most this many estimated standard errors
+#: ``sqrt(e)`` (a trust region: where the statistics are wrong, at 1-2 spp, the solve can
+#: otherwise carry a light's error far into its surroundings).
+CORRECTION_BOUND = 3.0
+
 #: Largest ratio of a gradient weight to the data weight of its pixels (keeps CG conditioned;
 #: a ratio of 1e3 already makes the solution follow the gradients over ~30 pixels).
 MAX_WEIGHT_RATIO = 1e3
@@ -71,7 +78,9 @@ class FuseInfo:
         relative_residual: final relative residual of the normal equations.
         guards: how often each guard replaced a value: ``error_floor`` (error estimates raised
             to the floor), ``variance_nonfinite`` (non-finite gradient variances, dropped),
-            ``weight_ratio_cap`` (gradient weights capped at :data:`MAX_WEIGHT_RATIO`).
+            ``weight_ratio_cap`` (gradient weights capped at :data:`MAX_WEIGHT_RATIO`),
+            ``correction_bound`` (pixel-channels whose change was limited to
+            :data:`CORRECTION_BOUND` standard errors).
     """
 
     trusted: float
@@ -269,9 +278,11 @@ def fuse(
         precondition="jacobi",
         return_info=True,
     )
-    return image.to(denoised.dtype), FuseInfo(
-        trusted, info.cg_iterations, info.relative_residual, guards
-    )
+    bound = CORRECTION_BOUND * torch.sqrt(error.nan_to_num(0.0).clamp_min(error_floor))
+    change = image.to(denoised.dtype) - denoised
+    guards["correction_bound"] = int((change.abs() > bound).sum())
+    image = denoised + torch.maximum(torch.minimum(change, bound), -bound)
+    return image, FuseInfo(trusted, info.cg_iterations, info.relative_residual, guards)
 
 
 def predicted_gain(

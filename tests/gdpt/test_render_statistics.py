@@ -98,10 +98,16 @@ def test_halves_are_independent_and_average_to_the_primal(runs):
     np.testing.assert_allclose((runs["primal_a"] + runs["primal_b"]) / 2, runs["primal"], atol=1e-5)
 
 
-def test_halves_need_two_samples():
+def test_a_half_without_samples_is_refused_by_name_and_pooling_fills_it():
     scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=8)
-    with pytest.raises(ValueError, match="'halves' needs spp >= 2"):
-        gdpt.render(scene, spp=1, halves=True)
+    one = gdpt.render(scene, spp=1, halves=True)
+    assert one.metadata["half_spp"] == [1, 0]
+    torch.testing.assert_close(one.half("a").primal, one.primal)
+    with pytest.raises(ValueError, match="half 'b' of these buffers has no samples"):
+        one.half("b")
+    pooled = gdpt.render(scene, spp=1, primal_spp=3, halves=True)  # 1 + 2 and 0 + 1 samples
+    assert pooled.metadata["half_spp"] == [3, 1]
+    assert torch.isfinite(pooled.half("b").primal).all()
 
 
 def test_fuse_names_the_missing_buffers_and_their_render_options():

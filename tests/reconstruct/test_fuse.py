@@ -164,3 +164,13 @@ def test_predicted_gain_is_one_without_trusted_gradients_and_below_with_them():
     inf = torch.full_like(error, float("inf"))
     assert F.predicted_gain(img, error, inf, inf) == 1.0
     assert F.predicted_gain(img, error, error / 10, error / 10) < 0.1
+
+
+def test_wrong_statistics_move_no_pixel_beyond_the_trust_region():
+    img = smooth_image()
+    dx, dy = forward(img + 5.0 * torch.randn(img.shape, generator=GEN))  # pure noise...
+    tiny = torch.full(img.shape[:2] + (1,), 1e-6)  # ...claimed exact
+    error = torch.full_like(tiny, 1e-4)
+    out, info = F.fuse(img, dx, dy, tiny, tiny, error)
+    assert float((out - img).abs().max()) <= F.CORRECTION_BOUND * 1e-2 + 1e-6
+    assert info.guards["correction_bound"] > 0
