@@ -20,7 +20,8 @@ names the channel ranges (``primal``, ``dx``, ``dy``, ``albedo``, ``normal``, ``
 ``var_primal``, ``var_dx``, ``var_dy``, and the half-buffers ``primal_a``, ``primal_b``,
 ``albedo_a``, ...), computing only the buffers that were asked for.
 
-Half-buffers split every pass's samples of a pixel by index parity (even: ``a``, odd: ``b``):
+Half-buffers split the samples of a pixel by the parity of their index in the render (even:
+``a``, odd: ``b``, whatever the passes):
 two independent estimates of the primal and the features from the same samples, at no extra
 tracing cost (the input of half-buffer error estimates such as NFOR's, Rousselle et al. 2016).
 """
@@ -366,9 +367,10 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             ray_sampler = _pass_sampler(sensor, spp_pass, pass_seed ^ _RAY_SEED, n_pix)
             rays, weights = self._primary_rays(sensor, ray_sampler, spp_pass)
             path_seed = dr.opaque(mi.UInt32, pass_seed)
-            sums, counts = trace(scene, sensor, path_seed, rays, weights, spp_pass, key)
+            first = dr.opaque(mi.UInt32, done)  # the pass's first sample index (halves' parity)
+            sums, counts = trace(scene, sensor, path_seed, first, rays, weights, spp_pass, key)
             del rays, weights, ray_sampler
-            acc.add(sums, counts, spp_pass)
+            acc.add(sums, counts, spp_pass, done)
             done += spp_pass
             if self.pass_callback is not None:
                 self.pass_callback(done, spp)
@@ -383,7 +385,9 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             )
         return acc.finish(width, height, self.channels())
 
-    def _trace_pass(self, scene, sensor, seed: mi.UInt32, rays, weights, spp: int, key):
+    def _trace_pass(
+        self, scene, sensor, seed: mi.UInt32, first: mi.UInt32, rays, weights, spp: int, key
+    ):
         """One pass of ``spp`` samples per pixel from the primary ``rays`` (base and offsets,
         with their ``weights``), the path sampler seeded with ``seed``: per-pixel sums and the
         pass's guard counts (:func:`pass_sums`).
@@ -394,7 +398,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         n_pix = dr.width(rays[0].d) // spp
         sampler = _pass_sampler(sensor, spp, seed, n_pix)
         samples = self.sample_paths(scene, sensor, sampler, rays, weights, mi.Bool(True))
-        return pass_sums(samples, spp, self.variance, self.halves)
+        return pass_sums(samples, spp, self.variance, self.halves, first)
 
     def _pass_key(self) -> tuple:
         """Everything besides the JIT inputs that shapes the kernels of a pass (Python values:
@@ -452,16 +456,18 @@ def _pass_sampler(sensor: mi.Sensor, spp: int, seed, n_pix: int) -> mi.Sampler:
     return sampler
 
 
-def pass_sums(s: PathSamples, spp: int, variance: bool, halves: bool = False) -> tuple[dict, dict]:
+def pass_sums(
+    s: PathSamples, spp: int, variance: bool, halves: bool = False, first=0
+) -> tuple[dict, dict]:
     """Per-pixel sums of one pass's samples (``spp`` contiguous samples per pixel).
 
     Returns ``(sums, counts)``: ``sums`` maps ``primal``, ``g0``..``g3``, ``albedo``, ``normal``,
     ``depth``, with ``variance`` the squared luminances ``sq_primal``, ``sq_g0``.., and with
-    ``halves`` ``half_primal``, ``half_albedo``, .. (the sums over the even-indexed samples of
-    the pixel in this pass: ``ceil(spp / 2)`` of them) to lists of per-pixel ``mi.Float``
-    channels; ``counts`` maps guard names to one-element ``mi.UInt32``
-    totals (``sample_nonfinite``: samples whose buffer was not finite, which contribute 0 to that
-    buffer, plus the integrator's own guards).
+    ``halves`` ``half_primal``, ``half_albedo``, .. (the sums over the pixel's samples whose
+    index in the whole render is even; ``first`` is the index of the pass's first sample) to
+    lists of per-pixel ``mi.Float`` channels; ``counts`` maps guard names to one-element
+    ``mi.UInt32`` totals (``sample_nonfinite``: samples whose buffer was not finite, which
+    contribute 0 to that buffer, plus the integrator's own guards).
     """
     values = {"primal": s.primal}
     for k, g in enumerate(s.gradients):
@@ -478,7 +484,8 @@ def pass_sums(s: PathSamples, spp: int, variance: bool, halves: bool = False) ->
         for name in ["primal"] + [f"g{k}" for k in range(len(s.gradients))]:
             values[f"sq_{name}"] = [dr.square(sum(values[name]) / 3)]
     if halves:
-        even = (dr.arange(mi.UInt32, dr.width(values["primal"][0])) % spp) % 2 == 0
+        index = dr.arange(mi.UInt32, dr.width(values["primal"][0])) % spp + first
+        even = index % 2 == 0
         for name in ("primal", *(f for f, _ in _FEATURE_CHANNELS if f in values)):
             values[f"half_{name}"] = [dr.select(even, c, 0) for c in values[name]]
     guards = {"sample_nonfinite": bad, **s.guards}
@@ -510,7 +517,7 @@ class _Accumulator:
     ):
         z = lambda c: [dr.zeros(mi.Float64, n_pix) for _ in range(c)]  # noqa: E731
         self.n = 0
-        self.n_a = 0  # samples per pixel in half a (the even-indexed ones of every pass)
+        self.n_a = 0  # samples per pixel in half a (those with an even index in the render)
         self.guard_counts: dict[str, int] = {"sample_nonfinite": 0}
         self.sums = {"primal": z(3)}
         if gradients:
@@ -528,7 +535,7 @@ class _Accumulator:
             if features:
                 self.sums.update({f"half_{n}": z(c) for n, c in _FEATURE_CHANNELS})
 
-    def add(self, sums: dict, counts: dict, spp: int) -> None:
+    def add(self, sums: dict, counts: dict, spp: int, first: int = 0) -> None:
         """Add one pass's per-pixel sums and guard counts (from :func:`pass_sums`)."""
         for name, acc in self.sums.items():
             for i, c in enumerate(sums[name]):
@@ -537,7 +544,7 @@ class _Accumulator:
         for k, c in counts.items():
             self.guard_counts[k] = self.guard_counts.get(k, 0) + int(c[0])
         self.n += spp
-        self.n_a += (spp + 1) // 2
+        self.n_a += (first + spp + 1) // 2 - (first + 1) // 2  # even indices in the pass
 
     def finish(self, width: int, height: int, channels) -> mi.TensorXf:
         n = self.n

@@ -18,7 +18,16 @@ from pathlib import Path
 from typing import Any
 
 #: Methods shown by the demo, best first in the montage.
-DEMO_METHODS = ("gdpt+ngpt", "gdpt+l1", "gdpt+l2", "pt+oidn", "pt+ngpt-nograd", "pt")
+DEMO_METHODS = (
+    "auto",
+    "pt+ngpt-nograd",
+    "pt+oidn",
+    "gdpt+fuse",
+    "gdpt+ngpt",
+    "gdpt+l1",
+    "gdpt+l2",
+    "pt",
+)
 
 
 @dataclass(frozen=True)

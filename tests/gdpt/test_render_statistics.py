@@ -126,3 +126,17 @@ def test_fuse_on_a_render_is_finite_and_reports_what_it_did():
     assert image.shape == b.primal.shape and torch.isfinite(image).all()
     info = b.metadata["fuse"]
     assert 0.0 < info["trusted"] <= 1.0 and info["denoiser"] in ("ngpt-nograd", "oidn")
+
+
+@pytest.mark.parametrize("spp, per_pass", [(5, 1), (5, 2), (4, 3)])
+def test_halves_split_by_the_render_wide_sample_index_whatever_the_passes(spp, per_pass):
+    """One sample per pass (a large film) still fills both halves, in proportion."""
+    from gdpt.rendering import make_integrator
+
+    scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
+    integrator = make_integrator("gdpt", halves=True, samples_per_pass=per_pass * 256)
+    b = gdpt.render(scene, spp=spp, integrator=integrator)
+    n_a, n_b = b.metadata["half_spp"]
+    assert (n_a, n_b) == ((spp + 1) // 2, spp // 2)
+    pooled = (n_a * b.primal_a + n_b * b.primal_b) / spp
+    torch.testing.assert_close(pooled, b.primal, atol=1e-5, rtol=1e-5)
