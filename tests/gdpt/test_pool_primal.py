@@ -8,6 +8,7 @@ import warnings
 
 import pytest
 import torch
+from safetensors.torch import save_file
 
 from gdpt.buffers import pool_primal
 from gdpt.denoise import METHODS
@@ -116,7 +117,7 @@ def test_primal_spp_needs_gradients(variant):
 def test_methods_ask_for_the_primal_samples_of_their_card(tmp_path):
     card = {"format": "gdpt-oidn-delta/1", "sampling": {"primal_spp_factor": 2.5}}
     (tmp_path / "pooled.json").write_text(json.dumps(card))
-    (tmp_path / "pooled.safetensors").write_bytes(b"")
+    save_file({}, tmp_path / "pooled.safetensors")  # a readable, empty checkpoint
     ngpt = METHODS["ngpt"]
     model = str(tmp_path / "pooled.safetensors")
     assert ngpt.sampling(8, model=model) == {"gradients": True, "features": True, "primal_spp": 20}
@@ -130,7 +131,7 @@ def test_pooled_model_on_unpooled_buffers_warns(tmp_path, monkeypatch, random_bu
 
     card = {"format": "gdpt-oidn-delta/1", "sampling": {"primal_spp_factor": 2.5}}
     (tmp_path / "pooled.json").write_text(json.dumps(card))
-    (tmp_path / "pooled.safetensors").write_bytes(b"")
+    save_file({}, tmp_path / "pooled.safetensors")  # a readable, empty checkpoint
     monkeypatch.setattr(denoise, "_oidn_weights_missing", lambda name, path: None)
     monkeypatch.setattr(denoise, "load_reconstructor", lambda path: lambda b: b.primal)
     model = str(tmp_path / "pooled.safetensors")
