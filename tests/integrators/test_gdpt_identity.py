@@ -108,7 +108,26 @@ def _platform() -> str:
     import drjit as dr
     import mitsuba as mi
 
-    return f"{platform.machine()} '{_cpu_name()}', mitsuba {mi.__version__}, drjit {dr.__version__}"
+    return (
+        f"{platform.machine()} '{_cpu_name()}' ({_vector_isa()}), mitsuba {mi.__version__}, "
+        f"drjit {dr.__version__}"
+    )
+
+
+def _vector_isa() -> str:
+    """The widest x86 vector extension the CPU reports (Linux): CPUs of one model name (a
+    virtual machine's generic 'AMD EPYC') differ in it, and with it in ``rsqrt``'s last bits."""
+    cpuinfo = Path("/proc/cpuinfo")
+    flags = set()
+    if cpuinfo.exists():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("flags"):
+                flags = set(line.split(":", 1)[1].split())
+                break
+    for isa in ("avx512f", "avx2", "avx", "sse4_2"):
+        if isa in flags:
+            return isa
+    return "unknown ISA"
 
 
 def _cpu_name() -> str:
