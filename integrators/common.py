@@ -261,8 +261,12 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         # Replays the kernels of a pass without tracing Python again (dr.freeze): the tracing of
         # the large path loop, its virtual calls over every BSDF and emitter and the kernel
         # hashing cost as much as the kernel itself at 128 px. It records again for new film
-        # sizes, spp per pass or settings (the key) and for scenes of another layout.
-        self._frozen_pass = dr.freeze(self._trace_pass, limit=8)
+        # sizes, spp per pass or settings (the key) and for scenes of another layout. Those
+        # recordings are expected (a timing study renders dozens of sample counts per scene),
+        # so Dr.Jit's re-tracing warning (after 10 by default, "indicates a problem") is off;
+        # tests/gdpt/test_rendering.py checks that a repeated render replays. The 16 most
+        # recently used recordings are kept.
+        self._frozen_pass = dr.freeze(self._trace_pass, limit=16, warn_after=2**31 - 1)
         #: Optional ``callable(spp_done, spp_total)`` called after every pass (progress bars).
         self.pass_callback = None
         #: How often each numerical guard fired in the last ``render()``: ``sample_nonfinite``
