@@ -266,7 +266,8 @@ def render_and_denoise(
         from gdpt.route import choose_route, route_sampling
 
         scene = load_scene(scene)
-        choice = choose_route(scene, seed=(int(seed) ^ PILOT_SEED_SALT) & 0xFFFFFFFF, **props)
+        seed_pilot = (int(seed) ^ PILOT_SEED_SALT) & 0xFFFFFFFF
+        choice = choose_route(scene, spp=spp, seed=seed_pilot, **props)
         timings["pilot"] = choice.pilot_seconds
         sampling, method = route_sampling(choice, spp), choice.method
         spp = sampling.pop("spp")

@@ -16,6 +16,12 @@ predicts the fusion's gain on that input (:func:`gdpt.reconstruct.fuse.predicted
 factor), so its denoise has about ``1 / sample_ratio`` the error; the gradient route is taken
 when ``gain < sample_ratio``. Kettunen et al. 2019, Fig. 5: where gradients are noisy relative
 to the primal, they hurt; the pilot states that switch instead of learning it.
+
+The pilot is not wasted only if it is small next to the render it decides: below
+``pilot_spp / PILOT_SHARE`` gradient samples per pixel there is no pilot and the plain route is
+taken (its samples counted with :data:`DEFAULT_COST_RATIO`). At such sample counts the fusion
+did not gain on the calibration scenes either (8 spp: 1.04x and 1.11x the error of the plain
+denoise of the same input).
 """
 
 from __future__ import annotations
@@ -38,6 +44,15 @@ COST_RATIO_RANGE = (1.0, 4.0)
 
 #: Gradient spp of the pilot render (plus its pooled plain samples).
 PILOT_SPP = 4
+
+#: Largest share of the main render's gradient samples a pilot may take; below
+#: ``PILOT_SPP / PILOT_SHARE`` (80) gradient spp the plain route is taken without a pilot.
+PILOT_SHARE = 0.05
+
+#: Gradient/plain sample cost ratio assumed where no pilot measured it (2-3 measured on warm
+#: renders, ``benchmarks/method_cost.py``; the lower end keeps the plain route's render time
+#: at or below the gradient route's).
+DEFAULT_COST_RATIO = 2.0
 
 
 @dataclass
@@ -84,12 +99,14 @@ def decide(gain: float, cost_ratio: float, factor: float) -> tuple[str, float]:
 
 
 def choose_route(
-    scene: Any, *, seed: int = 0, pilot_spp: int = PILOT_SPP, **props: Any
+    scene: Any, *, spp: int, seed: int = 0, pilot_spp: int = PILOT_SPP, **props: Any
 ) -> RouteChoice:
     """Render the pilot of ``scene`` and choose the route (module docstring).
 
     Args:
         scene: an ``mi.Scene`` (or anything :func:`gdpt.render` accepts).
+        spp: gradient samples per pixel of the main render; below ``pilot_spp /
+            PILOT_SHARE`` no pilot is rendered and the route is plain.
         seed: the pilot's seed.
         pilot_spp: gradient samples per pixel of the pilot (>= 2: it needs halves).
         **props: integrator properties (``max_depth``, ...).
@@ -116,8 +133,15 @@ def choose_route(
 
     if pilot_spp < 2:
         raise ValueError(f"pilot_spp must be >= 2 (the pilot needs halves), got {pilot_spp}")
-    start = time.perf_counter()
     factor = FUSE_PRIMAL_SPP_FACTOR
+    if spp * PILOT_SHARE < pilot_spp:
+        _, ratio = decide(1.0, DEFAULT_COST_RATIO, factor)
+        reason = (
+            f"{spp} gradient spp: a pilot of {pilot_spp} would take more than "
+            f"{PILOT_SHARE:.0%} of the render (gradients need >= {pilot_spp / PILOT_SHARE:.0f})"
+        )
+        return RouteChoice("plain", plain_denoiser(), 1.0, ratio, DEFAULT_COST_RATIO, 0.0, reason)
+    start = time.perf_counter()
     plain_spp = max(1, round(factor * pilot_spp))
     pilot = render(
         scene,

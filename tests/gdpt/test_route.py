@@ -36,30 +36,47 @@ def test_a_black_scene_takes_the_plain_route_and_says_why():
         "sensor": {"type": "perspective", "film": film},
         "shape": {"type": "sphere", "bsdf": {"type": "diffuse"}},  # no emitter anywhere
     }
-    choice = route.choose_route(gdpt.load_scene(scene), seed=1)
+    choice = route.choose_route(gdpt.load_scene(scene), spp=80, seed=1)
     assert choice.route == "plain" and "rendered black" in choice.reason
 
 
 def test_pilot_on_glass_takes_the_plain_route():
     """Caustics through a glass sphere: gradients are unreliable there, the plain route wins."""
     scene = gdpt.load_scene(builtin_scene("glass", resolution=(32, 32)))
-    choice = route.choose_route(scene, seed=2)
+    choice = route.choose_route(scene, spp=80, seed=2)
     assert choice.route == "plain", choice.reason
     assert 1.0 <= choice.cost_ratio <= 4.0 and choice.pilot_seconds > 0
 
 
 def test_auto_records_its_choice_and_renders_what_the_route_reads():
     scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
-    result = gdpt.render_and_denoise(scene, spp=2)  # auto is the default
+    result = gdpt.render_and_denoise(scene, spp=80)  # auto is the default; 80: a pilot
     assert result.route is not None and result.buffers.metadata["route"]["route"] in (
         "gradient",
         "plain",
     )
-    assert "pilot" in result.timings and torch.isfinite(result.image).all()
+    assert result.timings["pilot"] > 0 and torch.isfinite(result.image).all()
     if result.route.route == "plain":
-        assert not result.buffers.has_gradients and result.buffers.spp >= 2
+        assert not result.buffers.has_gradients and result.buffers.spp >= 80
     with pytest.raises(ValueError, match="pilot_spp must be >= 2"):
-        route.choose_route(scene, pilot_spp=1)
+        route.choose_route(scene, spp=80, pilot_spp=1)
+
+
+def test_no_pilot_below_its_share_of_the_render(monkeypatch):
+    """Below ``PILOT_SPP / PILOT_SHARE`` gradient spp nothing is rendered for the decision: the
+    plain route, with the assumed cost ratio, says why."""
+    scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
+    monkeypatch.setattr(gdpt.rendering, "render", _no_render)
+    limit = round(route.PILOT_SPP / route.PILOT_SHARE)
+    choice = route.choose_route(scene, spp=limit - 1)
+    assert choice.route == "plain" and choice.pilot_seconds == 0.0
+    assert choice.cost_ratio == route.DEFAULT_COST_RATIO and f">= {limit}" in choice.reason
+    with pytest.raises(AssertionError, match="pilot rendered"):
+        route.choose_route(scene, spp=limit)
+
+
+def _no_render(*args, **kwargs):
+    raise AssertionError("pilot rendered")
 
 
 def test_mean_interval_matches_student_t():
