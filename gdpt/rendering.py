@@ -236,8 +236,8 @@ def render_and_denoise(
 
     Args:
         scene: as in :func:`render`.
-        spp (int): samples per pixel (for ``"auto"``: gradient samples; the plain route
-            renders plain samples of the same cost, :func:`gdpt.route.route_sampling`).
+        spp (int): samples per pixel (for ``"auto"``: plain path samples; the gradient
+            route renders gradient samples of the same cost, :func:`gdpt.route.route_sampling`).
         method (str): ``"auto"`` (a pilot render chooses between ``fuse`` on gradient-domain
             samples and the primal-only denoiser on plain samples, :mod:`gdpt.route`), or a
             key of :data:`gdpt.denoise.METHODS`.

@@ -1,6 +1,6 @@
 """Gradients only where they pay: a short pilot render chooses the route of ``method="auto"``.
 
-Two routes fill the same render time:
+Two routes fill the same render time; ``spp`` counts the plain route's samples:
 
 * ``gradient``: gradient-domain samples with ``FUSE_PRIMAL_SPP_FACTOR`` plain path samples
   pooled into the primal per gradient sample, reconstructed by ``fuse``
@@ -17,15 +17,18 @@ factor), so its denoise has about ``1 / sample_ratio`` the error; the gradient r
 when ``gain < sample_ratio``. Kettunen et al. 2019, Fig. 5: where gradients are noisy relative
 to the primal, they hurt; the pilot states that switch instead of learning it.
 
+The statistics are computed on the centre ``PILOT_WINDOW`` pixels square of the pilot.
 The pilot is not wasted only if it is small next to the render it decides: below
-``pilot_spp / PILOT_SHARE`` gradient samples per pixel there is no pilot and the plain route is
-taken (its samples counted with :data:`DEFAULT_COST_RATIO`). At such sample counts the fusion
-did not gain on the calibration scenes either (8 spp: 1.04x and 1.11x the error of the plain
-denoise of the same input).
+:func:`pilot_threshold` plain samples per pixel (the pilot's samples, counted with
+:data:`DEFAULT_COST_RATIO`, over :data:`PILOT_SHARE`) there is no pilot and the plain route is
+taken. At the gradient sample counts this leaves out the fusion did not gain on the
+calibration scenes either (8 spp: 1.04x and 1.11x the error of the plain denoise of the same
+input).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -45,13 +48,15 @@ COST_RATIO_RANGE = (1.0, 4.0)
 #: Gradient spp of the pilot render (plus its pooled plain samples).
 PILOT_SPP = 4
 
-#: Largest share of the main render's gradient samples a pilot may take; below
-#: ``PILOT_SPP / PILOT_SHARE`` (80) gradient spp the plain route is taken without a pilot.
+#: Side of the centre crop the pilot's statistics are computed on (three denoises of the whole
+#: image would cost ~3x the final reconstruction, seconds at 720p on a CPU).
+PILOT_WINDOW = 256
+
+#: Largest share of the main render's samples a pilot may take (:func:`pilot_threshold`).
 PILOT_SHARE = 0.05
 
-#: Gradient/plain sample cost ratio assumed where no pilot measured it (2-3 measured on warm
-#: renders, ``benchmarks/method_cost.py``; the lower end keeps the plain route's render time
-#: at or below the gradient route's).
+#: Gradient/plain sample cost ratio assumed before a pilot measured it (2-3 measured on warm
+#: renders, ``benchmarks/method_cost.py``).
 DEFAULT_COST_RATIO = 2.0
 
 
@@ -98,6 +103,15 @@ def decide(gain: float, cost_ratio: float, factor: float) -> tuple[str, float]:
     return ("gradient" if gain < sample_ratio else "plain"), sample_ratio
 
 
+def pilot_threshold(pilot_spp: int = PILOT_SPP) -> int:
+    """Fewest plain samples per pixel of the main render for which a pilot of ``pilot_spp``
+    gradient samples (and its pooled plain ones) is at most :data:`PILOT_SHARE` of the samples:
+    360 for the default pilot."""
+    from gdpt.denoise import FUSE_PRIMAL_SPP_FACTOR
+
+    return math.ceil(pilot_spp * (DEFAULT_COST_RATIO + FUSE_PRIMAL_SPP_FACTOR) / PILOT_SHARE)
+
+
 def choose_route(
     scene: Any, *, spp: int, seed: int = 0, pilot_spp: int = PILOT_SPP, **props: Any
 ) -> RouteChoice:
@@ -105,8 +119,9 @@ def choose_route(
 
     Args:
         scene: an ``mi.Scene`` (or anything :func:`gdpt.render` accepts).
-        spp: gradient samples per pixel of the main render; below ``pilot_spp /
-            PILOT_SHARE`` no pilot is rendered and the route is plain.
+        spp: plain samples per pixel of the main render (the gradient route renders
+            samples of the same cost); below :func:`pilot_threshold` no pilot is rendered and
+            the route is plain.
         seed: the pilot's seed.
         pilot_spp: gradient samples per pixel of the pilot (>= 2: it needs halves).
         **props: integrator properties (``max_depth``, ...).
@@ -134,11 +149,11 @@ def choose_route(
     if pilot_spp < 2:
         raise ValueError(f"pilot_spp must be >= 2 (the pilot needs halves), got {pilot_spp}")
     factor = FUSE_PRIMAL_SPP_FACTOR
-    if spp * PILOT_SHARE < pilot_spp:
+    if spp < (threshold := pilot_threshold(pilot_spp)):
         _, ratio = decide(1.0, DEFAULT_COST_RATIO, factor)
         reason = (
-            f"{spp} gradient spp: a pilot of {pilot_spp} would take more than "
-            f"{PILOT_SHARE:.0%} of the render (gradients need >= {pilot_spp / PILOT_SHARE:.0f})"
+            f"{spp} spp: a pilot would take more than {PILOT_SHARE:.0%} of the samples "
+            f"(it needs >= {threshold} spp); plain route"
         )
         return RouteChoice("plain", plain_denoiser(), 1.0, ratio, DEFAULT_COST_RATIO, 0.0, reason)
     start = time.perf_counter()
@@ -162,6 +177,7 @@ def choose_route(
         _, ratio = decide(1.0, cost_ratio, factor)
         reason = "the pilot rendered black (no light reaches the film): nothing to fuse"
         return RouteChoice("plain", denoiser, 1.0, ratio, cost_ratio, seconds, reason)
+    pilot = centre_crop(pilot, PILOT_WINDOW)
     plain = pilot.replace(dx=None, dy=None)
     d, d_a, d_b = (
         reconstruct_image(b, denoiser) for b in (plain, pilot.half("a"), pilot.half("b"))
@@ -186,13 +202,24 @@ def choose_route(
     return RouteChoice(route, method, gain, ratio, cost_ratio, seconds, reason)
 
 
+def centre_crop(buffers: Any, size: int) -> Any:
+    """``buffers`` (a :class:`gdpt.buffers.GradientBuffers`) cut to their centre ``size x size``
+    pixels (each side at most ``size``): every present buffer, views of the same tensors."""
+    h, w = buffers.height, buffers.width
+    if h <= size and w <= size:
+        return buffers
+    y0, x0 = max(0, (h - size) // 2), max(0, (w - size) // 2)
+    return buffers.replace(**{n: t[y0 : y0 + size, x0 : x0 + size] for n, t in buffers.items()})
+
+
 def route_sampling(choice: RouteChoice, spp: int) -> dict[str, Any]:
-    """Keyword arguments of :func:`gdpt.render` for the main render of ``choice`` at ``spp``
-    gradient samples per pixel: the gradient route's pooled input, or the plain route's
-    samples of the same cost (``spp * (cost_ratio + f)``, at least ``spp``)."""
+    """Keyword arguments of :func:`gdpt.render` for the main render of ``choice`` at the cost
+    of ``spp`` plain samples per pixel: the plain route's ``spp`` samples, or the gradient
+    route's pooled input of the same cost (``spp / (cost_ratio + f)`` gradient samples, at
+    least 1)."""
     from gdpt.denoise import FUSE_PRIMAL_SPP_FACTOR, METHODS
 
-    if choice.route == "gradient":
-        return {"spp": spp, **METHODS["fuse"].sampling(spp)}
-    plain_spp = max(spp, round(spp * (choice.cost_ratio + FUSE_PRIMAL_SPP_FACTOR)))
-    return {"spp": plain_spp, **METHODS[choice.method].sampling(plain_spp)}
+    if choice.route == "plain":
+        return {"spp": spp, **METHODS[choice.method].sampling(spp)}
+    gradient_spp = max(1, round(spp / (choice.cost_ratio + FUSE_PRIMAL_SPP_FACTOR)))
+    return {"spp": gradient_spp, **METHODS["fuse"].sampling(gradient_spp)}

@@ -201,7 +201,7 @@ for _name, _method in {"oidn": DENOISERS["oidn"], **DENOISERS}.items():  # pt+oi
 def auto_route(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     """``render_and_denoise(method="auto")``: the pilot, the route's render and its
     reconstruction, all timed (kernel compilation excluded as for every method); ``spp`` are
-    gradient samples, the plain route renders plain samples of the same cost."""
+    plain samples, the gradient route renders gradient samples of the same cost."""
     from gdpt.rendering import render_and_denoise
 
     if reason := DENOISERS["oidn"].check() and DENOISERS["ngpt-nograd"].check():

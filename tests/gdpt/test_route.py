@@ -36,43 +36,75 @@ def test_a_black_scene_takes_the_plain_route_and_says_why():
         "sensor": {"type": "perspective", "film": film},
         "shape": {"type": "sphere", "bsdf": {"type": "diffuse"}},  # no emitter anywhere
     }
-    choice = route.choose_route(gdpt.load_scene(scene), spp=80, seed=1)
+    choice = route.choose_route(gdpt.load_scene(scene), spp=1000, seed=1)
     assert choice.route == "plain" and "rendered black" in choice.reason
 
 
 def test_pilot_on_glass_takes_the_plain_route():
     """Caustics through a glass sphere: gradients are unreliable there, the plain route wins."""
     scene = gdpt.load_scene(builtin_scene("glass", resolution=(32, 32)))
-    choice = route.choose_route(scene, spp=80, seed=2)
+    choice = route.choose_route(scene, spp=1000, seed=2)
     assert choice.route == "plain", choice.reason
     assert 1.0 <= choice.cost_ratio <= 4.0 and choice.pilot_seconds > 0
 
 
 def test_auto_records_its_choice_and_renders_what_the_route_reads():
     scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
-    result = gdpt.render_and_denoise(scene, spp=80)  # auto is the default; 80: a pilot
+    spp = route.pilot_threshold()  # auto is the default; a pilot from this spp on
+    result = gdpt.render_and_denoise(scene, spp=spp)
     assert result.route is not None and result.buffers.metadata["route"]["route"] in (
         "gradient",
         "plain",
     )
     assert result.timings["pilot"] > 0 and torch.isfinite(result.image).all()
     if result.route.route == "plain":
-        assert not result.buffers.has_gradients and result.buffers.spp >= 80
+        assert not result.buffers.has_gradients and result.buffers.spp == spp
     with pytest.raises(ValueError, match="pilot_spp must be >= 2"):
-        route.choose_route(scene, spp=80, pilot_spp=1)
+        route.choose_route(scene, spp=1000, pilot_spp=1)
 
 
 def test_no_pilot_below_its_share_of_the_render(monkeypatch):
-    """Below ``PILOT_SPP / PILOT_SHARE`` gradient spp nothing is rendered for the decision: the
-    plain route, with the assumed cost ratio, says why."""
+    """Below ``pilot_threshold()`` plain spp (the pilot's samples over ``PILOT_SHARE``) nothing
+    is rendered for the decision: the plain route, with the assumed cost ratio, says why."""
     scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
     monkeypatch.setattr(gdpt.rendering, "render", _no_render)
-    limit = round(route.PILOT_SPP / route.PILOT_SHARE)
+    limit = route.pilot_threshold()
     choice = route.choose_route(scene, spp=limit - 1)
     assert choice.route == "plain" and choice.pilot_seconds == 0.0
     assert choice.cost_ratio == route.DEFAULT_COST_RATIO and f">= {limit}" in choice.reason
     with pytest.raises(AssertionError, match="pilot rendered"):
         route.choose_route(scene, spp=limit)
+
+
+@pytest.mark.parametrize("cost_ratio", [2.0, 3.0])
+def test_both_routes_spend_the_samples_of_spp_plain_ones(cost_ratio):
+    """``spp`` plain samples, or gradient samples that cost as much: each ``cost_ratio`` plain
+    ones plus the plain samples pooled into their primal."""
+    plain = route.RouteChoice("plain", "oidn", 1.0, 0.8, cost_ratio, 0.0, "")
+    gradient = route.RouteChoice("gradient", "fuse", 0.5, 0.8, cost_ratio, 0.0, "")
+    assert route.route_sampling(plain, 450)["spp"] == 450
+    sampling = route.route_sampling(gradient, 450)
+    assert sampling["gradients"] and sampling["variance"] and sampling["halves"]
+    cost = sampling["spp"] * cost_ratio + sampling["primal_spp"]
+    assert abs(cost - 450) <= cost_ratio + 2.5  # rounding to whole gradient samples
+
+
+def test_pilot_statistics_on_the_centre_window(monkeypatch):
+    """The pilot's denoises see the centre ``PILOT_WINDOW`` square (each side at most that),
+    cut from the pilot render's buffers; an image that fits is passed whole."""
+    from gdpt import denoise
+
+    shapes = []
+
+    def denoiser(buffers, method, **kwargs):
+        shapes.append((buffers.height, buffers.width))
+        return buffers.primal
+
+    monkeypatch.setattr(route, "PILOT_WINDOW", 8)
+    monkeypatch.setattr(denoise, "reconstruct_image", denoiser)
+    film = builtin_scene("cbox-demo", resolution=(20, 6))
+    route.choose_route(gdpt.load_scene(film), spp=1000, seed=3)
+    assert shapes == [(6, 8)] * 3
 
 
 def _no_render(*args, **kwargs):
