@@ -43,7 +43,8 @@ def replicate_values(cell: dict, metric: str) -> list[float] | None:
 
 def table(results: dict, metric: str) -> dict[tuple[str, str], dict[str, list[float]]]:
     """``(scene, budget) -> {method: per-replicate values}``; ``relmse-corrected`` subtracts the
-    reference noise estimated from the cell's ``pt`` (see the module docstring)."""
+    reference noise estimated from the cell's ``pt`` (see the module docstring) and holds only
+    the cells that have ``pt``."""
     base = "relmse" if metric == "relmse-corrected" else metric
     ref_spp = results["config"]["reference_spp"]
     out: dict[tuple[str, str], dict[str, list[float]]] = {}
@@ -54,9 +55,12 @@ def table(results: dict, metric: str) -> dict[tuple[str, str], dict[str, list[fl
                 if values is not None:
                     out.setdefault((scene, budget), {})[method] = values
         if metric == "relmse-corrected":
-            for (s, budget), errors in out.items():
+            for (s, budget), errors in list(out.items()):
+                if s != scene:
+                    continue
                 pt = entry.get("methods", {}).get("pt", {}).get("cells", {}).get(budget)
-                if s != scene or "pt" not in errors or pt is None:
+                if "pt" not in errors or pt is None:
+                    del out[(s, budget)]  # no estimate of the reference's noise
                     continue
                 noise = sum(errors["pt"]) / len(errors["pt"]) * pt["spp"] / (pt["spp"] + ref_spp)
                 out[(s, budget)] = {m: [v - noise for v in vs] for m, vs in errors.items()}
@@ -100,6 +104,11 @@ def summarise(results: dict, metric: str, candidates: list[str], against: str) -
         if len(ranked) > 1 and separated(errors[ranked[0]], errors[ranked[1]]) == 1:
             firm[ranked[0]] += 1
     lines = [f"## {metric} ({len(cells)} cells)", ""]
+    if not cells:
+        why = (
+            "no cell has `pt` (it estimates the reference's noise)" if "corrected" in metric else ""
+        )
+        return [*lines, f"Nothing to summarise: {why or 'no cell has this metric'}.", ""]
     lines.append(
         "Lowest mean per cell (separated from the second by the paired 95% interval): "
         + ", ".join(f"{m} {n} ({firm[m]})" for m, n in lowest.most_common())
