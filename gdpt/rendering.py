@@ -238,9 +238,10 @@ def render_and_denoise(
         scene: as in :func:`render`.
         spp (int): samples per pixel (for ``"auto"``: plain path samples; the gradient
             route renders gradient samples of the same cost, :func:`gdpt.route.route_sampling`).
-        method (str): ``"auto"`` (a pilot render chooses between ``fuse`` on gradient-domain
-            samples and the primal-only denoiser on plain samples, :mod:`gdpt.route`), or a
-            key of :data:`gdpt.denoise.METHODS`.
+        method (str): ``"auto"`` (the primal-only denoiser on plain samples, or from
+            :func:`gdpt.route.pilot_threshold` spp on, a pilot render chooses between that and
+            ``fuse`` on gradient-domain samples, :mod:`gdpt.route`), or a key of
+            :data:`gdpt.denoise.METHODS`.
         seed (int): random seed.
         alpha (float): screened-Poisson data weight.
         progress (bool): progress bar while rendering.

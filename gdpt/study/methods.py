@@ -18,7 +18,8 @@ Registered methods:
 * ``pt+ngpt-nograd``: path tracing (features, no gradients) + the NGPT ablation network.
 * ``gdpt+fuse``: pooled gradient-domain samples + variance-weighted fusion of the gradients
   around the primal-only network (:mod:`gdpt.reconstruct.fuse`).
-* ``auto``: a pilot render chooses the route per image (:mod:`gdpt.route`); all of it timed.
+* ``auto``: ``render_and_denoise``'s default (:mod:`gdpt.route`: plain path tracing + the
+  primal-only denoiser, or from 360 spp on a pilot render's choice); all of it timed.
 
 A method that cannot run here (package not installed, no shipped model) says so through its
 ``check`` function and is skipped with that note. A reconstruction registered in
@@ -227,8 +228,8 @@ EVAL_METHODS.register(
     "auto",
     EvalMethod(
         "auto",
-        "a pilot render chooses per image between gradient-domain path tracing + fuse and path "
-        "tracing + the primal-only network (gdpt.route)",
+        "path tracing + the primal-only network, or from 360 spp a pilot render's choice "
+        "between that and gradient-domain path tracing + fuse (gdpt.route)",
         auto_route,
         lambda: DENOISERS["oidn"].check() and DENOISERS["ngpt-nograd"].check(),
     ),
