@@ -15,35 +15,29 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from collections import defaultdict
+
+from study_summary import geo, mean, table
 
 
 def ratios(paths: list[str], against: str, metric: str, skip_unconverged: bool) -> dict:
-    """``{method: {budget: [per-scene ratio, ...]}}`` over every results file."""
+    """``{method: {budget: [per-scene ratio of replicate means, ...]}}`` over every results
+    file (cells from :func:`study_summary.table`)."""
     out: dict[str, dict[float, list[float]]] = defaultdict(lambda: defaultdict(list))
     for path in paths:
         with open(path) as f:
             results = json.load(f)
-        for scene in results["scenes"].values():
-            methods = scene.get("methods", {})
-            pt = methods.get("pt", {}).get("cells", {})
-            if skip_unconverged and any(
-                c.get("metrics", {}).get("relmse", 0) > 1 for c in pt.values()
-            ):
+        unconverged = {
+            scene
+            for (scene, _), errors in table(results, "relmse").items()
+            if "pt" in errors and mean(errors["pt"]) > 1
+        }
+        for (scene, budget), errors in table(results, metric).items():
+            if against not in errors or (skip_unconverged and scene in unconverged):
                 continue
-            base = methods.get(against, {}).get("cells", {})
-            for name, method in methods.items():
-                for budget, cell in method.get("cells", {}).items():
-                    ref = base.get(budget, {}).get("metrics", {}).get(metric)
-                    value = cell.get("metrics", {}).get(metric)
-                    if ref and value:
-                        out[name][float(budget)].append(value / ref)
+            for name, values in errors.items():
+                out[name][float(budget)].append(mean(values) / mean(errors[against]))
     return out
-
-
-def geometric_mean(values: list[float]) -> float:
-    return math.exp(sum(math.log(v) for v in values) / len(values))
 
 
 def main() -> None:
@@ -55,16 +49,14 @@ def main() -> None:
     parser.add_argument("--skip-unconverged", action="store_true")
     args = parser.parse_args()
 
-    table = ratios(args.results, args.against, args.metric, args.skip_unconverged)
-    budgets = sorted({b for per in table.values() for b in per})
+    curves = ratios(args.results, args.against, args.metric, args.skip_unconverged)
+    budgets = sorted({b for per in curves.values() for b in per})
     print(f"geometric mean over scenes of {args.metric} / {args.against} (scenes per cell)")
     print("| method | " + " | ".join(f"{b:g} s" for b in budgets) + " |")
     print("|---|" + "---:|" * len(budgets))
-    for name in sorted(table):
+    for name in sorted(curves):
         cells = [
-            f"{geometric_mean(table[name][b]):.2f} ({len(table[name][b])})"
-            if table[name].get(b)
-            else "-"
+            f"{geo(curves[name][b]):.2f} ({len(curves[name][b])})" if curves[name].get(b) else "-"
             for b in budgets
         ]
         print(f"| {name} | " + " | ".join(cells) + " |")
@@ -75,11 +67,11 @@ def main() -> None:
         import matplotlib.pyplot as plt
 
         fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
-        for name in sorted(table):
+        for name in sorted(curves):
             if name == args.against:
                 continue
-            xs = [b for b in budgets if table[name].get(b)]
-            ax.plot(xs, [geometric_mean(table[name][b]) for b in xs], marker="o", label=name)
+            xs = [b for b in budgets if curves[name].get(b)]
+            ax.plot(xs, [geo(curves[name][b]) for b in xs], marker="o", label=name)
         ax.axhline(1.0, color="black", lw=1, label=args.against)
         ax.set_xscale("log")
         ax.set_yscale("log")
@@ -88,7 +80,7 @@ def main() -> None:
         ticks = [0.5, 0.7, 1, 1.5, 2, 3, 5, 8]
         ax.set_yticks(ticks, [f"{t:g}" for t in ticks])
         ax.set_yticks([], minor=True)
-        counts = sorted({len(v) for per in table.values() for v in per.values()})
+        counts = sorted({len(v) for per in curves.values() for v in per.values()})
         ax.set_title(f"scenes per budget: {', '.join(map(str, counts))}", fontsize=8)
         ax.set_xlabel("time budget per 128 px image (s), render + reconstruction")
         ax.set_ylabel(f"{args.metric} / {args.against} (geo. mean)")

@@ -166,6 +166,14 @@ class GradientBuffers:
         """A copy with some fields replaced (validated again)."""
         return dataclasses.replace(self, **changes)
 
+    def centre_crop(self, size: int) -> GradientBuffers:
+        """The centre ``size x size`` pixels (each side at most ``size``) of every present
+        buffer, as views of the same tensors; ``self`` where the image fits."""
+        if self.height <= size and self.width <= size:
+            return self
+        y0, x0 = max(0, (self.height - size) // 2), max(0, (self.width - size) // 2)
+        return self.replace(**{n: t[y0 : y0 + size, x0 : x0 + size] for n, t in self.items()})
+
     # ------------------------------------------------------------------ validation
     def validate(self) -> None:
         """Check shapes, dtypes and devices.

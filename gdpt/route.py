@@ -177,7 +177,7 @@ def choose_route(
         _, ratio = decide(1.0, cost_ratio, factor)
         reason = "the pilot rendered black (no light reaches the film): nothing to fuse"
         return RouteChoice("plain", denoiser, 1.0, ratio, cost_ratio, seconds, reason)
-    pilot = centre_crop(pilot, PILOT_WINDOW)
+    pilot = pilot.centre_crop(PILOT_WINDOW)
     plain = pilot.replace(dx=None, dy=None)
     d, d_a, d_b = (
         reconstruct_image(b, denoiser) for b in (plain, pilot.half("a"), pilot.half("b"))
@@ -200,16 +200,6 @@ def choose_route(
     )
     method = "fuse" if route == "gradient" else denoiser
     return RouteChoice(route, method, gain, ratio, cost_ratio, seconds, reason)
-
-
-def centre_crop(buffers: Any, size: int) -> Any:
-    """``buffers`` (a :class:`gdpt.buffers.GradientBuffers`) cut to their centre ``size x size``
-    pixels (each side at most ``size``): every present buffer, views of the same tensors."""
-    h, w = buffers.height, buffers.width
-    if h <= size and w <= size:
-        return buffers
-    y0, x0 = max(0, (h - size) // 2), max(0, (w - size) // 2)
-    return buffers.replace(**{n: t[y0 : y0 + size, x0 : x0 + size] for n, t in buffers.items()})
 
 
 def route_sampling(choice: RouteChoice, spp: int) -> dict[str, Any]:
