@@ -136,39 +136,48 @@ def _bands(height: int, width: int) -> list[tuple[int, int]]:
     return [(r, min(height, r + rows)) for r in range(0, height, rows)]
 
 
-def _nlm_band_weights(
-    guide: torch.Tensor, var: torch.Tensor, r0: int, r1: int, radius: int, patch: int, k: float
-) -> torch.Tensor:
-    """NL-means weights of the pixels of rows ``[r0, r1)`` to the pixels of their windows.
+class _Guide:
+    """A guide image and its variance, padded once for the band-wise NL-means weights.
 
     Args:
-        guide: ``(C, H, W)``; var: ``(C, H, W)`` or ``(1, H, W)`` variances of ``guide``.
-
-    Returns:
-        ``(n, K)`` weights, ``n = (r1 - r0) W`` pixels, ``K = (2 radius + 1)^2`` window
-        offsets in row-major order; 0 for offsets outside the image.
+        guide: ``(H, W, C)``; var: ``(H, W, C)`` or ``(H, W, 1)`` variances of ``guide``.
+        radius, patch: window and patch half-sizes the weights are asked for.
     """
-    c, height, width = guide.shape
-    h, halo = r1 - r0, radius + patch
-    var = var.expand(c, height, width)
-    # Rows [r0 - halo, r1 + halo) with replicated borders: patches may leave the image.
-    both = F.pad(torch.cat([guide, var])[None], (halo, halo, halo, halo), mode="replicate")[0]
-    both = both[:, r0 : r1 + 2 * halo]
-    size = (h + 2 * patch, width + 2 * patch)
-    window = 2 * radius + 1
-    neighbours = F.unfold(both[None], window).view(2 * c, window * window, *size)
-    centre = both[:, radius : radius + size[0], radius : radius + size[1]].unsqueeze(1)
-    u_q, v_q = neighbours[:c], neighbours[c:]
-    u_p, v_p = centre[:c], centre[c:]
-    distance = (u_p - u_q).square_().sub_(torch.minimum(v_q, v_p).add_(v_p))
-    distance = distance.div_((v_p + v_q).mul_(k * k).add_(NLM_EPS)).mean(dim=0)
-    distance = distance.nan_to_num_(nan=MAX_DISTANCE, posinf=MAX_DISTANCE)
-    if patch:
-        distance = _box_valid(distance, patch)
-    weights = distance.clamp_(0.0, MAX_DISTANCE).neg_().exp_()  # (K, h, W)
-    inside = torch.ones((1, 1, height, width), dtype=guide.dtype, device=guide.device)
-    inside = F.unfold(F.pad(inside, (radius,) * 4)[:, :, r0 : r1 + 2 * radius], window)
-    return (weights.reshape(window * window, -1) * inside[0]).T
+
+    def __init__(self, guide: torch.Tensor, var: torch.Tensor, radius: int, patch: int) -> None:
+        self.height, self.width, self.channels = guide.shape
+        self.radius, self.patch = radius, patch
+        halo = radius + patch
+        both = torch.cat([_chw(guide), _chw(var.expand_as(guide))])[None]
+        # Replicated borders: patches may leave the image; neighbours outside get weight 0.
+        self.padded = F.pad(both, (halo,) * 4, mode="replicate")[0]
+        inside = torch.ones((1, 1, self.height, self.width), dtype=guide.dtype, device=guide.device)
+        self.inside = F.pad(inside, (radius,) * 4)
+
+    def weights(self, r0: int, r1: int, ks: Sequence[float]) -> list[torch.Tensor]:
+        """Per bandwidth ``k``, the ``(n, K)`` NL-means weights of the pixels of rows
+        ``[r0, r1)`` (``n = (r1 - r0) W``) to the ``K = (2R+1)^2`` offsets of their windows
+        (row-major); 0 for offsets outside the image."""
+        c, radius, patch = self.channels, self.radius, self.patch
+        both = self.padded[:, r0 : r1 + 2 * (radius + patch)]
+        size = (r1 - r0 + 2 * patch, self.width + 2 * patch)
+        window = 2 * radius + 1
+        neighbours = F.unfold(both[None], window).view(2 * c, window * window, *size)
+        centre = both[:, radius : radius + size[0], radius : radius + size[1]].unsqueeze(1)
+        u_q, v_q = neighbours[:c], neighbours[c:]
+        u_p, v_p = centre[:c], centre[c:]
+        excess = (u_p - u_q).square_().sub_(torch.minimum(v_q, v_p).add_(v_p))
+        spread = v_p + v_q
+        inside = F.unfold(self.inside[:, :, r0 : r1 + 2 * radius], window)[0]
+        out = []
+        for k in ks:
+            distance = (excess / (spread * (k * k) + NLM_EPS)).mean(dim=0)
+            distance = distance.nan_to_num_(nan=MAX_DISTANCE, posinf=MAX_DISTANCE)
+            if patch:
+                distance = _box_valid(distance, patch)
+            weights = distance.clamp_(0.0, MAX_DISTANCE).neg_().exp_()  # (K, h, W)
+            out.append((weights.reshape(window * window, -1) * inside).T)
+        return out
 
 
 def _box_valid(image: torch.Tensor, radius: int) -> torch.Tensor:
@@ -181,14 +190,17 @@ def _box_valid(image: torch.Tensor, radius: int) -> torch.Tensor:
     return sum(rows[..., j : j + w] for j in range(size)) / (size * size)
 
 
-def _windows(image: torch.Tensor, r0: int, r1: int, radius: int) -> torch.Tensor:
-    """``(h, W, 2R+1, 2R+1, C)`` view: the window of every pixel of rows ``[r0, r1)`` of
-    ``image (H, W, C)`` (replicated borders; :func:`_nlm_band_weights` gives those offsets
-    weight 0)."""
-    padded = F.pad(_chw(image)[None], (radius,) * 4, mode="replicate")[0]
-    padded = _hwc(padded[:, r0 : r1 + 2 * radius])
+def _pad_hwc(image: torch.Tensor, radius: int) -> torch.Tensor:
+    """``image (H, W, C)`` with ``radius`` replicated pixels on every side."""
+    return _hwc(F.pad(_chw(image)[None], (radius,) * 4, mode="replicate")[0])
+
+
+def _windows(padded: torch.Tensor, r0: int, r1: int, radius: int) -> torch.Tensor:
+    """``(h, W, 2R+1, 2R+1, C)`` view: the window of every pixel of rows ``[r0, r1)`` of an
+    image padded by :func:`_pad_hwc` (its borders get weight 0 from :class:`_Guide`)."""
     window = 2 * radius + 1
-    return padded.unfold(0, window, 1).unfold(1, window, 1).permute(0, 1, 3, 4, 2)
+    band = padded[r0 : r1 + 2 * radius]
+    return band.unfold(0, window, 1).unfold(1, window, 1).permute(0, 1, 3, 4, 2)
 
 
 def _chw(image: torch.Tensor) -> torch.Tensor:
@@ -218,15 +230,16 @@ def nlm_filter(
     Returns:
         ``(H, W, C)``: per pixel the weighted mean of ``image`` over its window.
     """
-    height, width, _ = image.shape
-    guide_c, var_c, image_c = _chw(guide), _chw(guide_var), _chw(image)
-    out = torch.empty_like(image_c).view(image_c.shape[0], -1)
+    height, width, channels = image.shape
+    weights_of = _Guide(guide, guide_var, radius, patch)
+    padded = _pad_hwc(image, radius)
+    out = torch.empty_like(image).view(-1, channels)
     for r0, r1 in _bands(height, width):
-        weights = _nlm_band_weights(guide_c, var_c, r0, r1, radius, patch, k)
-        values = _windows(image, r0, r1, radius).reshape(weights.shape[0], -1, image.shape[-1])
+        (weights,) = weights_of.weights(r0, r1, (k,))
+        values = _windows(padded, r0, r1, radius).reshape(weights.shape[0], -1, channels)
         mean = (weights[:, :, None] * values).sum(1) / weights.sum(1, keepdim=True)
-        out[:, r0 * width : r1 * width] = mean.T
-    return _hwc(out.view_as(image_c))
+        out[r0 * width : r1 * width] = mean
+    return out.view_as(image)
 
 
 def regress(
@@ -237,62 +250,57 @@ def regress(
     *,
     radius: int,
     patch: int,
-    k: float,
-) -> torch.Tensor:
+    ks: Sequence[float],
+) -> list[torch.Tensor]:
     """Collaborative first-order weighted regression of ``image`` on ``features``
-    (Bitterli et al. 2016, sec. 4-5.2).
+    (Bitterli et al. 2016, sec. 4-5.2), once per NL-means bandwidth of ``ks``.
 
     Per pixel ``p`` the weighted least-squares fit over its window of
     ``image(q) ~ beta_p . [1, dy/R, dx/R, (f(q) - f(p)) / s]`` (``s``: each feature's standard
     deviation over the image, so the ridge :data:`RIDGE` treats features alike), weights
     :func:`nlm_filter`'s; the output at ``q`` is the weight-averaged prediction of every model
-    whose window holds ``q``.
+    whose window holds ``q``. The bandwidths share the windows and distances.
 
     Args:
         image: ``(H, W, C)`` float32; features: ``(H, W, D)``; guide, guide_var as in
             :func:`nlm_filter`; all on one device.
 
     Returns:
-        ``(H, W, C)`` float32.
+        Per bandwidth, ``(H, W, C)`` float32.
     """
     height, width, channels = image.shape
     window = 2 * radius + 1
     scale = features.reshape(-1, features.shape[-1]).std(dim=0, correction=0).clamp(min=1e-4)
     scaled = features / scale
-    guide_c, var_c = _chw(guide), _chw(guide_var)
+    weights_of = _Guide(guide, guide_var, radius, patch)
+    padded = _pad_hwc(torch.cat([scaled, image], dim=-1), radius)
     offsets = torch.arange(-radius, radius + 1, dtype=image.dtype, device=image.device) / radius
     dy, dx = torch.meshgrid(offsets, offsets, indexing="ij")
     columns = 3 + features.shape[-1]
-    total = torch.zeros(
-        (channels, height + 2 * radius, width + 2 * radius), dtype=image.dtype, device=image.device
-    )
-    norm = torch.zeros(
-        (1, height + 2 * radius, width + 2 * radius), dtype=image.dtype, device=image.device
-    )
+    full = (height + 2 * radius, width + 2 * radius)
+    totals = [image.new_zeros((channels, *full)) for _ in ks]
+    norms = [image.new_zeros((1, *full)) for _ in ks]
     for r0, r1 in _bands(height, width):
-        weights = _nlm_band_weights(guide_c, var_c, r0, r1, radius, patch, k)  # (n, K)
+        n = (r1 - r0) * width
         # One window tensor [1, dy, dx, f(q) - f(p), y(q)]: one product gives both sides.
-        values = _windows(torch.cat([scaled, image], dim=-1), r0, r1, radius)
-        n = weights.shape[0]
-        stacked = torch.empty(
-            (n, window * window, columns + channels), dtype=image.dtype, device=image.device
-        )
+        stacked = image.new_empty((n, window * window, columns + channels))
         stacked[..., 0] = 1.0
         stacked[..., 1] = dy.reshape(1, -1)
         stacked[..., 2] = dx.reshape(1, -1)
-        stacked.view(r1 - r0, width, window, window, -1)[..., 3:] = values
+        stacked.view(r1 - r0, width, window, window, -1)[..., 3:] = _windows(padded, r0, r1, radius)
         stacked[..., 3:columns] -= scaled[r0:r1].reshape(n, 1, -1)
         design = stacked[..., :columns]
-        beta = weighted_least_squares(stacked, weights, columns)
-        prediction = (design @ beta) * weights[:, :, None]  # (n, K, C)
-        h = r1 - r0
-        out_size = (h + 2 * radius, width + 2 * radius)
-        folded = F.fold(prediction.permute(2, 1, 0).reshape(1, -1, n), out_size, window)
-        total[:, r0 : r1 + 2 * radius] += folded[0]
-        folded_w = F.fold(weights.T.reshape(1, -1, n), out_size, window)
-        norm[:, r0 : r1 + 2 * radius] += folded_w[0]
+        out_size = (r1 - r0 + 2 * radius, full[1])
+        for weights, total, norm in zip(weights_of.weights(r0, r1, ks), totals, norms, strict=True):
+            beta = weighted_least_squares(stacked, weights, columns)
+            prediction = (design @ beta) * weights[:, :, None]  # (n, K, C)
+            folded = F.fold(prediction.permute(2, 1, 0).reshape(1, -1, n), out_size, window)
+            total[:, r0 : r1 + 2 * radius] += folded[0]
+            norm[:, r0 : r1 + 2 * radius] += F.fold(weights.T.reshape(1, -1, n), out_size, window)[
+                0
+            ]
     crop = (slice(None), slice(radius, radius + height), slice(radius, radius + width))
-    return _hwc(total[crop] / norm[crop])
+    return [_hwc(total[crop] / norm[crop]) for total, norm in zip(totals, norms, strict=True)]
 
 
 def weighted_least_squares(
@@ -386,9 +394,10 @@ def nfor(
     # 2.-3. Cross-filtered regressions per bandwidth and their estimated errors.
     mean = (a + b) / 2
     candidates, errors = [], []
-    for k in cfg.bandwidths:
-        a_hat = regress(a, feat_b, b, var_half, radius=cfg.radius, patch=cfg.patch, k=k)
-        b_hat = regress(b, feat_a, a, var_half, radius=cfg.radius, patch=cfg.patch, k=k)
+    first = dict(radius=cfg.radius, patch=cfg.patch, ks=cfg.bandwidths)
+    a_hats = regress(a, feat_b, b, var_half, **first)
+    b_hats = regress(b, feat_a, a, var_half, **first)
+    for a_hat, b_hat in zip(a_hats, b_hats, strict=True):
         error = ((b - a_hat).square() + (a - b_hat).square()) / 2 - var_half
         error = error - (b_hat - a_hat).square() / 4
         errors.append(
@@ -431,14 +440,14 @@ def nfor(
             )
         )
     colour, colour_var = (a_sel + b_sel) / 2, (b_sel - a_sel).square() / 4
-    out = regress(
+    (out,) = regress(
         colour,
         torch.cat(second, dim=-1),
         colour,
         colour_var,
         radius=cfg.radius,
         patch=cfg.patch,
-        k=cfg.final_k,
+        ks=(cfg.final_k,),
     )
     out, bad_out = _finite(out)
     info.nonfinite += bad_out

@@ -42,7 +42,7 @@ def test_regression_is_exact_on_an_affine_function_of_the_features():
     coef = torch.randn(7, 3, generator=torch.Generator().manual_seed(2))
     image = 1.0 + 0.2 * feats @ coef
     var = torch.full((24, 30, 1), 0.05)  # wide weights: every window fits many pixels
-    out = regress(image, feats, image, var, radius=4, patch=1, k=1.0)
+    (out,) = regress(image, feats, image, var, radius=4, patch=1, ks=(1.0,))
     torch.testing.assert_close(out, image, rtol=0, atol=RIDGE_BIAS)
 
 
