@@ -1,5 +1,11 @@
 """Sample counts that meet a time budget: a measured linear time model per method and scene
-(:class:`TimeModel`, :func:`calibrate`) and one timed cell (:func:`run_at_budget`)."""
+(:class:`TimeModel`, :func:`calibrate`) and one timed cell (:func:`run_at_budget`).
+
+What the budget pays for is the *protocol* (:data:`PROTOCOLS`, :func:`charged_seconds`):
+``"total"``, sampling and reconstruction (what a user waits for); ``"render-time"``, sampling
+only, reconstruction reported beside it (the paper's equal-time protocol: Kettunen et al. 2019,
+sec. 4, give every method the same input rendering time).
+"""
 
 from __future__ import annotations
 
@@ -10,8 +16,22 @@ from typing import Any
 
 import torch
 
+from gdpt.study.config import PROTOCOLS
 from gdpt.study.methods import EvalMethod, MethodResult
 from gdpt.study.scenes import EvalScene
+
+
+def charged_seconds(result: MethodResult, protocol: str) -> float:
+    """The seconds of ``result`` that count against the budget under ``protocol``.
+
+    Raises:
+        ValueError: ``protocol`` is not one of :data:`PROTOCOLS`.
+    """
+    if protocol == "total":
+        return result.seconds
+    if protocol == "render-time":
+        return result.render_seconds
+    raise ValueError(f"unknown protocol {protocol!r}; valid: {', '.join(PROTOCOLS)}")
 
 
 # ------------------------------------------------------------------------------- calibration
@@ -93,6 +113,7 @@ def calibrate(
     repeats: int = 3,
     probe_fraction: float = 0.5,
     max_probe_spp: int = 1 << 16,
+    protocol: str = "total",
 ) -> TimeModel:
     """Fit a :class:`TimeModel` by timing ``method`` on ``scene``.
 
@@ -109,6 +130,7 @@ def calibrate(
         repeats: number of 1-spp timings whose median is used.
         probe_fraction: the probing stops at this fraction of ``budget``.
         max_probe_spp: the probing stops at this sample count.
+        protocol: which seconds are modelled (:func:`charged_seconds`).
 
     Returns:
         The fitted model.
@@ -118,12 +140,14 @@ def calibrate(
     """
     timed_run(method, scene, 1, seed)
     timed_run(method, scene, 2, seed)
-    t = statistics.median(timed_run(method, scene, 1, seed + i).seconds for i in range(repeats))
+    t = statistics.median(
+        charged_seconds(timed_run(method, scene, 1, seed + i), protocol) for i in range(repeats)
+    )
     measurements = [(1, t)]
     spp, target = 1, probe_fraction * budget
     while (t < target or len(measurements) < 3) and spp < max_probe_spp:
         spp = min(max_probe_spp, spp * min(8, max(2, round(target / max(t, 1e-6)))))
-        t = timed_run(method, scene, spp, seed + spp).seconds
+        t = charged_seconds(timed_run(method, scene, spp, seed + spp), protocol)
         measurements.append((spp, t))
     return TimeModel.fit(measurements)
 
@@ -137,6 +161,7 @@ def run_at_budget(
     seed: int,
     tolerance: float = 0.2,
     max_rounds: int = 3,
+    protocol: str = "total",
 ) -> tuple[MethodResult, dict[str, Any]]:
     """Render ``method`` with the sample count that fills ``budget``, checking the time.
 
@@ -153,31 +178,37 @@ def run_at_budget(
         seed: seed of the first attempt (attempt ``k`` uses ``seed + k``).
         tolerance: accepted relative deviation.
         max_rounds: renders at most.
+        protocol: which seconds fill the budget (:func:`charged_seconds`); ``model`` must
+            have been calibrated under the same protocol.
 
     Returns:
-        The chosen run and a record: ``spp``, ``seconds``, ``relative_error``, ``attempts``
-        (``[{"spp", "seconds", "seed", "compile_seconds"}]``), ``within_tolerance``,
-        ``over_budget_at_1spp``.
+        The chosen run and a record: ``spp``, ``seconds`` (sampling + reconstruction),
+        ``render_seconds``, ``reconstruct_seconds``, ``charged_seconds`` (under
+        ``protocol``), ``relative_error`` (of the charged seconds), ``attempts`` (``[{"spp",
+        "seconds", "charged_seconds", "seed", "compile_seconds"}]``), ``within_tolerance``,
+        ``over_budget_at_1spp``, ``protocol``.
     """
     attempts: list[dict[str, Any]] = []
     best: tuple[float, MethodResult, int, int] | None = None
     spp = model.spp_for(budget)
     for k in range(max_rounds):
         result = timed_run(method, scene, spp, seed + k)
+        charged = charged_seconds(result, protocol)
         attempts.append(
             {
                 "spp": spp,
                 "seconds": result.seconds,
+                "charged_seconds": charged,
                 "seed": seed + k,
                 "compile_seconds": result.compile_seconds,
             }
         )
-        error = abs(result.seconds - budget) / budget
+        error = abs(charged - budget) / budget
         if best is None or error < best[0]:
             best = (error, result, spp, seed + k)
         if error <= tolerance:
             break
-        model.update(spp, result.seconds)
+        model.update(spp, charged)
         new_spp = model.spp_for(budget)
         if new_spp == spp:
             break
@@ -191,9 +222,12 @@ def run_at_budget(
         "render_seconds": result.render_seconds,
         "reconstruct_seconds": result.reconstruct_seconds,
         "compile_seconds": result.compile_seconds,
-        "relative_error": (result.seconds - budget) / budget,
+        "charged_seconds": charged_seconds(result, protocol),
+        "relative_error": (charged_seconds(result, protocol) - budget) / budget,
         "within_tolerance": error <= tolerance,
-        "over_budget_at_1spp": spp == 1 and result.seconds > budget * (1 + tolerance),
+        "over_budget_at_1spp": spp == 1
+        and charged_seconds(result, protocol) > budget * (1 + tolerance),
+        "protocol": protocol,
         "attempts": attempts,
     }
     return result, record

@@ -8,13 +8,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+#: What a time budget pays for (:func:`gdpt.study.calibration.charged_seconds`).
+PROTOCOLS = ("total", "render-time")
+
 
 @dataclass
 class EvaluateConfig:
     """Options of :func:`evaluate`."""
 
     budgets: tuple[float, ...] = (4.0, 16.0, 64.0)
-    """Wall-clock budgets in seconds (sampling + reconstruction) per image."""
+    """Wall-clock budgets in seconds per image (what they pay for: :attr:`protocol`)."""
+    protocol: str = "total"
+    """``"total"``: a budget pays for sampling + reconstruction; ``"render-time"``: for
+    sampling only, reconstruction time reported beside it (the paper's protocol)."""
     resolution: int = 320
     """Pixels on the long side of the film (the aspect ratio of the scene is kept)."""
     reference_spp: int = 8192
@@ -74,6 +80,8 @@ class EvaluateConfig:
             raise ValueError(f"seeds must be >= 1, got {self.seeds}")
         # options of metrics not requested are dropped (e.g. elpips when --metrics omits it)
         self.metric_options = {k: v for k, v in self.metric_options.items() if k in self.metrics}
+        if self.protocol not in PROTOCOLS:
+            raise ValueError(f"unknown protocol {self.protocol!r}; valid: {', '.join(PROTOCOLS)}")
         if not 0 < self.tolerance < 1 or self.max_rounds < 1:
             raise ValueError("tolerance must be in (0, 1) and max_rounds >= 1")
 
