@@ -22,8 +22,9 @@ family of :mod:`.families`.
 
 Layout, dtype, device: HWC float tensors as in ``gdpt.buffers``; the network runs on the device
 of the input buffers (the weights are copied there on first use) in channels-last memory format
-under ``torch.inference_mode``. Only torch, safetensors and json are imported (layering rule of
-``gdpt.reconstruct``).
+under ``torch.inference_mode``, unless autograd records an input buffer: then the result is
+differentiable w.r.t. the buffers (not the weights, which are frozen). Only torch, safetensors
+and json are imported (layering rule of ``gdpt.reconstruct``).
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save
 
+from .autograd import records
 from .dense_unet import CONFIGS, DenseUNet, ModelConfig, parameter_count
 from .transforms import (
     FEATURE_CHANNELS,
@@ -268,7 +270,9 @@ class NGPTReconstructor:
         )
         self.margin = margin
         self.card = dict(card or {})
-        self._model = model.fuse().eval().to(memory_format=torch.channels_last)
+        self._model = (
+            model.fuse().eval().requires_grad_(False).to(memory_format=torch.channels_last)
+        )
         self._per_device: dict[torch.device, DenseUNet] = {}
 
     @classmethod
@@ -288,7 +292,6 @@ class NGPTReconstructor:
             self._per_device[device] = on_device
         return self._per_device[device]
 
-    @torch.inference_mode()
     def __call__(self, buffers: Mapping[str, torch.Tensor] | Any) -> torch.Tensor:
         """Reconstruct one image (or a batch).
 
@@ -298,13 +301,18 @@ class NGPTReconstructor:
                 (``gdpt.buffers.GradientBuffers``). Non-finite values are treated as 0.
 
         Returns:
-            ``(H, W, 3)`` (or ``(N, H, W, 3)``) float32 radiance on the buffers' device.
+            ``(H, W, 3)`` (or ``(N, H, W, 3)``) float32 radiance on the buffers' device;
+            differentiable w.r.t. the buffers that require gradients (in gradient mode).
 
         Raises:
             KeyError: feature buffers missing (all are named).
             ValueError: wrong channel counts or mismatched sizes/devices.
         """
         buffers = _as_mapping(buffers, self.features)
+        with torch.inference_mode(not records(buffers.get(n) for n in self.features)):
+            return self._reconstruct(buffers)
+
+    def _reconstruct(self, buffers: Mapping[str, torch.Tensor]) -> torch.Tensor:
         inputs = transform_buffers(buffers, self.features)
         first = inputs[self.features[0]]
         devices = {t.device for t in inputs.values()}

@@ -44,6 +44,18 @@ dropped constraints is reported through a :class:`NonFiniteInputWarning` and in
 :class:`SolveInfo` (``return_info=True``). Results are always finite: values beyond the dtype's
 range are clamped to its largest finite value.
 
+Gradients: the solvers are differentiable w.r.t. ``primal``, ``dx`` and ``dy`` in torch
+autograd. The result solves ``A x = P^T W b`` with ``A = P^T W P`` symmetric positive definite,
+so the backward pass solves the adjoint system ``A lam = g`` for the incoming gradient ``g``
+(the same solver: the DCT closed form for uniform weights, else preconditioned CG; the forward
+iterations are not unrolled) and returns ``alpha^2 Wp lam``, ``Wx Dx lam`` and ``Wy Dy lam``
+(zero at the unused last column / row and at missing constraints); the adjoint method of
+e.g. Giles and Pierce 2000, *An introduction to the adjoint approach to design*. This is
+exact for :func:`solve_l2` and for :func:`solve_weighted_cg` (its weights are constants and get
+no gradient). For :func:`solve_l1` it is an approximation: the last IRLS weights are held
+fixed, i.e. it is the derivative of the weighted least-squares problem the last round solved,
+not of the reweighting itself.
+
 Only ``torch`` and ``numpy`` are imported here (layering rule of ``gdpt.reconstruct``).
 """
 
@@ -58,6 +70,8 @@ from typing import Literal, overload
 
 import torch
 
+from .autograd import records
+
 __all__ = [
     "DEFAULT_ALPHA",
     "L1_PRESETS",
@@ -67,6 +81,7 @@ __all__ = [
     "NonFiniteInputWarning",
     "SolveInfo",
     "dct2",
+    "ADJOINT_MAX_ITER",
     "default_tol",
     "get_l1_preset",
     "idct2",
@@ -929,11 +944,13 @@ def _irls_weights(prob: _Problem, x: torch.Tensor, reg: float) -> _Weights:
 
 def _irls(
     prob: _Problem, preset: L1Preset, dct: _LaplaceDCT, progress: ProgressFn | None
-) -> tuple[torch.Tensor, int, float]:
-    """Run the IRLS schedule; returns ``(x, total CG iterations, last relative residual)``."""
+) -> tuple[torch.Tensor, int, float, _Weights]:
+    """Run the IRLS schedule; returns ``(x, total CG iterations, last relative residual, the
+    last round's weights)``."""
     cg_total = 0
     res = math.nan
     x = prob.p.clone()
+    w = _mask_weights(prob)
     for k in range(preset.rounds):
         if k == 0 and preset.exact_first_round:
             cap = max(preset.cg_iters, 50)
@@ -955,7 +972,101 @@ def _irls(
             cg_total += its
         if progress is not None:
             progress(k + 1, preset.rounds)
-    return x, cg_total, res
+    return x, cg_total, res, w
+
+
+# ------------------------------------------------------------------------------------------------
+# Gradients: the adjoint solve
+# ------------------------------------------------------------------------------------------------
+
+#: Iteration cap of an adjoint (P)CG solve with non-uniform weights.
+ADJOINT_MAX_ITER = 1000
+
+
+@dataclass
+class _System:
+    """The SPD system ``A = P^T W P`` a solve ended with, ``W`` held fixed.
+
+    ``precond`` preconditions the adjoint CG; ``None`` with uniform weights, whose system the
+    DCT solves in closed form. ``dtypes``: the dtypes of ``primal``, ``dx``, ``dy``.
+    """
+
+    prob: _Problem
+    w: _Weights
+    dct: _LaplaceDCT
+    precond: Callable[[torch.Tensor], torch.Tensor] | None
+    max_iter: int
+    dtypes: tuple[torch.dtype, torch.dtype, torch.dtype]
+
+    def solve(self, r: torch.Tensor) -> torch.Tensor:
+        """``A^-1 r`` on the internal layout."""
+        a2 = self.prob.alpha**2
+        if self.precond is None:
+            return self.dct.solve(r, a2)
+        x, _, _ = _pcg(
+            _Operator(self.prob, self.w),
+            r,
+            torch.zeros_like(r),
+            max_iter=self.max_iter,
+            tol=default_tol(r.dtype),
+            precond=self.precond,
+        )
+        return x
+
+    def adjoint(self, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Gradients w.r.t. ``primal``, ``dx``, ``dy`` (user layout and dtypes) of a scalar
+        whose gradient w.r.t. the result is ``grad``."""
+        prob, w = self.prob, self.w
+        lam = self.solve(_to_bchw(grad, prob.p.dtype, prob.squeeze_channel))
+        gp = lam * prob.alpha**2
+        lx, ly = _grad(lam)
+        gx = lx if w.x is None else lx * w.x
+        gy = ly if w.y is None else ly * w.y
+        if w.p is not None:
+            gp = gp * w.p
+        if prob.has_missing:
+            gp, gx, gy = gp * prob.mp, gx * prob.mx, gy * prob.my
+        gx = torch.nn.functional.pad(gx, (0, 1))
+        gy = torch.nn.functional.pad(gy, (0, 0, 0, 1))
+        return tuple(
+            _from_bchw(g, prob.out_shape, prob.squeeze_channel).to(dtype)
+            for g, dtype in zip((gp, gx, gy), self.dtypes, strict=True)
+        )
+
+
+_Core = Callable[
+    [torch.Tensor, torch.Tensor, torch.Tensor], tuple[torch.Tensor, "SolveInfo | None", _System]
+]
+
+
+class _Solve(torch.autograd.Function):
+    """A solver ``core(primal, dx, dy) -> (image, info, system)`` whose backward pass solves
+    the adjoint system of ``system``."""
+
+    @staticmethod
+    def forward(ctx, core: _Core, primal, dx, dy):
+        out, info, system = core(primal, dx, dy)
+        ctx.system = system
+        return out, info
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad, _info):
+        return None, *ctx.system.adjoint(grad)
+
+
+def _run(
+    core: _Core, primal: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor
+) -> tuple[torch.Tensor, SolveInfo | None]:
+    """``core`` on the buffers, through :class:`_Solve` when autograd records a buffer."""
+    if records((primal, dx, dy)):
+        return _Solve.apply(core, primal, dx, dy)
+    out, info, _ = core(primal, dx, dy)
+    return out, info
+
+
+def _dtypes(*ts: torch.Tensor) -> tuple[torch.dtype, torch.dtype, torch.dtype]:
+    return tuple(t.dtype for t in ts)  # type: ignore[return-value]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1030,24 +1141,33 @@ def solve_l2(
         ValueError: ``alpha <= 0``, mismatched shapes/devices, or an empty image.
         TypeError: Non-tensor or complex inputs.
     """
-    t0 = time.perf_counter()
-    prob = _prepare(primal, dx, dy, alpha)
-    h, w = prob.p.shape[-2:]
-    dct = _LaplaceDCT(h, w, prob.p)
-    tol = default_tol(prob.p.dtype) if tol is None else tol
-    x, its, res = _l2_exact(prob, dct, tol=tol, max_iter=max_iter, refine=refine)
-    out = _finish(x, prob)
-    if not return_info:
-        return out
-    info = SolveInfo(
-        method="l2",
-        cg_iterations=its,
-        relative_residual=res if prob.has_missing else _relres(prob, x, _Weights()),
-        n_missing=prob.n_missing,
-        energy=_info_energy(prob, x, "l2"),
-        seconds=time.perf_counter() - t0,
-    )
-    return out, info
+
+    def core(
+        primal: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor
+    ) -> tuple[torch.Tensor, SolveInfo | None, _System]:
+        t0 = time.perf_counter()
+        prob = _prepare(primal, dx, dy, alpha)
+        h, w = prob.p.shape[-2:]
+        dct = _LaplaceDCT(h, w, prob.p)
+        cg_tol = default_tol(prob.p.dtype) if tol is None else tol
+        x, its, res = _l2_exact(prob, dct, tol=cg_tol, max_iter=max_iter, refine=refine)
+        a2 = prob.alpha**2
+        precond = (lambda r: dct.solve(r, a2)) if prob.has_missing else None
+        system = _System(prob, _mask_weights(prob), dct, precond, max_iter, _dtypes(primal, dx, dy))
+        if not return_info:
+            return _finish(x, prob), None, system
+        info = SolveInfo(
+            method="l2",
+            cg_iterations=its,
+            relative_residual=res if prob.has_missing else _relres(prob, x, _Weights()),
+            n_missing=prob.n_missing,
+            energy=_info_energy(prob, x, "l2"),
+            seconds=time.perf_counter() - t0,
+        )
+        return _finish(x, prob), info, system
+
+    out, info = _run(core, primal, dx, dy)
+    return (out, info) if return_info else out
 
 
 def _user_weight(
@@ -1157,57 +1277,71 @@ def solve_weighted_cg(
         ValueError: Bad ``alpha``, shapes, weights or preconditioner name.
         TypeError: Non-tensor inputs.
     """
-    t0 = time.perf_counter()
-    prob = _prepare(primal, dx, dy, alpha)
     if precondition not in _PRECONDITIONERS:
         valid = ", ".join(repr(k) for k in _PRECONDITIONERS)
         raise ValueError(f"unknown preconditioner {precondition!r}; valid: {valid}")
     if max_iter < 0:
         raise ValueError(f"max_iter must be >= 0, got {max_iter}")
-    wu = [
-        _user_weight(t, n, prob.p, prob)
-        for t, n in (
-            (weights_primal, "weights_primal"),
-            (weights_dx, "weights_dx"),
-            (weights_dy, "weights_dy"),
+    named = (
+        (weights_primal, "weights_primal"),
+        (weights_dx, "weights_dx"),
+        (weights_dy, "weights_dy"),
+    )
+    if torch.is_grad_enabled():
+        if held := [n for t, n in named if isinstance(t, torch.Tensor) and t.requires_grad]:
+            raise ValueError(
+                f"{', '.join(held)} require gradients, but the weights are constants of the "
+                "solve (only primal, dx and dy get gradients): pass them detached"
+            )
+
+    def core(
+        primal: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor
+    ) -> tuple[torch.Tensor, SolveInfo | None, _System]:
+        t0 = time.perf_counter()
+        prob = _prepare(primal, dx, dy, alpha)
+        wu = [_user_weight(t, n, prob.p, prob) for t, n in named]
+        base = _mask_weights(prob)
+        wp = _mul_opt(base.p, wu[0])
+        wx = _mul_opt(base.x, wu[1][..., :-1] if wu[1] is not None else None)
+        wy = _mul_opt(base.y, wu[2][..., :-1, :] if wu[2] is not None else None)
+        w = _Weights(wp, wx, wy)
+        if x0 is None:
+            x = prob.p.clone()
+        else:
+            if not isinstance(x0, torch.Tensor) or x0.shape != primal.shape:
+                got = tuple(x0.shape) if isinstance(x0, torch.Tensor) else type(x0).__name__
+                raise ValueError(
+                    f"x0 must have the shape of primal {tuple(primal.shape)}, got {got}"
+                )
+            x = _to_bchw(x0.detach().to(prob.p.device), prob.p.dtype, prob.squeeze_channel)
+            x = torch.nan_to_num(x / prob.scale, nan=0.0, posinf=0.0, neginf=0.0)
+        h, wd = prob.p.shape[-2:]
+        dct = _LaplaceDCT(h, wd, prob.p)
+        op = _Operator(prob, w)
+        cg_tol = default_tol(prob.p.dtype) if tol is None else tol
+        x, its, res = _pcg(
+            op,
+            _rhs(prob, w),
+            x,
+            max_iter=max_iter,
+            tol=cg_tol,
+            precond=_make_precond(precondition, prob, w, dct, op),
         )
-    ]
-    base = _mask_weights(prob)
-    wp = _mul_opt(base.p, wu[0])
-    wx = _mul_opt(base.x, wu[1][..., :-1] if wu[1] is not None else None)
-    wy = _mul_opt(base.y, wu[2][..., :-1, :] if wu[2] is not None else None)
-    w = _Weights(wp, wx, wy)
-    if x0 is None:
-        x = prob.p.clone()
-    else:
-        if not isinstance(x0, torch.Tensor) or x0.shape != primal.shape:
-            got = tuple(x0.shape) if isinstance(x0, torch.Tensor) else type(x0).__name__
-            raise ValueError(f"x0 must have the shape of primal {tuple(primal.shape)}, got {got}")
-        x = _to_bchw(x0.to(prob.p.device), prob.p.dtype, prob.squeeze_channel) / prob.scale
-        x = torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
-    h, wd = prob.p.shape[-2:]
-    dct = _LaplaceDCT(h, wd, prob.p)
-    op = _Operator(prob, w)
-    tol = default_tol(prob.p.dtype) if tol is None else tol
-    x, its, res = _pcg(
-        op,
-        _rhs(prob, w),
-        x,
-        max_iter=max_iter,
-        tol=tol,
-        precond=_make_precond(precondition, prob, w, dct, op),
-    )
-    out = _finish(x, prob)
-    if not return_info:
-        return out
-    info = SolveInfo(
-        method="cg",
-        cg_iterations=its,
-        relative_residual=res,
-        n_missing=prob.n_missing,
-        seconds=time.perf_counter() - t0,
-    )
-    return out, info
+        jacobi = _make_precond("jacobi", prob, w, dct, op)
+        system = _System(prob, w, dct, jacobi, max(max_iter, 1), _dtypes(primal, dx, dy))
+        info = None
+        if return_info:
+            info = SolveInfo(
+                method="cg",
+                cg_iterations=its,
+                relative_residual=res,
+                n_missing=prob.n_missing,
+                seconds=time.perf_counter() - t0,
+            )
+        return _finish(x, prob), info, system
+
+    out, info = _run(core, primal, dx, dy)
+    return (out, info) if return_info else out
 
 
 def _mul_opt(a: torch.Tensor | None, b: torch.Tensor | None) -> torch.Tensor | None:
@@ -1277,26 +1411,36 @@ def solve_l1(
             valid names).
         TypeError: Non-tensor inputs.
     """
-    t0 = time.perf_counter()
     pr = get_l1_preset(preset)
-    prob = _prepare(primal, dx, dy, alpha)
-    h, w = prob.p.shape[-2:]
-    dct = _LaplaceDCT(h, w, prob.p)
-    x, its, res = _irls(prob, pr, dct, progress)
-    out = _finish(x, prob)
-    if not return_info:
-        return out
-    info = SolveInfo(
-        method="l1",
-        preset=pr.name,
-        irls_rounds=pr.rounds,
-        cg_iterations=its,
-        relative_residual=res,
-        n_missing=prob.n_missing,
-        energy=_info_energy(prob, x, "l1"),
-        seconds=time.perf_counter() - t0,
-    )
-    return out, info
+
+    def core(
+        primal: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor
+    ) -> tuple[torch.Tensor, SolveInfo | None, _System]:
+        t0 = time.perf_counter()
+        prob = _prepare(primal, dx, dy, alpha)
+        h, w = prob.p.shape[-2:]
+        dct = _LaplaceDCT(h, w, prob.p)
+        x, its, res, weights = _irls(prob, pr, dct, progress)
+        uniform = weights.p is None and weights.x is None and weights.y is None
+        op = _Operator(prob, weights)
+        precond = None if uniform else _make_precond("jacobi", prob, weights, dct, op)
+        system = _System(prob, weights, dct, precond, ADJOINT_MAX_ITER, _dtypes(primal, dx, dy))
+        info = None
+        if return_info:
+            info = SolveInfo(
+                method="l1",
+                preset=pr.name,
+                irls_rounds=pr.rounds,
+                cg_iterations=its,
+                relative_residual=res,
+                n_missing=prob.n_missing,
+                energy=_info_energy(prob, x, "l1"),
+                seconds=time.perf_counter() - t0,
+            )
+        return _finish(x, prob), info, system
+
+    out, info = _run(core, primal, dx, dy)
+    return (out, info) if return_info else out
 
 
 # ------------------------------------------------------------------------------------------------
