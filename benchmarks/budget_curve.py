@@ -8,16 +8,21 @@ ratio; 1 is the reference method). Scenes whose ``pt`` relMSE exceeds 1 (unconve
 references) are left out with ``--skip-unconverged``. Usage::
 
     .venv/bin/python benchmarks/budget_curve.py out/eval/results.json out/eval-long/results.json \\
-        --against pt+ngpt-nograd --plot docs/gradients-budget.png --skip-unconverged
+        --against pt+oidn-tuned --plot docs/gradients-budget.png --skip-unconverged
+
+Methods recorded or given under a deprecated name (``pt+ngpt-nograd``) are read as the current
+one (``pt+oidn-tuned``), as in ``study_summary.py``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 from collections import defaultdict
 
 from study_summary import geo, mean, table
+
+from gdpt.study.methods import EVAL_METHODS
+from gdpt.study.results import read_results
 
 
 def ratios(paths: list[str], against: str, metric: str, skip_unconverged: bool) -> dict:
@@ -25,8 +30,7 @@ def ratios(paths: list[str], against: str, metric: str, skip_unconverged: bool) 
     file (cells from :func:`study_summary.table`)."""
     out: dict[str, dict[float, list[float]]] = defaultdict(lambda: defaultdict(list))
     for path in paths:
-        with open(path) as f:
-            results = json.load(f)
+        results = read_results(path)
         unconverged = {
             scene
             for (scene, _), errors in table(results, "relmse").items()
@@ -43,11 +47,12 @@ def ratios(paths: list[str], against: str, metric: str, skip_unconverged: bool) 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("results", nargs="+")
-    parser.add_argument("--against", default="pt+ngpt-nograd")
+    parser.add_argument("--against", default="pt+oidn-tuned")
     parser.add_argument("--metric", default="relmse")
     parser.add_argument("--plot", default=None, help="write the curves to this PNG")
     parser.add_argument("--skip-unconverged", action="store_true")
     args = parser.parse_args()
+    args.against = EVAL_METHODS.resolve(args.against)
 
     curves = ratios(args.results, args.against, args.metric, args.skip_unconverged)
     budgets = sorted({b for per in curves.values() for b in per})

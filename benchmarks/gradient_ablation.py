@@ -9,7 +9,7 @@ against the dataset's targets are printed as a Markdown table. A network that ig
 gradients scores the same twice.
 
     .venv/bin/python benchmarks/gradient_ablation.py --data data/oidn-ft-v6 --holdout-every 5 \
-        gdpt/models/ngpt.safetensors runs/v11-oidn-grad-pool/model.safetensors
+        gdpt/models/oidn-grad.safetensors runs/v11-oidn-grad-pool/model.safetensors
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ to OIDN alone, at several image sizes.
 Per design (``oidn-grad``, ``oidn-grad-l1``, ``oidn-nograd``) and size: input assembly
 (autoexposure, PU encoding, signed-log gradients; for ``oidn-grad-l1`` the 'l1-fast' Poisson
 solve is timed as its own stage), the U-Net, the output decoding, and the end-to-end
-``OIDNReconstructor`` call (for gradient designs also with the shipped ``ngpt``'s gated Poisson
+``OIDNReconstructor`` call (for gradient designs also with the shipped ``oidn-grad``'s gated Poisson
 refinement, :mod:`gdpt.reconstruct.refine`: its L1 solve and gate as stages); next to
 ``pyoidn.denoise`` (HDR, albedo + normal, quality high) and the torch port of OIDN
 (:func:`gdpt.reconstruct.oidn_unet.denoise`). Timings do not depend on

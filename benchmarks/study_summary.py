@@ -7,8 +7,12 @@ Per metric, over every scene x budget cell of ``results.json``:
   95% interval of ``log(best / second)`` over the replicates (the study renders the same seeds
   for every method) lies below 0;
 * for each candidate (``--candidates``, default ``gdpt+fuse auto``) against a baseline
-  (``--against``, default ``pt+ngpt-nograd``): separated wins and losses, the geometric mean of
+  (``--against``, default ``pt+oidn-tuned``): separated wins and losses, the geometric mean of
   the ratio of means per scene and overall, and the largest per-cell ratio.
+
+Results of an earlier study name some methods by their deprecated names (``gdpt+ngpt``,
+``pt+ngpt-nograd``); they are read under the current ones (:func:`gdpt.study.results.read_results`),
+and so are such names given as options (with a ``DeprecationWarning``).
 
 ``relmse`` is also given corrected for the reference's own noise: with ``n_r`` reference and
 ``n`` ``pt`` samples, ``E[relMSE(pt)] = v (1/n + 1/n_r)``, so the reference adds
@@ -16,17 +20,19 @@ Per metric, over every scene x budget cell of ``results.json``:
 (``relmse-corrected``; the noise of a 4096-spp reference pulls every ratio toward 1).
 
     .venv/bin/python benchmarks/study_summary.py out/eval/results.json \\
-        [--candidates gdpt+fuse auto] [--against pt+ngpt-nograd] [--metrics relmse flip_ldr] \\
+        [--candidates gdpt+fuse auto] [--against pt+oidn-tuned] [--metrics relmse flip_ldr] \\
         [--out out/eval/summary.md]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from collections import Counter
 from pathlib import Path
+
+from gdpt.study.methods import EVAL_METHODS
+from gdpt.study.results import read_results
 
 #: Two-sided 95% quantiles of Student's t for 1..10 degrees of freedom.
 T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228)
@@ -161,11 +167,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("results", type=Path, help="results.json of gdpt evaluate")
     parser.add_argument("--candidates", nargs="+", default=["gdpt+fuse", "auto"])
-    parser.add_argument("--against", default="pt+ngpt-nograd")
+    parser.add_argument("--against", default="pt+oidn-tuned")
     parser.add_argument("--metrics", nargs="+", default=["relmse", "relmse-corrected", "flip_ldr"])
     parser.add_argument("--out", type=Path, help="also write the Markdown here")
     args = parser.parse_args()
-    results = json.loads(args.results.read_text())
+    args.against = EVAL_METHODS.resolve(args.against)
+    args.candidates = [EVAL_METHODS.resolve(c) for c in args.candidates]
+    results = read_results(args.results)
     lines = [f"# {args.results}", "", "Per-cell values: mean [min, max] of the replicates.", ""]
     for metric in args.metrics:
         lines += summarise(results, metric, args.candidates, args.against)

@@ -10,7 +10,8 @@ functions only: a sub-parser adds its arguments when it is used (:class:`_Comman
 
 User errors (missing or malformed input, refusing to overwrite, invalid options) print one line
 ``gdpt <command>: error: <message>`` to stderr and exit with status 2, without a traceback.
-Set ``GDPT_DEBUG=1`` to get the traceback instead.
+Set ``GDPT_DEBUG=1`` to get the traceback instead. gdpt's own ``DeprecationWarning`` (a
+method's former name, ``GDPT_NGPT_MODEL``) is printed to stderr, once per place.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import json
 import math
 import os
 import sys
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -89,6 +91,18 @@ def _run_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _method_name(name: str) -> str:
+    """``--method``'s value: a reconstruction method's current name (a deprecated one warns)."""
+    return METHODS.resolve(name)
+
+
+def _study_method_name(name: str) -> str:
+    """A ``--methods`` value: a study method's current name (a deprecated one warns)."""
+    from gdpt.study.methods import EVAL_METHODS
+
+    return EVAL_METHODS.resolve(name)
+
+
 # ---------------------------------------------------------------------------------- reconstruct
 def _add_reconstruct_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
@@ -96,6 +110,7 @@ def _add_reconstruct_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--method",
+        type=_method_name,
         choices=list(METHODS),
         default="l1",
         help="reconstruction, as gdpt.reconstruct_image (default: l1)",
@@ -109,7 +124,9 @@ def _add_reconstruct_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--png", action="store_true", help="also write a tone-mapped PNG next to the output"
     )
-    parser.add_argument("--model", type=Path, help="NGPT checkpoint for --method ngpt*")
+    parser.add_argument(
+        "--model", type=Path, help="trained checkpoint for a network method (oidn-grad, ...)"
+    )
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
 
 
@@ -211,7 +228,8 @@ def _add_render_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=0,
         help="also render this many plain path samples per pixel and pool them into the primal "
-        "(the input of a pooled ngpt model: its card's primal_spp_factor x --spp)",
+        "(the input of a pooled network such as oidn-grad: its card's primal_spp_factor x "
+        "--spp)",
     )
     parser.add_argument("--variance", action="store_true", help="also store variance buffers")
     parser.add_argument("--half", action="store_true", help="store half floats")
@@ -250,6 +268,7 @@ def _add_render_and_denoise_arguments(parser: argparse.ArgumentParser) -> None:
     _add_scene_arguments(parser)
     parser.add_argument(
         "--method",
+        type=_method_name,
         choices=["auto", *METHODS],
         default="auto",
         help="reconstruction (default: auto: --spp plain samples + the primal-only denoiser, "
@@ -394,7 +413,9 @@ def _add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--budgets", type=float, nargs="+", help="time budgets in seconds")
     parser.add_argument("--resolution", type=int, help="pixels on the long side")
-    parser.add_argument("--methods", nargs="+", help="methods to compare (default: all)")
+    parser.add_argument(
+        "--methods", nargs="+", type=_study_method_name, help="methods to compare (default: all)"
+    )
     _add_model_option(
         parser,
         "also compare a checkpoint written by gdpt train, as method gdpt+NAME (pt+NAME "
@@ -575,12 +596,12 @@ def _add_model_report_arguments(parser: argparse.ArgumentParser) -> None:
         required=True,
         metavar="NAME=RUN_DIR",
         dest="runs",
-        help="a gdpt train run directory and its model name (ngpt, "
-        "ngpt-nograd); repeat for several",
+        help="a gdpt train run directory and its model name (oidn-grad, "
+        "oidn-tuned); repeat for several",
     )
     _add_model_option(
         parser,
-        "a checkpoint (.safetensors, e.g. a shipped gdpt/models/ngpt-nograd.safetensors) "
+        "a checkpoint (.safetensors, e.g. a shipped gdpt/models/oidn-tuned.safetensors) "
         "to compare as well; neither plotted nor shipped; repeat for several",
     )
     parser.add_argument("--out", type=Path, required=True, help="report folder")
@@ -708,13 +729,13 @@ COMMANDS: tuple[Command, ...] = (
     ),
     Command(
         "dataset",
-        "render NGPT training crops (resumable, parallel, Ray)",
+        "render training crops for the networks (resumable, parallel, Ray)",
         _add_dataset_arguments,
         _run_dataset,
     ),
     Command(
         "train",
-        "train an NGPT network on a dataset (torchrun-ready)",
+        "train a reconstruction network on a dataset (torchrun-ready)",
         _add_train_arguments,
         _run_train,
     ),
@@ -788,18 +809,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     Returns:
         The exit status: 0 on success, 2 for user errors, 130 when interrupted.
     """
-    args = build_parser().parse_args(argv)
-    try:
-        return args.run(args)
-    except _USER_ERRORS as error:
-        if os.environ.get("GDPT_DEBUG"):
-            raise
-        message = " ".join(str(error).split())  # one line, whatever the exception text
-        print(f"gdpt {args.command}: error: {message}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"gdpt {args.command}: interrupted", file=sys.stderr)
-        return 130
+    with warnings.catch_warnings():
+        warnings.filterwarnings("default", category=DeprecationWarning, module=r"gdpt(\.|$)")
+        args = build_parser().parse_args(argv)
+        try:
+            return args.run(args)
+        except _USER_ERRORS as error:
+            if os.environ.get("GDPT_DEBUG"):
+                raise
+            message = " ".join(str(error).split())  # one line, whatever the exception text
+            print(f"gdpt {args.command}: error: {message}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print(f"gdpt {args.command}: interrupted", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

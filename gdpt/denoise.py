@@ -7,10 +7,14 @@ those. Registered:
 * ``'l2'`` / ``'l1'`` / ``'l1-fast'``: screened Poisson reconstruction
   (:mod:`gdpt.reconstruct.poisson`, same names): the closed-form L2 solution, the reference
   IRLS L1 preset and the accelerated L1 solver (same or lower L1 energy, fewer CG iterations).
-* ``'ngpt'`` / ``'ngpt-nograd'``: a trained network with a checkpoint given as ``model=PATH``,
-  ``$GDPT_NGPT_MODEL``, or shipped in ``gdpt/models/``: a dense U-Net
-  (:mod:`gdpt.reconstruct.ngpt`) or OIDN's U-Net fine-tuned with gradient inputs
-  (:mod:`gdpt.reconstruct.oidn_ngpt`, a delta to Intel's weights read from ``pyoidn``).
+* ``'oidn-grad'`` / ``'oidn-tuned'``: the shipped networks, Intel Open Image Denoise's U-Net
+  fine-tuned here (:mod:`gdpt.reconstruct.oidn_ngpt`, a delta to Intel's weights read from
+  ``pyoidn``; ``gdpt/models/README.md``): ``oidn-grad`` reads the gradients (pooled primal,
+  gated refinement), ``oidn-tuned`` is the same network fine-tuned on the same data without
+  them. ``model=PATH`` (or ``$GDPT_OIDN_GRAD_MODEL`` for ``oidn-grad``) runs another trained
+  checkpoint instead, e.g. a dense U-Net (:mod:`gdpt.reconstruct.ngpt`). Their former names
+  ``'ngpt'`` / ``'ngpt-nograd'`` (and ``$GDPT_NGPT_MODEL``) still work, with a
+  ``DeprecationWarning``.
 * ``'oidn'``: Intel Open Image Denoise on the primal with albedo and normal (no gradients),
   :func:`oidn_denoise`: ``pyoidn`` on CPU tensors, OIDN's U-Net in torch
   (:mod:`gdpt.reconstruct.oidn_unet`, Intel's weights) on CUDA tensors.
@@ -102,20 +106,41 @@ def _poisson(
 #: Folder of the models shipped with the package (``<name>.safetensors`` + ``<name>.json``).
 MODEL_DIR = Path(__file__).parent / "models"
 
+#: Environment variable: a checkpoint that replaces the shipped one of ``oidn-grad``.
+MODEL_ENV = "GDPT_OIDN_GRAD_MODEL"
+
+#: Deprecated name of :data:`MODEL_ENV` (honoured with a ``DeprecationWarning``).
+MODEL_ENV_DEPRECATED = "GDPT_NGPT_MODEL"
+
+
+def _model_from_environment() -> str | None:
+    """``$GDPT_OIDN_GRAD_MODEL``, else ``$GDPT_NGPT_MODEL`` (with a ``DeprecationWarning``), else
+    ``None``."""
+    if (model := os.environ.get(MODEL_ENV)) is None:
+        model = os.environ.get(MODEL_ENV_DEPRECATED)
+        if model is not None:
+            warnings.warn(
+                f"{MODEL_ENV_DEPRECATED} is deprecated; set {MODEL_ENV}",
+                DeprecationWarning,
+                stacklevel=2,
+            )
+    return model
+
 
 def model_path(name: str, model: str | os.PathLike | None = None) -> Path:
-    """The checkpoint to use: ``model``, else ``$GDPT_NGPT_MODEL`` (for ``ngpt``), else shipped.
+    """The checkpoint to use: ``model``, else ``$GDPT_OIDN_GRAD_MODEL`` (for ``oidn-grad``),
+    else the shipped ``gdpt/models/<name>.safetensors``.
 
     Raises:
         FileNotFoundError: no such checkpoint; the message says what to provide.
     """
-    if model is None and name == "ngpt":
-        model = os.environ.get("GDPT_NGPT_MODEL")
+    if model is None and name == "oidn-grad":
+        model = _model_from_environment()
     path = Path(model) if model is not None else MODEL_DIR / f"{name}.safetensors"
     if not path.is_file():
         raise FileNotFoundError(
-            f"NGPT checkpoint not found: {path}. Pass model=PATH (a checkpoint written by "
-            f"'gdpt train'), or set GDPT_NGPT_MODEL for 'ngpt'"
+            f"checkpoint not found: {path}. Pass model=PATH (a checkpoint written by "
+            f"'gdpt train'), or set {MODEL_ENV} for 'oidn-grad'"
         )
     return path
 
@@ -135,7 +160,7 @@ def load_reconstructor(path: Path) -> Any:
     return family_of(path).reconstructor(path)
 
 
-def _ngpt(
+def _network(
     buffers: GradientBuffers, *, name: str, alpha: float, model: str | None = None, **_: Any
 ) -> torch.Tensor:
     """Neural reconstruction with a trained network (``alpha`` does not apply).
@@ -148,7 +173,7 @@ def _ngpt(
     path = model_path(name, model).resolve()
     if reason := _oidn_weights_missing(name, path):
         raise RuntimeError(reason)
-    factor = _ngpt_primal_spp_factor(name, model)
+    factor = _network_primal_spp_factor(name, model)
     metadata = getattr(buffers, "metadata", None)
     unpooled = metadata is not None and "primal_spp" not in metadata and buffers.has_gradients
     if factor and unpooled:  # (buffers without gradients fail in the network, by name)
@@ -187,9 +212,9 @@ def _oidn_weights_missing(name: str, path: Path) -> str | None:
     return None
 
 
-def _ngpt_primal_spp_factor(name: str, model: str | None = None, **_: Any) -> float:
+def _network_primal_spp_factor(name: str, model: str | None = None, **_: Any) -> float:
     """The model card's ``sampling.primal_spp_factor`` (0 when the card has none or the
-    checkpoint is missing: :func:`_ngpt` reports that)."""
+    checkpoint is missing: :func:`_network` reports that)."""
     from gdpt.reconstruct.ngpt import read_card
 
     try:
@@ -199,9 +224,9 @@ def _ngpt_primal_spp_factor(name: str, model: str | None = None, **_: Any) -> fl
     return float(card.get("sampling", {}).get("primal_spp_factor", 0.0))
 
 
-def _ngpt_check(name: str) -> str | None:
-    """``None`` when the NGPT model ``name`` (and what it builds on) can be found, else why
-    not."""
+def _network_check(name: str) -> str | None:
+    """``None`` when the shipped network ``name`` (and what it builds on) can be found, else
+    why not."""
     try:
         return _oidn_weights_missing(name, model_path(name))
     except (FileNotFoundError, ValueError) as err:
@@ -314,26 +339,28 @@ for _name, _detail in (
         _name, Method(partial(_poisson, method=_name), True, False, f"screened Poisson, {_detail}")
     )
 METHODS.register(
-    "ngpt",
+    "oidn-grad",
     Method(
-        partial(_ngpt, name="ngpt"),
+        partial(_network, name="oidn-grad"),
         True,
         True,
-        "the shipped NGPT network",
-        partial(_ngpt_check, "ngpt"),
-        partial(_ngpt_primal_spp_factor, "ngpt"),
+        "OIDN's U-Net fine-tuned to read the gradients (shipped; gated refinement)",
+        partial(_network_check, "oidn-grad"),
+        partial(_network_primal_spp_factor, "oidn-grad"),
     ),
 )
 METHODS.register(
-    "ngpt-nograd",
+    "oidn-tuned",
     Method(
-        partial(_ngpt, name="ngpt-nograd"),
+        partial(_network, name="oidn-tuned"),
         False,
         True,
-        "the NGPT ablation network trained without gradients",
-        partial(_ngpt_check, "ngpt-nograd"),
+        "OIDN's U-Net fine-tuned on the same data without gradients (shipped; the ablation)",
+        partial(_network_check, "oidn-tuned"),
     ),
 )
+METHODS.alias("ngpt", "oidn-grad")
+METHODS.alias("ngpt-nograd", "oidn-tuned")
 METHODS.register(
     "oidn",
     Method(
@@ -346,7 +373,8 @@ METHODS.register(
 )
 
 
-#: Plain path samples pooled per gradient sample in the input of ``fuse`` (as ``ngpt``'s card).
+#: Plain path samples pooled per gradient sample in the input of ``fuse`` (as ``oidn-grad``'s
+#: card).
 FUSE_PRIMAL_SPP_FACTOR = 2.5
 
 
@@ -385,7 +413,9 @@ def _fuse(
             + ", ".join(f"'{n}' (render with {o})" for n, o in missing)
             + "; these buffers have none"
         )
-    name = denoiser or ("ngpt-nograd" if _ngpt_check("ngpt-nograd") is None else "oidn")
+    if denoiser is None:
+        denoiser = "oidn-tuned" if _network_check("oidn-tuned") is None else "oidn"
+    name = METHODS.resolve(denoiser, stacklevel=3)
     METHODS.check([name])
     if METHODS[name].gradients:
         raise ValueError(f"fuse: denoiser {name!r} reads gradients; give a primal-only one")
@@ -412,11 +442,11 @@ METHODS.register(
         True,
         True,
         "variance-weighted screened Poisson of the gradients around the primal-only network "
-        "(ngpt-nograd, else OIDN) denoise, per-pixel error from its half-buffer denoises",
+        "(oidn-tuned, else OIDN) denoise, per-pixel error from its half-buffer denoises",
         lambda: (
             None
-            if oidn_check() is None or _ngpt_check("ngpt-nograd") is None
-            else ("fuse needs a primal-only denoiser: ngpt-nograd or pyoidn")
+            if oidn_check() is None or _network_check("oidn-tuned") is None
+            else ("fuse needs a primal-only denoiser: oidn-tuned or pyoidn")
         ),
         lambda **_: FUSE_PRIMAL_SPP_FACTOR,
         statistics=True,
@@ -452,12 +482,12 @@ def register_checkpoint(name: str, path: str | os.PathLike) -> Method:
     return METHODS.register(
         name,
         Method(
-            partial(_ngpt, name=name, model=path),
+            partial(_network, name=name, model=path),
             "dx" in card.get("features", ()),
             True,
             f"the checkpoint {path} ({card.get('design') or card.get('config_name', 'network')})",
             partial(_oidn_weights_missing, name, path),
-            partial(_ngpt_primal_spp_factor, name, path),
+            partial(_network_primal_spp_factor, name, path),
         ),
     )
 
@@ -470,7 +500,9 @@ def reconstruct_image(
     Args:
         buffers (GradientBuffers): the render; the Poisson methods need ``dx`` and ``dy``,
             ``oidn`` and the networks the features.
-        method (str): a key of :data:`METHODS` (``'l1'``, ``'l2'``, ``'oidn'``, ...).
+        method (str): a key of :data:`METHODS` (``'l1'``, ``'l2'``, ``'oidn'``, ...); a
+            deprecated name (``'ngpt'``) runs its new one (``'oidn-grad'``) with a
+            ``DeprecationWarning``.
         alpha (float): weight of the primal term relative to the gradient terms (screened
             Poisson); methods that have no such weight ignore it.
         **options: method-specific options, passed through unchanged (``model=PATH`` for a
@@ -482,6 +514,7 @@ def reconstruct_image(
     Raises:
         ValueError: unknown ``method``, or the buffers lack what the method needs.
     """
+    method = METHODS.resolve(method, stacklevel=2)
     METHODS.check([method])
     return METHODS[method].run(buffers, alpha=alpha, **options)
 

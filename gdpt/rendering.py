@@ -241,13 +241,14 @@ def render_and_denoise(
         method (str): ``"auto"`` (the primal-only denoiser on plain samples, or from
             :func:`gdpt.route.pilot_threshold` spp on, a pilot render chooses between that and
             ``fuse`` on gradient-domain samples, :mod:`gdpt.route`), or a key of
-            :data:`gdpt.denoise.METHODS`.
+            :data:`gdpt.denoise.METHODS` (a deprecated name runs its new one, with a
+            ``DeprecationWarning``).
         seed (int): random seed.
         alpha (float): screened-Poisson data weight.
         progress (bool): progress bar while rendering.
         **props: integrator properties, as in :func:`render`. ``gradients`` and ``features``
             default to what ``method`` reads (:meth:`gdpt.denoise.Method.sampling`): the
-            Poisson methods skip the features, ``ngpt-nograd`` the offset paths, and a network
+            Poisson methods skip the features, ``oidn-tuned`` the offset paths, and a network
             trained on pooled inputs gets its plain path samples (``primal_spp``).
 
     Returns:
@@ -258,6 +259,7 @@ def render_and_denoise(
     """
     from gdpt.denoise import METHODS, reconstruct_image
 
+    method = METHODS.resolve(method, stacklevel=2)  # a deprecated name warns once, here
     if method != "auto":
         METHODS.check([method])
     if spp < 1:

@@ -6,7 +6,7 @@ Two routes fill the same render time; ``spp`` counts the plain route's samples:
   pooled into the primal per gradient sample, reconstructed by ``fuse``
   (:func:`gdpt.reconstruct.fuse.fuse_halves`);
 * ``plain``: plain path samples (features on), reconstructed by the primal-only denoiser
-  (``ngpt-nograd``, else ``oidn``).
+  (``oidn-tuned``, else ``oidn``).
 
 The pilot renders the gradient route's input at ``pilot_spp`` (with variances and halves),
 measures the cost of a gradient sample relative to a plain one (from its two passes), and
@@ -89,11 +89,11 @@ class RouteChoice:
 
 
 def plain_denoiser() -> str:
-    """The primal-only denoiser of the plain route: ``ngpt-nograd`` where its model and
+    """The primal-only denoiser of the plain route: ``oidn-tuned`` where its model and
     weights are found, else ``oidn``."""
     from gdpt.denoise import METHODS
 
-    return "ngpt-nograd" if METHODS["ngpt-nograd"].check() is None else "oidn"
+    return "oidn-tuned" if METHODS["oidn-tuned"].check() is None else "oidn"
 
 
 def decide(gain: float, cost_ratio: float, factor: float) -> tuple[str, float]:

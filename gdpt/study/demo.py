@@ -2,13 +2,14 @@
 
 The demo is a one-scene, one-budget run of the equal-time study
 (:func:`gdpt.study.evaluate.evaluate`):
-G-PT reconstructed by the shipped NGPT network, L1 and L2 screened Poisson; path tracing alone,
-with Intel Open Image Denoise, and with the no-gradient NGPT ablation. Each method's sample
-count is calibrated by timing so that sampling + reconstruction takes ``budget`` seconds on this
-machine (kernel compilation and frozen-pass recording excluded: each timed render follows an
-untimed one at the same spp); errors are measured against a cached high-spp path-traced
-reference. Writes the study's report (``results.json``, ``results.md``, ``index.html``, crops),
-an EXR and a PNG per method, and a labelled montage ``side_by_side.png``.
+G-PT reconstructed by the shipped gradient network ``oidn-grad``, L1 and L2 screened Poisson;
+path tracing alone, with Intel Open Image Denoise, and with ``oidn-tuned`` (the same network
+fine-tuned without gradients). Each method's sample count is calibrated by timing so that
+sampling + reconstruction takes ``budget`` seconds on this machine (kernel compilation and
+frozen-pass recording excluded: each timed render follows an untimed one at the same spp);
+errors are measured against a cached high-spp path-traced reference. Writes the study's report
+(``results.json``, ``results.md``, ``index.html``, crops), an EXR and a PNG per method, and a
+labelled montage ``side_by_side.png``.
 """
 
 from __future__ import annotations
@@ -20,10 +21,10 @@ from typing import Any
 #: Methods shown by the demo, best first in the montage.
 DEMO_METHODS = (
     "auto",
-    "pt+ngpt-nograd",
+    "pt+oidn-tuned",
     "pt+oidn",
     "gdpt+fuse",
-    "gdpt+ngpt",
+    "gdpt+oidn-grad",
     "gdpt+l1",
     "gdpt+l2",
     "pt",
@@ -96,7 +97,7 @@ def run_demo(cfg: DemoConfig, *, progress: bool = True) -> dict[str, Any]:
         f"(compilation and pass recording excluded), reference {cfg.reference_spp} spp"
     )
     print(f"{'method':<16}{'spp':>6}{'seconds':>9}{'relMSE':>10}{'FLIP':>8}")
-    for name in cfg.methods:
+    for name in results["config"]["methods"]:  # current names (a deprecated one is replaced)
         info = entry["methods"].get(name, {})
         cells = list(info.get("cells", {}).values())
         if not cells:

@@ -89,6 +89,15 @@ def failures(results: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _current_methods(cfg: EvaluateConfig) -> EvaluateConfig:
+    """``cfg`` with each deprecated method name replaced by its current one (a
+    ``DeprecationWarning`` each, naming the caller of :func:`evaluate`)."""
+    methods = []
+    for name in cfg.methods:  # a loop: before Python 3.12 a comprehension is a frame of its own
+        methods.append(EVAL_METHODS.resolve(name, stacklevel=3))
+    return dataclasses.replace(cfg, methods=tuple(methods))
+
+
 def _method_list(cfg: EvaluateConfig) -> list[str]:
     names = list(cfg.methods or EVAL_METHODS)
     for name in names:
@@ -133,7 +142,9 @@ def evaluate(
     Args:
         scenes: scene arguments (see :func:`resolve_scenes`) or specs.
         out_dir: report folder; an existing ``results.json`` there is resumed.
-        cfg: options; default :data:`PRESETS` ``["full"]``.
+        cfg: options; default :data:`PRESETS` ``["full"]``. A deprecated method name in
+            ``cfg.methods`` (``gdpt+ngpt``) runs, and is recorded, as its current one
+            (``gdpt+oidn-grad``), with a ``DeprecationWarning``.
         progress: show a progress bar over all cells of the study.
         report: write ``results.md``, plots, crops and ``index.html`` at the end.
         command: the command line that started the run (recorded in the results).
@@ -150,7 +161,7 @@ def evaluate(
     from gdpt.backend import ensure_variant
     from gdpt.metrics import METRICS
 
-    cfg = cfg or PRESETS["full"]
+    cfg = _current_methods(cfg or PRESETS["full"])
     METRICS.check(cfg.metrics)
     methods = _method_list(cfg)
     specs = _as_specs(scenes)

@@ -14,8 +14,10 @@ Registered methods:
   ``high``).
 * ``gdpt+l2`` / ``gdpt+l1`` / ``gdpt+l1-fast``: gradient-domain path tracing + screened
   Poisson (L2; L1 with the reference IRLS schedule; L1 with the accelerated preset).
-* ``gdpt+ngpt``: gradient-domain path tracing + the shipped NGPT network.
-* ``pt+ngpt-nograd``: path tracing (features, no gradients) + the NGPT ablation network.
+* ``gdpt+oidn-grad``: gradient-domain path tracing (plain path samples pooled into the primal)
+  + OIDN's U-Net fine-tuned to read the gradients (shipped).
+* ``pt+oidn-tuned``: path tracing (features, no gradients) + the same network fine-tuned without
+  gradients (shipped; the ablation).
 * ``gdpt+fuse``: pooled gradient-domain samples + variance-weighted fusion of the gradients
   around the primal-only network (:mod:`gdpt.reconstruct.fuse`).
 * ``auto``: ``render_and_denoise``'s default (:mod:`gdpt.route`: plain path tracing + the
@@ -24,7 +26,8 @@ Registered methods:
 A method that cannot run here (package not installed, no shipped model) says so through its
 ``check`` function and is skipped with that note. A reconstruction registered in
 :data:`gdpt.denoise.METHODS` appears here on its own (as ``gdpt+NAME``, or ``pt+NAME`` when it
-reads no gradients); another method (a different sampler) is
+reads no gradients; a deprecated alias of a reconstruction, such as ``ngpt``, gives the
+deprecated alias ``gdpt+ngpt`` of ``gdpt+oidn-grad``); another method (a different sampler) is
 ``EVAL_METHODS.register(name, EvalMethod(name, description, f))`` with
 ``f(scene, *, spp, seed) -> MethodResult``; the harness needs no change.
 
@@ -197,6 +200,9 @@ def register_denoiser(name: str, method: Method) -> str:
 
 for _name, _method in {"oidn": DENOISERS["oidn"], **DENOISERS}.items():  # pt+oidn next to pt
     register_denoiser(_name, _method)
+for _old, _new in DENOISERS.aliases.items():
+    _sampler = "gdpt" if DENOISERS[_new].gradients else "pt"
+    EVAL_METHODS.alias(f"{_sampler}+{_old}", f"{_sampler}+{_new}")
 
 
 def auto_route(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
@@ -205,7 +211,7 @@ def auto_route(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     plain samples, the gradient route renders gradient samples of the same cost."""
     from gdpt.rendering import render_and_denoise
 
-    if reason := DENOISERS["oidn"].check() and DENOISERS["ngpt-nograd"].check():
+    if reason := DENOISERS["oidn"].check() and DENOISERS["oidn-tuned"].check():
         raise MethodUnavailable(reason)
     _drain_compile_seconds()
     start = time.perf_counter()
@@ -231,6 +237,6 @@ EVAL_METHODS.register(
         "path tracing + the primal-only network, or from 360 spp a pilot render's choice "
         "between that and gradient-domain path tracing + fuse (gdpt.route)",
         auto_route,
-        lambda: DENOISERS["oidn"].check() and DENOISERS["ngpt-nograd"].check(),
+        lambda: DENOISERS["oidn"].check() and DENOISERS["oidn-tuned"].check(),
     ),
 )

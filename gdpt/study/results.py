@@ -1,5 +1,6 @@
 """The ``results.json`` schema: format tag, machine and version records, conventions, seeds,
-resumable loading and the atomic write."""
+reading (an earlier study's deprecated method names mapped to the current ones), resumable
+loading and the atomic write."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import torch
 
 from gdpt.io.atomic import atomic_write
 from gdpt.study.config import EvaluateConfig
+from gdpt.study.methods import EVAL_METHODS
 
 RESULTS_FORMAT = "gdpt-evaluate/1"
 
@@ -131,12 +133,32 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
     atomic_write(path, json.dumps(data, indent=1))
 
 
+def read_results(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The content of a ``results.json``, with the methods an earlier study recorded under a
+    deprecated name (an alias in :data:`gdpt.study.methods.EVAL_METHODS`, e.g. ``gdpt+ngpt``)
+    under their current name (``gdpt+oidn-grad``): in the scenes, ``methods`` and
+    ``config.methods``.
+
+    Raises:
+        ValueError: the file is not a gdpt evaluation (its format tag).
+    """
+    results = json.loads(Path(path).read_text())
+    if results.get("format") != RESULTS_FORMAT:
+        raise ValueError(f"{path} is not a gdpt evaluation ({results.get('format')!r})")
+    current = EVAL_METHODS.aliases
+    for entry in [*results.get("scenes", {}).values(), results]:
+        if isinstance(entry.get("methods"), dict):
+            entry["methods"] = {current.get(k, k): v for k, v in entry["methods"].items()}
+    if "methods" in results.get("config", {}):
+        results["config"]["methods"] = [current.get(m, m) for m in results["config"]["methods"]]
+    return results
+
+
 def load_results(path: Path, cfg: EvaluateConfig) -> dict[str, Any]:
-    """The previous ``results.json`` if compatible with ``cfg``, else a new skeleton."""
+    """The previous ``results.json`` (:func:`read_results`) if compatible with ``cfg``, else a
+    new skeleton."""
     if path.is_file():
-        old = json.loads(path.read_text())
-        if old.get("format") != RESULTS_FORMAT:
-            raise ValueError(f"{path} is not a gdpt evaluation ({old.get('format')!r})")
+        old = read_results(path)
         new = cfg.to_json()
         diff = [k for k in _RESUME_KEYS if old["config"].get(k) != new.get(k)]
         if diff:

@@ -1,4 +1,4 @@
-"""Reports on trained NGPT networks: training curves, the held-out comparison, shipping.
+"""Reports on trained reconstruction networks: training curves, the held-out comparison, shipping.
 
 * :func:`plot_training`: training loss and validation relMSE / FLIP over wall-clock time of
   one or more ``gdpt train`` run directories (PNG).
@@ -11,7 +11,7 @@
 * :func:`ship_model`: copy a run's final network into ``gdpt/models/<name>`` with a model card
   (data, steps, wall time, the comparison numbers).
 
-Command: ``gdpt model-report --data DIR --run ngpt=RUN --run ngpt-nograd=RUN --out DIR``.
+Command: ``gdpt model-report --data DIR --run oidn-grad=RUN --run oidn-tuned=RUN --out DIR``.
 """
 
 from __future__ import annotations
@@ -283,7 +283,7 @@ def ship_model(
 
     Args:
         run: ``gdpt train`` run directory holding ``model.safetensors``.
-        name: model name (``ngpt``, ``ngpt-nograd``).
+        name: model name (``oidn-grad``, ``oidn-tuned``).
         comparison: held-out comparison to record.
         dest: target folder (default: ``gdpt/models`` of this package).
 

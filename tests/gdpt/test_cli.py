@@ -101,6 +101,28 @@ def test_reconstruct_refuses_to_overwrite(render, tmp_path, fake_l2, capsys):
     assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_deprecated_method_name_runs_the_new_method(render, tmp_path, monkeypatch, capsys):
+    """``--method ngpt`` (the former name of ``oidn-grad``) runs ``oidn-grad``, warns, and the
+    output's metadata names ``oidn-grad``; ``--help`` lists only current names."""
+    network = denoise.Method(lambda buffers, *, alpha, **_: buffers.primal * 3, True, True, "x3")
+    monkeypatch.setitem(denoise.METHODS, "oidn-grad", network)
+    out = tmp_path / "o.exr"
+    with pytest.warns(DeprecationWarning, match="'ngpt' is deprecated; use 'oidn-grad'"):
+        assert main(["reconstruct", str(render), "--method", "ngpt", "-o", str(out)]) == 0
+    assert json.loads(OpenEXR.File(str(out)).header()["gdpt.metadata"])["method"] == "oidn-grad"
+    with pytest.raises(SystemExit):
+        main(["reconstruct", "--help"])
+    usage = capsys.readouterr().out
+    assert "oidn-grad" in usage and "ngpt" not in usage
+
+
+def test_deprecated_method_name_is_reported_on_stderr(tmp_path):
+    missing = tmp_path / "missing.exr"
+    result = run_cli("reconstruct", str(missing), "--method", "ngpt", "-o", str(tmp_path / "o.exr"))
+    assert "reconstruction method 'ngpt' is deprecated; use 'oidn-grad'" in result.stderr
+    assert one_line_error(result.stderr).endswith("missing.exr: no such file")
+
+
 def test_primal_only_render_is_a_clear_error(tmp_path, capsys, random_buffers):
     path = save_buffers(tmp_path / "pt.exr", random_buffers(names=("primal", "albedo")))
     assert main(["reconstruct", str(path), "-o", str(tmp_path / "o.exr")]) == 2
@@ -206,7 +228,7 @@ def test_corrupt_checkpoint_exits_2_naming_the_file(render, tmp_path, corrupt_ch
     """``--model`` with a corrupt ``.safetensors``: one line naming it, before any rendering."""
     expected = f"{corrupt_checkpoint}: not a readable safetensors file"
     out = tmp_path / "o.exr"
-    argv = ["reconstruct", str(render), "--method", "ngpt", "--model", str(corrupt_checkpoint)]
+    argv = ["reconstruct", str(render), "--method", "oidn-grad", "--model", str(corrupt_checkpoint)]
     assert main([*argv, "-o", str(out)]) == 2
     assert expected in one_line_error(capsys.readouterr().err)
     assert not out.exists()

@@ -130,10 +130,10 @@ def test_resuming_with_a_changed_copy_of_the_base_is_refused(pt_dataset, tiny, t
 def test_a_shipped_combiner_carries_its_base_network(pt_dataset, tiny, tmp_path):
     run = tmp_path / "run"
     train(tiny(pt_dataset, run, steps=1, val_every=0), progress=False)
-    path = ship_model(run, "ngpt", dest=tmp_path / "models")
-    assert (tmp_path / "models" / "ngpt-base.safetensors").is_file()
+    path = ship_model(run, "combiner", dest=tmp_path / "models")
+    assert (tmp_path / "models" / "combiner-base.safetensors").is_file()
     rec = CombinerReconstructor.from_checkpoint(path)
-    assert rec.card["name"] == "ngpt" and rec.card["base_model"] == "ngpt-base"
+    assert rec.card["name"] == "combiner" and rec.card["base_model"] == "combiner-base"
     item = CropDataset(pt_dataset)[0]["inputs"]
     trained = CombinerReconstructor.from_checkpoint(run / "model.safetensors")(item)
     assert torch.equal(rec(item), trained)

@@ -18,6 +18,7 @@ from gdpt.study.calibration import WARM_UP_SEED_OFFSET, TimeModel, calibrate, ru
 from gdpt.study.config import EvaluateConfig
 from gdpt.study.evaluate import StudyFailure, evaluate, render_references
 from gdpt.study.methods import EVAL_METHODS, EvalMethod, MethodResult
+from gdpt.study.results import read_results
 from gdpt.study.scenes import SceneSpec, load_eval_scene, resolve_scenes
 
 #: A stand-in scene for the fake-clock tests (only its film size is read, ``(width, height)``).
@@ -165,9 +166,9 @@ def test_bad_input_is_reported_and_resume_skips_done_cells(variant, tmp_path, mo
     broken.parent.mkdir()
     broken.write_text(GAUSSIAN_XML.format(bsdf="no_such_bsdf"))
     monkeypatch.setitem(sys.modules, "pyoidn", None)  # "not installed"
-    monkeypatch.delitem(denoise.METHODS, "ngpt", raising=False)
+    monkeypatch.delitem(denoise.METHODS, "oidn-grad", raising=False)
     scenes = ["builtin:cbox-demo", str(tmp_path / "missing.xml"), str(broken.parent)]
-    cfg = _tiny_cfg(methods=("pt", "pt+oidn", "gdpt+ngpt"), keep_going=True)
+    cfg = _tiny_cfg(methods=("pt", "pt+oidn", "gdpt+oidn-grad"), keep_going=True)
     out = tmp_path / "report"
     results = evaluate(scenes, out, cfg, progress=False)
 
@@ -177,7 +178,8 @@ def test_bad_input_is_reported_and_resume_skips_done_cells(variant, tmp_path, mo
     assert "no_such_bsdf" in results["scenes"]["broken"]["error"]
     methods = results["scenes"]["cbox-demo"]["methods"]
     assert methods["pt+oidn"]["status"] == "skipped" and "pyoidn" in methods["pt+oidn"]["note"]
-    assert methods["gdpt+ngpt"]["status"] == "skipped" and "ngpt" in methods["gdpt+ngpt"]["note"]
+    skipped = methods["gdpt+oidn-grad"]
+    assert skipped["status"] == "skipped" and "oidn-grad" in skipped["note"]
     assert not results["methods"]["pt+oidn"]["available"]
     assert set(methods["pt"]["cells"]) == {"0.1", "0.2"}
     report = (out / "results.md").read_text()
@@ -290,6 +292,38 @@ def test_method_failing_at_calibration_is_named(tmp_path, monkeypatch, capsys):
     assert main([*args, "--out", str(tmp_path / "report")]) == 1
     expected = "random-3 / fake-broken: calibration: could not run: RuntimeError: out of memory"
     assert expected in capsys.readouterr().err
+
+
+def test_deprecated_study_name_is_run_and_read_as_the_new_one(tmp_path, monkeypatch):
+    """``--methods gdpt+ngpt`` runs ``gdpt+oidn-grad`` (warned) and records it under that name;
+    an earlier study's ``results.json`` that has ``gdpt+ngpt`` is read, and resumed by
+    :func:`evaluate` given the old name, under the new name."""
+    clock = FakeClock()
+    monkeypatch.setitem(EVAL_METHODS, "gdpt+oidn-grad", clock.method("gdpt+oidn-grad"))
+    out = tmp_path / "report"
+    args = ["evaluate", "--scenes", "random:3", "--resolution", "16", "--budgets", "0.1", "0.2"]
+    args += ["--reference-spp", "4", "--no-progress", "--quick", "--out", str(out)]
+    expected = r"method 'gdpt\+ngpt' is deprecated; use 'gdpt\+oidn-grad'"
+    with pytest.warns(DeprecationWarning, match=expected):
+        assert main([*args, "--methods", "gdpt+ngpt"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["config"]["methods"] == ["gdpt+oidn-grad"]
+    assert list(results["scenes"]["random-3"]["methods"]) == ["gdpt+oidn-grad"]
+
+    earlier = json.loads((out / "results.json").read_text())
+    for entry in (earlier, earlier["scenes"]["random-3"]):
+        entry["methods"] = {"gdpt+ngpt": entry["methods"].pop("gdpt+oidn-grad")}
+    earlier["config"]["methods"] = ["gdpt+ngpt"]
+    (out / "results.json").write_text(json.dumps(earlier))
+    assert read_results(out / "results.json") == results
+    clock.calls.clear()
+    cfg = _tiny_cfg(resolution=16, reference_spp=4, methods=("gdpt+ngpt",))
+    with pytest.warns(DeprecationWarning, match=expected) as caught:
+        again = evaluate(["random:3"], out, cfg, progress=False, report=False)
+    assert caught[0].filename == __file__  # the warning names the caller's line
+    assert clock.calls == []  # its cells were found under the new name
+    assert again["config"]["methods"] == ["gdpt+oidn-grad"]
+    assert list(again["scenes"]["random-3"]["methods"]) == ["gdpt+oidn-grad"]
 
 
 def test_references_only_then_cells_reuse_them(variant, tmp_path, monkeypatch, capsys):

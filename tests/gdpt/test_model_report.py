@@ -24,7 +24,7 @@ def runs(tmp_path_factory, tiny_dataset) -> tuple[Path, dict[str, Path]]:
     root = tmp_path_factory.mktemp("report")
     data = tiny_dataset
     out = {}
-    for name, config in (("ngpt", "fast_xs"), ("ngpt-nograd", "fast_xs_nograd")):
+    for name, config in (("dense", "fast_xs"), ("dense-nograd", "fast_xs_nograd")):
         out[name] = root / name
         train(
             TrainConfig(
@@ -62,7 +62,7 @@ def test_cli_writes_plot_and_comparison(runs, tmp_path):
     assert (tmp_path / "training.png").stat().st_size > 10_000
     result = json.loads((tmp_path / "comparison.json").read_text())
     assert result["crops"] == 2 and len(result["levels"]) == 5
-    assert {"ngpt", "ngpt-nograd", "gdpt+l1", "pt"} <= set(result["mean"])
+    assert {"dense", "dense-nograd", "gdpt+l1", "pt"} <= set(result["mean"])
     assert "| mean over levels |" in (tmp_path / "comparison.md").read_text()
 
 
@@ -70,7 +70,7 @@ def test_comparison_scores_the_right_inputs(runs):
     """The ``pt`` row must equal relMSE of each crop's own path-traced input at that level."""
     data, run_dirs = runs
     result = model_report.compare_models(
-        data, {"ngpt": run_dirs["ngpt"] / "model.safetensors"}, holdout_every=1, progress=False
+        data, {"dense": run_dirs["dense"] / "model.safetensors"}, holdout_every=1, progress=False
     )
     records, _ = read_manifest(data)
     for level, entry in enumerate(result["levels"]):
@@ -85,22 +85,22 @@ def test_comparison_scores_the_right_inputs(runs):
 
 def test_ship_model_writes_a_loadable_card_and_enforces_the_size_limit(runs, tmp_path, monkeypatch):
     _, run_dirs = runs
-    path = model_report.ship_model(run_dirs["ngpt"], "ngpt", comparison={"x": 1}, dest=tmp_path)
+    path = model_report.ship_model(run_dirs["dense"], "dense", comparison={"x": 1}, dest=tmp_path)
     card = NGPTReconstructor.from_checkpoint(path).card
-    assert card["name"] == "ngpt" and card["heldout_comparison"] == {"x": 1}
+    assert card["name"] == "dense" and card["heldout_comparison"] == {"x": 1}
     assert card["wall_clock_hours"] >= 0 and card["dataset"]["config"]["target_spp"] == 8
     assert card["train_config"]["model"] == "fast_xs"
     manifest = (Path(card["train_config"]["data"]) / "manifest.jsonl").read_text().splitlines()
     assert card["dataset_size"]["crops"] == len(manifest) > 0
     monkeypatch.setattr(model_report, "MAX_SHIPPED_MIB", 0.1)
     with pytest.raises(ValueError, match="exceeds the 0.1 MiB"):
-        model_report.ship_model(run_dirs["ngpt"], "big", dest=tmp_path)
+        model_report.ship_model(run_dirs["dense"], "big", dest=tmp_path)
     assert not (tmp_path / "big.safetensors").exists()
 
 
 @pytest.mark.parametrize(
     "run, message",
-    [("ngpt", "expected NAME=RUN_DIR"), ("ngpt=/nonexistent", "model.safetensors not found")],
+    [("dense", "expected NAME=RUN_DIR"), ("dense=/nonexistent", "model.safetensors not found")],
 )
 def test_cli_bad_run_argument(runs, tmp_path, capsys, run, message):
     data, _ = runs
@@ -116,10 +116,10 @@ def test_cli_ships_only_the_named_runs(runs, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(gdpt.denoise, "MODEL_DIR", tmp_path / "models")
     args = ["model-report", "--data", str(data), "--holdout-every", "1", "--out", str(tmp_path)]
     args += [f"--run={k}={v}" for k, v in run_dirs.items()]
-    assert main([*args, "--ship", "ngpt-nograd"]) == 0
+    assert main([*args, "--ship", "dense-nograd"]) == 0
     assert sorted(p.name for p in (tmp_path / "models").iterdir()) == [
-        "ngpt-nograd.json",
-        "ngpt-nograd.safetensors",
+        "dense-nograd.json",
+        "dense-nograd.safetensors",
     ]
     assert main([*args, "--ship", "nope"]) == 2
     assert "--ship nope: not among the --run names" in capsys.readouterr().err
@@ -128,13 +128,13 @@ def test_cli_ships_only_the_named_runs(runs, tmp_path, monkeypatch, capsys):
 def test_cli_compares_checkpoints_given_by_model(runs, tmp_path, capsys):
     data, run_dirs = runs
     args = ["model-report", "--data", str(data), "--holdout-every", "1", "--out", str(tmp_path)]
-    args += [f"--run=ngpt={run_dirs['ngpt']}"]
-    checkpoint = run_dirs["ngpt-nograd"] / "model.safetensors"
+    args += [f"--run=dense={run_dirs['dense']}"]
+    checkpoint = run_dirs["dense-nograd"] / "model.safetensors"
     assert main([*args, f"--model=other={checkpoint}"]) == 0
     result = json.loads((tmp_path / "comparison.json").read_text())
-    assert {"ngpt", "other"} <= set(result["mean"])
-    assert main([*args, f"--model=ngpt={checkpoint}"]) == 2
-    assert "the name 'ngpt' is taken by a --run" in capsys.readouterr().err
+    assert {"dense", "other"} <= set(result["mean"])
+    assert main([*args, f"--model=dense={checkpoint}"]) == 2
+    assert "the name 'dense' is taken by a --run" in capsys.readouterr().err
     assert main([*args, "--model=x=/nonexistent.safetensors"]) == 2
     assert "/nonexistent.safetensors not found" in capsys.readouterr().err
 
@@ -157,7 +157,7 @@ def test_a_model_of_an_unknown_family_is_refused_by_name(runs, tmp_path, capsys)
 
     data, run_dirs = runs
     run = tmp_path / "odd-run"
-    shutil.copytree(run_dirs["ngpt"], run)
+    shutil.copytree(run_dirs["dense"], run)
     card = json.loads((run / "model.json").read_text())
     (run / "model.json").write_text(json.dumps({**card, "format": "someone-else/3"}))
     with pytest.raises(ValueError, match="no known network family") as error:
@@ -166,7 +166,7 @@ def test_a_model_of_an_unknown_family_is_refused_by_name(runs, tmp_path, capsys)
     assert all(name in str(error.value) for name in FAMILIES)
     assert not (tmp_path / "models").exists()
     args = ["model-report", "--data", str(data), "--holdout-every", "1", "--out", str(tmp_path)]
-    args += [f"--run=ngpt={run_dirs['ngpt']}", f"--model=odd={run / 'model.safetensors'}"]
+    args += [f"--run=dense={run_dirs['dense']}", f"--model=odd={run / 'model.safetensors'}"]
     assert main(args) == 2
     err = capsys.readouterr().err
     assert "no known network family" in err and str(run / "model.json") in err

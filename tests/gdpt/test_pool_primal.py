@@ -118,11 +118,12 @@ def test_methods_ask_for_the_primal_samples_of_their_card(tmp_path):
     card = {"format": "gdpt-oidn-delta/1", "sampling": {"primal_spp_factor": 2.5}}
     (tmp_path / "pooled.json").write_text(json.dumps(card))
     save_file({}, tmp_path / "pooled.safetensors")  # a readable, empty checkpoint
-    ngpt = METHODS["ngpt"]
+    network = METHODS["oidn-grad"]
     model = str(tmp_path / "pooled.safetensors")
-    assert ngpt.sampling(8, model=model) == {"gradients": True, "features": True, "primal_spp": 20}
+    expected = {"gradients": True, "features": True, "primal_spp": 20}
+    assert network.sampling(8, model=model) == expected
     (tmp_path / "pooled.json").write_text(json.dumps({**card, "sampling": {}}))
-    assert ngpt.sampling(8, model=model) == {"gradients": True, "features": True}
+    assert network.sampling(8, model=model) == {"gradients": True, "features": True}
     assert METHODS["l1"].sampling(8) == {"gradients": True, "features": False}
 
 
@@ -137,8 +138,8 @@ def test_pooled_model_on_unpooled_buffers_warns(tmp_path, monkeypatch, random_bu
     model = str(tmp_path / "pooled.safetensors")
     buffers = random_buffers(names=("primal", "dx", "dy"))
     with pytest.warns(UserWarning, match=r"pooled.safetensors .* primal_spp=2.5 x spp"):
-        denoise.reconstruct_image(buffers, "ngpt", model=model)
+        denoise.reconstruct_image(buffers, "oidn-grad", model=model)
     pooled = buffers.replace(metadata={"primal_spp": 40})
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        denoise.reconstruct_image(pooled, "ngpt", model=model)
+        denoise.reconstruct_image(pooled, "oidn-grad", model=model)

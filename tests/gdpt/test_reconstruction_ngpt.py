@@ -1,4 +1,5 @@
-"""``reconstruct_image(buffers, method="ngpt")``: checkpoint lookup, inference, errors."""
+"""``reconstruct_image(buffers, method="oidn-grad", model=...)`` with a trained checkpoint (an NGPT
+dense U-Net): checkpoint lookup, inference, errors, and the method's deprecated names."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import pytest
 import torch
 from gdpt.reconstruct.transforms import FEATURES_WITH_GRADIENTS, FEATURES_WITHOUT_GRADIENTS
 
-from gdpt.denoise import reconstruct_image
+from gdpt.denoise import model_path, reconstruct_image
 
 
 @pytest.fixture
@@ -32,23 +33,43 @@ def checkpoint(tmp_path):
     return path
 
 
-def test_ngpt_with_explicit_checkpoint(checkpoint, ngpt_buffers):
-    image = reconstruct_image(ngpt_buffers(), method="ngpt", model=checkpoint)
+def test_network_with_explicit_checkpoint(checkpoint, ngpt_buffers):
+    image = reconstruct_image(ngpt_buffers(), method="oidn-grad", model=checkpoint)
     assert image.shape == (13, 17, 3) and image.dtype == torch.float32
     assert torch.isfinite(image).all() and (image >= 0).all()  # radiance: clamped at 0
 
 
 def test_checkpoint_from_environment(checkpoint, monkeypatch, ngpt_buffers):
+    monkeypatch.setenv("GDPT_OIDN_GRAD_MODEL", str(checkpoint))
+    assert reconstruct_image(ngpt_buffers(), method="oidn-grad").shape == (13, 17, 3)
+
+
+def test_deprecated_environment_variable_is_honoured_with_a_warning(checkpoint, monkeypatch):
+    monkeypatch.delenv("GDPT_OIDN_GRAD_MODEL", raising=False)
     monkeypatch.setenv("GDPT_NGPT_MODEL", str(checkpoint))
-    assert reconstruct_image(ngpt_buffers(), method="ngpt").shape == (13, 17, 3)
+    message = "GDPT_NGPT_MODEL is deprecated; set GDPT_OIDN_GRAD_MODEL"
+    with pytest.warns(DeprecationWarning, match=message):
+        assert model_path("oidn-grad") == checkpoint
+    monkeypatch.setenv("GDPT_OIDN_GRAD_MODEL", str(checkpoint.parent / "new.safetensors"))
+    with pytest.raises(FileNotFoundError, match="new.safetensors"):  # the new variable wins
+        model_path("oidn-grad")
+
+
+def test_deprecated_method_name_warns_and_runs_the_new_method(checkpoint, ngpt_buffers):
+    buffers = ngpt_buffers()
+    with pytest.warns(DeprecationWarning, match="'ngpt' is deprecated; use 'oidn-grad'") as caught:
+        old = reconstruct_image(buffers, method="ngpt", model=checkpoint)
+    assert caught[0].filename == __file__  # the warning names the caller's line
+    new = reconstruct_image(buffers, method="oidn-grad", model=checkpoint)
+    torch.testing.assert_close(old, new, rtol=0, atol=0)
 
 
 def test_missing_checkpoint_says_what_to_provide(tmp_path, monkeypatch, ngpt_buffers):
-    monkeypatch.delenv("GDPT_NGPT_MODEL", raising=False)
-    with pytest.raises(FileNotFoundError, match="model=PATH"):
-        reconstruct_image(ngpt_buffers(), method="ngpt", model=tmp_path / "none.safetensors")
+    monkeypatch.delenv("GDPT_OIDN_GRAD_MODEL", raising=False)
+    with pytest.raises(FileNotFoundError, match="checkpoint not found: .*model=PATH"):
+        reconstruct_image(ngpt_buffers(), method="oidn-grad", model=tmp_path / "none.safetensors")
 
 
 def test_missing_gradients_named(checkpoint, ngpt_buffers):
     with pytest.raises((KeyError, ValueError), match="dx"):
-        reconstruct_image(ngpt_buffers(gradients=False), method="ngpt", model=checkpoint)
+        reconstruct_image(ngpt_buffers(gradients=False), method="oidn-grad", model=checkpoint)

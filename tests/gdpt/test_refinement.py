@@ -40,7 +40,7 @@ def test_the_lowest_mean_relmse_is_chosen_and_the_run_ships(pt_dataset, tmp_path
     assert rec.refine == chosen
     assert path.read_bytes() == model.read_bytes()  # weights copied unchanged
     assert "| (network alone) |" in (out / "refinement.md").read_text()
-    shipped = OIDNReconstructor.from_checkpoint(ship_model(out, "ngpt", dest=tmp_path / "m"))
+    shipped = OIDNReconstructor.from_checkpoint(ship_model(out, "oidn-grad", dest=tmp_path / "m"))
     assert shipped.refine == chosen and shipped.card["refine_selection"]["elements"] == 4
 
 

@@ -125,7 +125,7 @@ def test_fuse_on_a_render_is_finite_and_reports_what_it_did():
     image = gdpt.reconstruct_image(b, "fuse")
     assert image.shape == b.primal.shape and torch.isfinite(image).all()
     info = b.metadata["fuse"]
-    assert 0.0 < info["trusted"] <= 1.0 and info["denoiser"] in ("ngpt-nograd", "oidn")
+    assert 0.0 < info["trusted"] <= 1.0 and info["denoiser"] in ("oidn-tuned", "oidn")
 
 
 @pytest.mark.parametrize("spp, per_pass", [(5, 1), (5, 2), (4, 3)])

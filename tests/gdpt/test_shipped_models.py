@@ -18,7 +18,7 @@ from gdpt.metrics import relmse
 from gdpt.scenes import builtin_scene
 from gdpt.training.model_report import MAX_SHIPPED_MIB
 
-SHIPPED = {"ngpt": True, "ngpt-nograd": False}  # name -> reads gradients
+SHIPPED = {"oidn-grad": True, "oidn-tuned": False}  # name -> reads gradients
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -44,7 +44,7 @@ def cbox():
 
 def _default_reconstruction(name, scene, monkeypatch):
     """8-spp buffers of ``scene`` and their reconstruction by ``method=name`` without model=."""
-    monkeypatch.delenv("GDPT_NGPT_MODEL", raising=False)
+    monkeypatch.delenv("GDPT_OIDN_GRAD_MODEL", raising=False)
     buffers = gdpt.render(scene, spp=8, seed=1, **METHODS[name].sampling(8))
     return buffers, reconstruct_image(buffers, method=name)
 
@@ -80,10 +80,10 @@ def generated():
 @pytest.mark.parametrize("name", SHIPPED)
 def test_shipped_model_beats_l1_poisson_on_generated_scenes(name, generated, monkeypatch):
     """Equal time by the training data's rule (a G-PT sample costs 2.5 path samples):
-    ngpt-nograd reads 40 path-traced spp against gdpt+l1 at 16 G-PT spp; ngpt reads 16 G-PT spp
+    oidn-tuned reads 40 path-traced spp against gdpt+l1 at 16 G-PT spp; oidn-grad reads 16 G-PT spp
     with 40 plain path spp pooled into the primal (what its card asks for) against gdpt+l1 at
     32 G-PT spp. Summed relMSE over both scenes."""
-    monkeypatch.delenv("GDPT_NGPT_MODEL", raising=False)
+    monkeypatch.delenv("GDPT_OIDN_GRAD_MODEL", raising=False)
     ours = l1 = 0.0
     for scene, reference in generated:
         if SHIPPED[name]:
@@ -99,17 +99,17 @@ def test_shipped_model_beats_l1_poisson_on_generated_scenes(name, generated, mon
 
 
 def test_shipped_gradient_model_names_a_missing_buffer(cbox, monkeypatch):
-    monkeypatch.delenv("GDPT_NGPT_MODEL", raising=False)
+    monkeypatch.delenv("GDPT_OIDN_GRAD_MODEL", raising=False)
     buffers = gdpt.render(cbox[0], spp=2, seed=1, gradients=False)
     with pytest.raises(KeyError, match="dx"):
-        reconstruct_image(buffers, method="ngpt")
+        reconstruct_image(buffers, method="oidn-grad")
 
 
 @pytest.mark.parametrize("name", SHIPPED)
 def test_missing_pyoidn_is_named_with_the_method(name, cbox, monkeypatch):
     import importlib.util
 
-    monkeypatch.delenv("GDPT_NGPT_MODEL", raising=False)
+    monkeypatch.delenv("GDPT_OIDN_GRAD_MODEL", raising=False)
     find_spec = importlib.util.find_spec
     monkeypatch.setattr(
         importlib.util, "find_spec", lambda n, *a: None if n == "pyoidn" else find_spec(n, *a)

@@ -253,7 +253,7 @@ def test_unbiased_with_the_half_vector_shift(variant, name, threshold, runs):
 
 @pytest.mark.parametrize(("name", "max_depth"), [("glass", 5), ("sphere-light", 3)])
 def test_pooled_render_is_unbiased(variant, name, max_depth):
-    """``gdpt.render(..., primal_spp=N)`` (what ``ngpt`` reads): the pooled primal and the
+    """``gdpt.render(..., primal_spp=N)`` (what ``oidn-grad`` reads): the pooled primal and the
     gradients per pixel against ``path``, 48 runs of 32 gradient + 64 plain path samples."""
     from gdpt.rendering import render
 
