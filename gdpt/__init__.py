@@ -10,6 +10,7 @@ use; submodules keep their own names (no function shadows a module)::
     buffers = gdpt.render("scene.xml", spp=64)   # or gdpt.load_buffers("render.exr")
     image = gdpt.render_and_denoise("scene.xml", spp=64, method="l1").image
     image = gdpt.reconstruct_image(buffers, method="oidn")   # reconstruct existing buffers
+    image = gdpt.render_differentiable(scene, params, spp=4)  # mi.TensorXf in the AD graph
 
 :func:`reconstruct_image` is the one reconstruction call (methods: :data:`gdpt.denoise.METHODS`);
 ``gdpt.reconstruct`` is the subpackage of reconstruction algorithms (Poisson solvers, networks,
@@ -18,6 +19,7 @@ losses).
 The pipeline, one module per stage: :mod:`gdpt.scene_io` (load a scene) ->
 :mod:`gdpt.rendering` (integrator -> :class:`~gdpt.buffers.GradientBuffers`) ->
 :mod:`gdpt.denoise` (reconstruction methods) -> :mod:`gdpt.study` (equal-time evaluation);
+:mod:`gdpt.differentiable` renders and reconstructs inside Mitsuba's AD graph;
 :mod:`gdpt.training` trains the networks, :mod:`gdpt.io` reads and writes files.
 """
 
@@ -37,6 +39,7 @@ _LAZY: dict[str, str] = {
     "set_variant": "gdpt.backend",
     "render": "gdpt.rendering",
     "render_and_denoise": "gdpt.rendering",
+    "render_differentiable": "gdpt.differentiable",
     "reconstruct_image": "gdpt.denoise",
 }
 
@@ -48,6 +51,7 @@ __all__ = [
     "reconstruct_image",
     "render",
     "render_and_denoise",
+    "render_differentiable",
     "save_buffers",
     "set_variant",
 ]
@@ -56,6 +60,7 @@ if TYPE_CHECKING:
     from gdpt.backend import set_variant
     from gdpt.buffers import GradientBuffers
     from gdpt.denoise import reconstruct_image
+    from gdpt.differentiable import render_differentiable
     from gdpt.io.exr import load_buffers, save_buffers
     from gdpt.rendering import render, render_and_denoise
     from gdpt.scene_io import load_scene

@@ -25,6 +25,10 @@ tensor`` and ``METHODS.register(name, Method(f, gradients=..., features=...))``,
 trained checkpoint with :func:`register_checkpoint`; the CLI, the API and the study
 (:mod:`gdpt.study.methods`, :func:`gdpt.study.methods.register_denoiser`) offer every registered
 name.
+
+A method marked :attr:`Method.differentiable` passes torch gradients from the image to the
+buffers that require them (the Poisson methods by an adjoint solve, the networks by autograd;
+``docs/differentiable.md``); :func:`reconstruct_image` refuses such buffers for the others.
 """
 
 from __future__ import annotations
@@ -62,6 +66,10 @@ class Method:
             that the method's input pools into its primal (0: none; see
             :func:`gdpt.buffers.pool_primal`); a trained network reads it from its card.
         statistics: reads the variances of the means and the half-buffers.
+        differentiable: the image is differentiable in torch w.r.t. the input buffers (the
+            Poisson solvers through their adjoint system, :mod:`gdpt.reconstruct.poisson`; L1
+            through its last IRLS weights); ``False``: :func:`reconstruct_image` raises when a
+            buffer requires gradients.
     """
 
     run: Callable[..., torch.Tensor]
@@ -71,6 +79,7 @@ class Method:
     check: Callable[[], str | None] = lambda: None
     primal_spp_factor: Callable[..., float] = lambda **_: 0.0
     statistics: bool = False
+    differentiable: bool = False
 
     @property
     def needs(self) -> dict[str, bool]:
@@ -336,7 +345,14 @@ for _name, _detail in (
     ),
 ):
     METHODS.register(
-        _name, Method(partial(_poisson, method=_name), True, False, f"screened Poisson, {_detail}")
+        _name,
+        Method(
+            partial(_poisson, method=_name),
+            True,
+            False,
+            f"screened Poisson, {_detail}",
+            differentiable=True,
+        ),
     )
 METHODS.register(
     "oidn-grad",
@@ -347,6 +363,7 @@ METHODS.register(
         "OIDN's U-Net fine-tuned to read the gradients (shipped; gated refinement)",
         partial(_network_check, "oidn-grad"),
         partial(_network_primal_spp_factor, "oidn-grad"),
+        differentiable=True,
     ),
 )
 METHODS.register(
@@ -357,6 +374,7 @@ METHODS.register(
         True,
         "OIDN's U-Net fine-tuned on the same data without gradients (shipped; the ablation)",
         partial(_network_check, "oidn-tuned"),
+        differentiable=True,
     ),
 )
 METHODS.alias("ngpt", "oidn-grad")
@@ -454,12 +472,19 @@ METHODS.register(
 )
 
 
+#: Network families whose reconstructors run with autograd when an input buffer requires
+#: gradients (:mod:`gdpt.reconstruct.ngpt`, :mod:`gdpt.reconstruct.oidn_ngpt`).
+DIFFERENTIABLE_FAMILIES = ("dense-unet", "oidn-finetune")
+
+
 def register_checkpoint(name: str, path: str | os.PathLike) -> Method:
     """Register a checkpoint written by ``gdpt train`` as the reconstruction method ``name``
     (to compare one's own networks with the shipped ones, e.g. ``gdpt evaluate --model``).
 
     Whether the method reads gradients comes from the card's ``features``; a pooled design's
-    ``sampling.primal_spp_factor`` sets how many plain path samples its renders pool.
+    ``sampling.primal_spp_factor`` sets how many plain path samples its renders pool; it is
+    differentiable if its family's reconstructor runs with autograd
+    (:data:`DIFFERENTIABLE_FAMILIES`).
 
     Args:
         name: the new method's name (not yet in :data:`METHODS`).
@@ -478,7 +503,7 @@ def register_checkpoint(name: str, path: str | os.PathLike) -> Method:
 
     path = Path(path)
     _, _, card = read_card(path)
-    family_of(path)
+    family = family_of(path)
     return METHODS.register(
         name,
         Method(
@@ -488,6 +513,7 @@ def register_checkpoint(name: str, path: str | os.PathLike) -> Method:
             f"the checkpoint {path} ({card.get('design') or card.get('config_name', 'network')})",
             partial(_oidn_weights_missing, name, path),
             partial(_network_primal_spp_factor, name, path),
+            differentiable=family.name in DIFFERENTIABLE_FAMILIES,
         ),
     )
 
@@ -509,13 +535,25 @@ def reconstruct_image(
             network, ``backend=`` for ``oidn``, solver options for the Poisson methods).
 
     Returns:
-        ``(H, W, 3)`` float32 tensor on ``buffers.device``.
+        ``(H, W, 3)`` float32 tensor on ``buffers.device``; differentiable w.r.t. the buffers
+        that require gradients (in torch's gradient mode) for a :attr:`Method.differentiable`
+        method.
 
     Raises:
-        ValueError: unknown ``method``, or the buffers lack what the method needs.
+        ValueError: unknown ``method``, the buffers lack what the method needs, or a buffer
+            requires gradients and the method is not differentiable (named, with the ones
+            that are).
     """
+    from gdpt.reconstruct.autograd import records
+
     method = METHODS.resolve(method, stacklevel=2)
     METHODS.check([method])
+    if not METHODS[method].differentiable and records(t for _, t in buffers.items()):
+        usable = ", ".join(n for n, m in METHODS.items() if m.differentiable)
+        raise ValueError(
+            f"method {method!r} is not differentiable w.r.t. its input buffers, and these "
+            f"buffers require gradients; differentiable methods: {usable}"
+        )
     return METHODS[method].run(buffers, alpha=alpha, **options)
 
 
