@@ -110,9 +110,8 @@ def render_differentiable(
     Raises:
         ValueError: ``spp < 1``; a replay with ``spp_grad != spp``; the active variant has no
             automatic differentiation (the message names ``llvm_ad_rgb`` and ``cuda_ad_rgb``);
-            ``integrator`` is not differentiable; ``method`` reads gradients or is not
-            differentiable (named).
-        KeyError: unknown ``method``.
+            ``integrator`` is not differentiable; ``method`` is unknown, cannot run here, reads
+            gradients or is not differentiable (named).
     """
     import drjit as dr
     import mitsuba as mi
