@@ -92,16 +92,22 @@ class TimeModel:
 WARM_UP_SEED_OFFSET = 7_777_777
 
 
-def timed_run(method: EvalMethod, scene: EvalScene, spp: int, seed: int) -> MethodResult:
-    """A timed render, after an untimed one at the same ``spp`` (another seed).
+def timed_run(
+    method: EvalMethod, scene: EvalScene, spp: int, seed: int, *, render_only: bool = False
+) -> MethodResult:
+    """A timed render, after an untimed one at the same ``spp`` (another seed); with
+    ``render_only``, without the reconstruction where the method can be split
+    (:attr:`EvalMethod.render`).
 
     The warm-up records what a configuration needs once (kernel compilation, and the Python
     tracing of a frozen pass, which the integrators record per spp per pass and replay
     afterwards: about 0.35 s for ``gdpt`` on a 49-BSDF scene at 128 px); the timed render
-    replays it, as any repeated render of that configuration does.
+    replays it, as any repeated render of that configuration does. The warm-up only samples
+    where the method can be split (the reconstruction has nothing to record per spp).
     """
-    method.run(scene, spp=spp, seed=seed + WARM_UP_SEED_OFFSET)
-    return method.run(scene, spp=spp, seed=seed)
+    render = method.render or method.run
+    render(scene, spp=spp, seed=seed + WARM_UP_SEED_OFFSET)
+    return (render if render_only else method.run)(scene, spp=spp, seed=seed)
 
 
 def calibrate(
@@ -120,7 +126,9 @@ def calibrate(
     Warms up at 1 and 2 spp (untimed: the kernels compile), takes the median of ``repeats``
     1-spp runs, then raises the sample count geometrically (x2 to x8, aiming at the target)
     until a run takes at least ``probe_fraction * budget`` (and at least two probes ran); the
-    least-squares line through these timings is the model.
+    least-squares line through these timings is the model. Under ``render-time`` the
+    reconstruction is not charged, so the probes skip it where the method can be split
+    (:attr:`EvalMethod.render`).
 
     Args:
         method: the method.
@@ -138,16 +146,18 @@ def calibrate(
     Raises:
         MethodUnavailable: the method cannot run here.
     """
-    timed_run(method, scene, 1, seed)
-    timed_run(method, scene, 2, seed)
+    split = protocol == "render-time"  # the reconstruction is not charged: not run
+    timed_run(method, scene, 1, seed, render_only=split)
+    timed_run(method, scene, 2, seed, render_only=split)
     t = statistics.median(
-        charged_seconds(timed_run(method, scene, 1, seed + i), protocol) for i in range(repeats)
+        charged_seconds(timed_run(method, scene, 1, seed + i, render_only=split), protocol)
+        for i in range(repeats)
     )
     measurements = [(1, t)]
     spp, target = 1, probe_fraction * budget
     while (t < target or len(measurements) < 3) and spp < max_probe_spp:
         spp = min(max_probe_spp, spp * min(8, max(2, round(target / max(t, 1e-6)))))
-        t = charged_seconds(timed_run(method, scene, spp, seed + spp), protocol)
+        t = charged_seconds(timed_run(method, scene, spp, seed + spp, render_only=split), protocol)
         measurements.append((spp, t))
     return TimeModel.fit(measurements)
 

@@ -74,6 +74,14 @@ class StudyFailure(RuntimeError):
     in ``results.json`` first, so that a resumed run retries it)."""
 
 
+#: What a budget pays for, per protocol, in the words of the results.
+PROTOCOL_TEXT = {
+    "total": "protocol 'total': a budget pays for sampling and reconstruction",
+    "render-time": "protocol 'render-time': a budget pays for sampling only (the paper's "
+    "equal-time protocol); reconstruction seconds are reported beside it",
+}
+
+
 def failures(results: dict[str, Any]) -> list[str]:
     """One line per failure recorded in ``results`` (the content of ``results.json``): a scene
     that failed, a method that raised while calibrating, a budget cell that raised."""
@@ -179,6 +187,7 @@ def evaluate(
         conventions=CONVENTIONS,
         methods={m: _method_info(EVAL_METHODS[m]) for m in methods},
         protocol=(
+            f"{PROTOCOL_TEXT[cfg.protocol]}; "
             "per scene and budget, each method's spp is calibrated by timing on this machine "
             "in this run (t = a + b*spp fitted to 1-spp medians and growing probes, then "
             f"verified and re-rendered if off by more than {cfg.tolerance:.0%}); every timed "
@@ -350,6 +359,7 @@ def _run_replicates(
         seed=seeds[0],
         tolerance=cfg.tolerance,
         max_rounds=cfg.max_rounds,
+        protocol=cfg.protocol,
     )
     spp = record["spp"]
     runs = [result if record["seed"] == seeds[0] else None] + [None] * (cfg.seeds - 1)
@@ -400,7 +410,12 @@ def _evaluate_method(
         try:
             seed = cell_seed(cfg.seed, scene.name, method.name, "calibration")
             model = calibrate(
-                method, scene, budget=min(todo), seed=seed, probe_fraction=cfg.probe_fraction
+                method,
+                scene,
+                budget=min(todo),
+                seed=seed,
+                probe_fraction=cfg.probe_fraction,
+                protocol=cfg.protocol,
             )
         except MethodUnavailable as err:
             reason = str(err)

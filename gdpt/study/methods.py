@@ -102,12 +102,15 @@ class EvalMethod:
         description: one line for the report.
         run: ``f(scene: EvalScene, *, spp: int, seed: int) -> MethodResult``.
         check: returns ``None`` when the method can run here, else the reason it cannot.
+        render: like ``run`` without the reconstruction (the image is the primal), to
+            calibrate render times cheaply; ``None``: the method cannot be split.
     """
 
     name: str
     description: str
     run: RunFunction
     check: Callable[[], str | None] = field(default=lambda: None)
+    render: RunFunction | None = None
 
 
 #: Registered methods, name -> :class:`EvalMethod`, in registration order.
@@ -186,6 +189,9 @@ def register_denoiser(name: str, method: Method) -> str:
         props = method.sampling(spp)
         return _timed_run(scene, spp, seed, partial(reconstruct_image, method=name), **props)
 
+    def render(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+        return _timed_run(scene, spp, seed, None, **method.sampling(spp))
+
     label = "gradient-domain path tracing" if method.gradients else "path tracing"
     if method.gradients and (factor := method.primal_spp_factor()):
         label += f" (+ {factor:g} plain path samples per sample, pooled into the primal)"
@@ -193,7 +199,9 @@ def register_denoiser(name: str, method: Method) -> str:
     run.__doc__ = f"{label} buffers reconstructed with :data:`gdpt.denoise.METHODS` ``{name}``."
     EVAL_METHODS.register(
         f"{sampler}+{name}",
-        EvalMethod(f"{sampler}+{name}", f"{label} + {method.description}", run, method.check),
+        EvalMethod(
+            f"{sampler}+{name}", f"{label} + {method.description}", run, method.check, render
+        ),
     )
     return f"{sampler}+{name}"
 

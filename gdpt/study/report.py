@@ -117,7 +117,8 @@ def _scene_table(
             for cell in info.get("cells", {}).values()
         )
     ]
-    head = ["method", "budget s", "spp", "time s", *(_label(m) for m in shown)]
+    head = ["method", "budget s", "spp", "time s", "render s", "recon s"]
+    head += [_label(m) for m in shown]
     rows = []
     for key in _budgets(results):
         for name, info in entry.get("methods", {}).items():
@@ -131,10 +132,22 @@ def _scene_table(
                     key,
                     str(cell["spp"]),
                     f"{cell['seconds']:.2f}{mark}",
+                    _seconds(cell.get("render_seconds")),
+                    _seconds(cell.get("reconstruct_seconds")),
                     *(_fmt(cell["metrics"].get(m)) for m in shown),
                 ]
             )
     return head, rows
+
+
+def _seconds(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.2f}"
+
+
+def charged(cell: dict[str, Any]) -> float:
+    """The seconds of a cell that its study's protocol charged against the budget (studies
+    before protocols charged the total)."""
+    return cell.get("charged_seconds", cell["seconds"])
 
 
 def _md_table(head: list[str], rows: list[list[str]]) -> str:
@@ -295,7 +308,7 @@ def _plot(results: dict[str, Any], scene: str, entry: dict[str, Any], path: Path
     fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.6), squeeze=False)
     for ax, metric in zip(axes[0], metrics, strict=False):
         for name, by_budget in cells.items():
-            points = sorted((c["seconds"], c["metrics"].get(metric)) for c in by_budget.values())
+            points = sorted((charged(c), c["metrics"].get(metric)) for c in by_budget.values())
             points = [(t, v) for t, v in points if v and v > 0]
             if points:
                 ax.plot(*zip(*points, strict=False), marker="o", label=name)
@@ -303,7 +316,11 @@ def _plot(results: dict[str, Any], scene: str, entry: dict[str, Any], path: Path
             ax.axvline(budget, color="0.85", lw=0.8, zorder=0)
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel("achieved time (s)")
+        ax.set_xlabel(
+            "achieved render time (s)"
+            if results["config"].get("protocol") == "render-time"
+            else "achieved time (s)"
+        )
         ax.set_ylabel(_label(metric))
         ax.grid(True, which="both", alpha=0.3)
     axes[0][0].legend(fontsize=8)

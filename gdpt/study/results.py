@@ -25,6 +25,7 @@ RESULTS_FORMAT = "gdpt-evaluate/1"
 
 #: Config fields that must match for a run directory to be resumed.
 _RESUME_KEYS = (
+    "protocol",
     "resolution",
     "reference_spp",
     "seed",
@@ -160,7 +161,8 @@ def load_results(path: Path, cfg: EvaluateConfig) -> dict[str, Any]:
     if path.is_file():
         old = read_results(path)
         new = cfg.to_json()
-        diff = [k for k in _RESUME_KEYS if old["config"].get(k) != new.get(k)]
+        made = {"protocol": "total", **old["config"]}  # studies before protocols: "total"
+        diff = [k for k in _RESUME_KEYS if made.get(k) != new.get(k)]
         if diff:
             raise ValueError(
                 f"{path} was made with different settings ({', '.join(diff)}); use another "

@@ -61,3 +61,33 @@ def test_an_unknown_protocol_is_refused_by_name():
         charged_seconds(result, "wall")
     with pytest.raises(ValueError, match="protocol 'wall'"):
         EvaluateConfig(protocol="wall")
+
+
+def test_render_time_calibration_skips_the_reconstruction_where_the_method_splits():
+    calls = []
+
+    def run(scene, *, spp: int, seed: int) -> MethodResult:
+        calls.append("run")
+        return MethodResult(
+            torch.zeros(3, 4, 3),
+            seconds=PER_SPP * spp + 9.0,
+            render_seconds=PER_SPP * spp,
+            reconstruct_seconds=9.0,
+        )
+
+    def render(scene, *, spp: int, seed: int) -> MethodResult:
+        calls.append("render")
+        return MethodResult(
+            torch.zeros(3, 4, 3), seconds=PER_SPP * spp, render_seconds=PER_SPP * spp
+        )
+
+    method = EvalMethod("split", "fake split method", run, render=render)
+    model = calibrate(method, SCENE, budget=1.0, seed=1, protocol="render-time")
+    assert set(calls) == {"render"} and model.per_spp == pytest.approx(PER_SPP)
+    calls.clear()
+    _, record = run_at_budget(method, SCENE, model, budget=1.0, seed=2, protocol="render-time")
+    assert calls == ["render", "run"] and record["reconstruct_seconds"] == 9.0  # warm-up, cell
+    calls.clear()
+    calibrate(method, SCENE, budget=20.0, seed=1, protocol="total")
+    assert calls[::2] == ["render"] * (len(calls) // 2)  # every warm-up only samples
+    assert calls[1::2] == ["run"] * (len(calls) // 2)  # every timed run is charged in full
