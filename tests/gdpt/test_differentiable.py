@@ -173,7 +173,6 @@ def test_a_replay_needs_the_primal_sample_count(scene):
         gdpt.render_differentiable(scene, spp=2, seed=3, seed_grad=3, spp_grad=4, method=None)
 
 
-@pytest.mark.slow
 def test_the_inverse_rendering_example_runs_tiny_and_descends(tmp_path):
     """``examples/inverse_denoised.py --tiny`` as written, in a fresh interpreter: every run's
     radiance error falls from the start, and the loss of the denoised run (a low-noise image)
