@@ -15,6 +15,9 @@ those. Registered:
   checkpoint instead, e.g. a dense U-Net (:mod:`gdpt.reconstruct.ngpt`). Their former names
   ``'ngpt'`` / ``'ngpt-nograd'`` (and ``$GDPT_NGPT_MODEL``) still work, with a
   ``DeprecationWarning``.
+* ``'kpcn'``: KPCN (Bako et al. 2017, :mod:`gdpt.reconstruct.kpcn`), shipped: per-pixel
+  kernels over the path-traced primal, read with albedo, normal, depth and the primal's
+  variance (no gradients; ``model=PATH`` runs another KPCN checkpoint).
 * ``'oidn'``: Intel Open Image Denoise on the primal with albedo and normal (no gradients),
   :func:`oidn_denoise`: ``pyoidn`` on CPU tensors, OIDN's U-Net in torch
   (:mod:`gdpt.reconstruct.oidn_unet`, Intel's weights) on CUDA tensors.
@@ -70,6 +73,8 @@ class Method:
             Poisson solvers through their adjoint system, :mod:`gdpt.reconstruct.poisson`; L1
             through its last IRLS weights); ``False``: :func:`reconstruct_image` raises when a
             buffer requires gradients.
+        variance: reads ``var_primal``, the variance of the primal's mean (``gdpt`` property
+            ``variance``).
     """
 
     run: Callable[..., torch.Tensor]
@@ -80,12 +85,16 @@ class Method:
     primal_spp_factor: Callable[..., float] = lambda **_: 0.0
     statistics: bool = False
     differentiable: bool = False
+    variance: bool = False
 
     @property
     def needs(self) -> dict[str, bool]:
         """The ``gdpt`` integrator properties that render what this method reads
-        (``statistics``: the variances and half-buffers, ``variance`` and ``halves``)."""
+        (``statistics``: the variances and half-buffers, ``variance`` and ``halves``;
+        ``variance``: the variances)."""
         needs = {"gradients": self.gradients, "features": self.features}
+        if self.variance:
+            needs["variance"] = True
         return {**needs, "variance": True, "halves": True} if self.statistics else needs
 
     def sampling(self, spp: int, **options: Any) -> dict[str, Any]:
@@ -380,6 +389,18 @@ METHODS.register(
 METHODS.alias("ngpt", "oidn-grad")
 METHODS.alias("ngpt-nograd", "oidn-tuned")
 METHODS.register(
+    "kpcn",
+    Method(
+        partial(_network, name="kpcn"),
+        False,
+        True,
+        "KPCN (Bako et al. 2017), CPU-sized, trained here (shipped): per-pixel 11x11 kernels "
+        "over albedo-demodulated log radiance",
+        partial(_network_check, "kpcn"),
+        variance=True,
+    ),
+)
+METHODS.register(
     "oidn",
     Method(
         _oidn,
@@ -481,7 +502,8 @@ def register_checkpoint(name: str, path: str | os.PathLike) -> Method:
     """Register a checkpoint written by ``gdpt train`` as the reconstruction method ``name``
     (to compare one's own networks with the shipped ones, e.g. ``gdpt evaluate --model``).
 
-    Whether the method reads gradients comes from the card's ``features``; a pooled design's
+    Whether the method reads gradients (``dx``) and variances (``var_primal``) comes from the
+    card's ``features``; a pooled design's
     ``sampling.primal_spp_factor`` sets how many plain path samples its renders pool; it is
     differentiable if its family's reconstructor runs with autograd
     (:data:`DIFFERENTIABLE_FAMILIES`).
@@ -514,6 +536,7 @@ def register_checkpoint(name: str, path: str | os.PathLike) -> Method:
             partial(_oidn_weights_missing, name, path),
             partial(_network_primal_spp_factor, name, path),
             differentiable=family.name in DIFFERENTIABLE_FAMILIES,
+            variance="var_primal" in card.get("features", ()),
         ),
     )
 

@@ -9,8 +9,9 @@ output is that convex combination of the candidates' neighbourhoods in OIDN's PU
 
     out[p] = PU^-1( sum_{c, t} w[p, c, t] * u_c[p + t] ) / s,   w >= 0,  sum_{c, t} w[p, c, t] = 1
 
-It is the kernel prediction of KPCN (Bako et al. 2017) applied across candidates, which is what
-the NGPT paper's conclusion lists as future work for gradient-domain reconstruction. PU is
+It is the kernel prediction of KPCN (Bako et al. 2017; :func:`.kernels.apply_kernels`) applied
+across candidates, which is what the NGPT paper's conclusion lists as future work for
+gradient-domain reconstruction. PU is
 monotone, so every output pixel lies within the range of the candidate values it mixes (no new
 fireflies, no negative radiance); mixing encoded values rather than radiance keeps a light
 source from bleeding into its dark neighbours (KPCN filters its specular buffer in log space
@@ -51,6 +52,7 @@ from safetensors.torch import load_file, save
 from torch import nn
 from torch.nn import functional as F
 
+from .kernels import apply_kernels
 from .ngpt import read_card
 from .oidn_ngpt import OIDNReconstructor, signed_log
 from .oidn_unet import autoexposure, pu_forward, pu_inverse
@@ -65,7 +67,6 @@ __all__ = [
     "CombinerDesign",
     "CombinerNet",
     "CombinerReconstructor",
-    "apply_kernels",
     "candidates",
     "combine",
     "combiner_input",
@@ -175,33 +176,6 @@ class CombinerNet(nn.Module):
         d1 = self.dec1(torch.cat([F.interpolate(m, scale_factor=2.0), s1], 1))
         d0 = self.dec0(torch.cat([F.interpolate(d1, scale_factor=2.0), s0], 1))
         return self.head(d0)
-
-
-def apply_kernels(cands: torch.Tensor, logits: torch.Tensor, kernel: int) -> torch.Tensor:
-    """Per-pixel convex combination of the candidates' ``k x k`` neighbourhoods.
-
-    Args:
-        cands: ``(N, K, 3, H, W)`` candidate images (linear radiance).
-        logits: ``(N, K * k * k, H, W)`` (candidate-major, taps row-major), same device.
-        kernel: ``k`` (odd); neighbourhoods are edge-replicated at the border.
-
-    Returns:
-        ``(N, 3, H, W)``; at each pixel a weighted mean of candidate values (softmax weights).
-    """
-    n, k_cand, ch, h, w = cands.shape
-    taps = kernel * kernel
-    if logits.shape != (n, k_cand * taps, h, w):
-        raise ValueError(
-            f"logits of shape {tuple(logits.shape)} do not fit {k_cand} candidates of "
-            f"{h}x{w} with {kernel}x{kernel} kernels"
-        )
-    weights = torch.softmax(logits, 1).reshape(n, k_cand, 1, taps, h, w)
-    r = kernel // 2
-    flat = cands.reshape(n, k_cand * ch, h, w)
-    if r:
-        flat = F.pad(flat, (r, r, r, r), mode="replicate")
-    patches = F.unfold(flat, kernel).reshape(n, k_cand, ch, taps, h, w)
-    return (weights * patches).sum((1, 3))
 
 
 def candidates(

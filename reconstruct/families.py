@@ -14,13 +14,16 @@ family              designs                              checkpoint (card ``"for
 ``dense-unet``      :data:`.dense_unet.CONFIGS`          :data:`.ngpt.CARD_FORMAT`
 ``oidn-finetune``   :data:`.oidn_ngpt.DESIGNS`           :data:`.oidn_ngpt.DELTA_FORMAT`
 ``combiner``        :data:`.combiner.COMBINER_DESIGNS`   :data:`.combiner.COMBINER_FORMAT`
+``kpcn``            :data:`.kpcn.KPCN_DESIGNS`           :data:`.kpcn.KPCN_FORMAT`
 ==================  ===================================  ==============================
 
 ``dense-unet`` is NGPT's network (Kettunen et al. 2019) trained from scratch;
 ``oidn-finetune`` is Intel Open Image Denoise's U-Net fine-tuned with gradient inputs;
 ``combiner`` is a kernel-predicting network (Bako et al. 2017) over a fine-tuned OIDN network
-and its L1 Poisson refinement. Every caller asks this registry (:func:`family_of`,
-:func:`family_of_design`) instead of branching on formats or design tables. How a family
+and its L1 Poisson refinement; ``kpcn`` is KPCN itself (Bako et al. 2017), per-pixel kernels
+over the path-traced radiance, reading no gradients. Every caller asks this registry
+(:func:`family_of`, :func:`family_of_design`) instead of branching on formats or design
+tables. How a family
 *trains* (batches, validation) needs the dataset and the run directory, which live in
 :mod:`gdpt.training`, so its training plans are registered there, by family name.
 
@@ -36,7 +39,7 @@ from typing import Any
 
 from torch import nn
 
-from . import combiner, ngpt, oidn_ngpt
+from . import combiner, kpcn, ngpt, oidn_ngpt
 from .dense_unet import CONFIGS, DenseUNet
 from .losses import LOSSES
 from .registry import Registry
@@ -106,6 +109,11 @@ def _load_combiner(path: str | Path) -> Loaded:
     return net, card["design"], card
 
 
+def _load_kpcn(path: str | Path) -> Loaded:
+    net, card = kpcn.load_kpcn(path)
+    return net, card["design"], card
+
+
 #: Family name -> :class:`Family`, in registration order.
 FAMILIES: Registry[Family] = Registry("network family")
 FAMILIES.register(
@@ -151,6 +159,22 @@ FAMILIES.register(
         card_keys=combiner.CARD_KEYS,
         oidn_weights=True,
         base=lambda card_path, card: card_path.parent / card["base_model"],
+    ),
+)
+
+
+FAMILIES.register(
+    "kpcn",
+    Family(
+        name="kpcn",
+        description="KPCN: per-pixel kernels over albedo-demodulated log radiance",
+        card_format=kpcn.KPCN_FORMAT,
+        designs=kpcn.KPCN_DESIGNS,
+        losses=kpcn.KPCN_LOSSES,
+        load=_load_kpcn,
+        encode=kpcn.encode_kpcn,
+        reconstructor=kpcn.KPCNReconstructor.from_checkpoint,
+        card_keys=kpcn.CARD_KEYS,
     ),
 )
 

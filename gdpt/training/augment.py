@@ -29,6 +29,10 @@ if TYPE_CHECKING:
 COLOUR_BUFFERS = ("primal", "dx", "dy", "albedo", "target")
 #: Buffers scaled by the brightness multiplier (colour and gradients only, not albedo).
 BRIGHTNESS_BUFFERS = ("primal", "dx", "dy", "target")
+#: Variances of the mean of a colour buffer, scaled by the brightness multiplier squared (not by
+#: the colour multiplier: the variance of a colour-scaled image's channel average depends on the
+#: covariance of its channels, which a render does not store; the multiplier's mean is 1).
+VARIANCE_BUFFERS = ("var_primal",)
 
 
 @dataclass(frozen=True)
@@ -113,12 +117,13 @@ def augment(buffers: Mapping[str, torch.Tensor], params: AugmentParams) -> dict[
     buffer convention), flips and transposition (:data:`~gdpt.reconstruct.transforms
     .AUGMENTATIONS`: gradients are negated and shifted, swapped, normals follow), channel
     permutation and colour multiplier (:data:`COLOUR_BUFFERS`), brightness
-    (:data:`BRIGHTNESS_BUFFERS`). Every step maps the buffers of an image to the buffers of the
-    augmented image.
+    (:data:`BRIGHTNESS_BUFFERS`; its square on :data:`VARIANCE_BUFFERS`). Every step maps the
+    buffers of an image to the buffers of the augmented image (the variance's up to the colour
+    multiplier).
 
     Args:
         buffers: name -> ``(H, W, C)`` float tensor (``primal``, ``dx``, ``dy``, ``albedo``,
-            ``normal``, ``depth``, ``target``; any subset), one device.
+            ``normal``, ``depth``, ``var_primal``, ``target``; any subset), one device.
         params: the augmentation draw.
 
     Returns:
@@ -146,6 +151,9 @@ def augment(buffers: Mapping[str, torch.Tensor], params: AugmentParams) -> dict[
     for name in BRIGHTNESS_BUFFERS:
         if name in out:
             out[name] = out[name] * params.brightness
+    for name in VARIANCE_BUFFERS:
+        if name in out:
+            out[name] = out[name] * params.brightness**2
     return out
 
 

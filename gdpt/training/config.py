@@ -46,9 +46,10 @@ class TrainConfig:
         model: a design of a network family (:data:`gdpt.reconstruct.families.FAMILIES`): a
             dense U-Net configuration (``fast_xs``, ``paper``, ...; 16 input channels read the
             ``gdpt`` inputs, 10-channel ones the path-traced), a fine-tuned OIDN design
-            (``oidn-grad``, ...; ``pad`` and ``vary_padding`` do not apply) or a combiner
+            (``oidn-grad``, ...; ``pad`` and ``vary_padding`` do not apply), a combiner
             design (``combiner-grad``, ``combiner-nograd``; trained on top of
-            ``base_model``).
+            ``base_model``) or a KPCN design (``kpcn``, ``kpcn-paper``; ``pad`` and
+            ``vary_padding`` do not apply).
         data: training dataset directory (:mod:`gdpt.training.dataset`).
         out: run directory.
         val_data: validation dataset directory; ``None`` holds out every ``holdout_every``-th

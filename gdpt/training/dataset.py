@@ -9,6 +9,9 @@ training data, and ``create_dataset/`` of its public code, ``github.com/mkettune
   ``levels`` equal slices of the log range, like the reference's low-discrepancy sequence);
 * for each of them a path-traced input (``gradients=False``, features on) at ``pt_factor``
   (2.5) times the samples, the equal-time input of the no-gradient baselines;
+* with ``variance`` (the default), each input also stores the variance of its per-pixel mean
+  (``var_primal``; ``var_dx``, ``var_dy`` for the G-PT inputs), which KPCN reads (Bako et al.
+  2017; :mod:`gdpt.reconstruct.kpcn`); the samples, and so the other buffers, are the same;
 * a target: ``target_spp`` samples of ``gdpt``, reconstructed with L1 screened Poisson
   (``alpha = 0.2``), as the paper does (``target="l1"``); or ``target="pt"``: ``target_spp``
   path-traced samples (``gradients=False``), unbiased and cheaper per sample, the choice for
@@ -84,11 +87,13 @@ CROPS_DIR = "crops"
 #: Input kinds: element-name prefix and the buffers a network reads from them. ``pool`` is the
 #: gradient-domain input with the path-traced input of the same crop and level pooled into its
 #: primal (:func:`gdpt.buffers.pool_primal`), the features those of the path-traced input (as
-#: ``gdpt.render(..., primal_spp=...)`` renders them).
+#: ``gdpt.render(..., primal_spp=...)`` renders them). ``pt-variance`` is the path-traced input
+#: with the variance of its mean (a dataset rendered with ``variance``).
 INPUT_KINDS: dict[str, tuple[str, tuple[str, ...]]] = {
     "gdpt": ("in", ("primal", "dx", "dy", "albedo", "normal", "depth")),
     "pt": ("pt", ("primal", "albedo", "normal", "depth")),
     "pool": ("in", ("primal", "dx", "dy", "albedo", "normal", "depth")),
+    "pt-variance": ("pt", ("primal", "albedo", "normal", "depth", "var_primal")),
 }
 
 #: Target kinds (:attr:`DatasetConfig.target`).
@@ -115,6 +120,8 @@ class DatasetConfig:
         max_depth: longest path (integrator ``max_depth``).
         alpha: screened-Poisson data weight of the L1 target reconstruction.
         target: ``"l1"`` (G-PT + L1 Poisson, the paper's) or ``"pt"`` (path tracing).
+        variance: store the variance of each input's per-pixel mean (``var_primal``, and
+            ``var_dx``, ``var_dy`` of the G-PT inputs); KPCN reads it.
         seed: dataset seed; everything rendered is a function of ``(seed, scene, view)``.
         scene_config: knobs of the scene generator (``None``: its defaults).
     """
@@ -130,6 +137,7 @@ class DatasetConfig:
     max_depth: int = 6
     alpha: float = 0.2
     target: str = "l1"
+    variance: bool = True
     seed: int = 0
     scene_config: RandomSceneConfig | None = None
 
@@ -156,6 +164,8 @@ class DatasetConfig:
         del data["scenes"], data["views"]
         if data["target"] == "l1":  # the original kind: datasets written before it existed
             del data["target"]
+        if not data["variance"]:  # as datasets written before it existed
+            del data["variance"]
         if self.scene_config is None:
             from gdpt.scenes import RandomSceneConfig
 
@@ -295,7 +305,7 @@ def render_crop(
         sizes[name] = path.stat().st_size
         seconds[name] = round(float(buffers.metadata["render_seconds"]), 4)
 
-    def draw(spp: int, seed: int, gradients: bool) -> GradientBuffers:
+    def draw(spp: int, seed: int, gradients: bool, variance: bool) -> GradientBuffers:
         return render(
             scene,
             spp=spp,
@@ -304,14 +314,16 @@ def render_crop(
             max_depth=int(content["max_depth"]),
             gradients=gradients,
             features=True,
+            variance=variance,
         )
 
+    variance = bool(content.get("variance", False))
     for k, (spp, seed) in enumerate(zip(plan.spp, plan.input_seeds, strict=True)):
-        store(f"in{k}", draw(spp, seed, True))
+        store(f"in{k}", draw(spp, seed, True, variance))
     for k, (spp, seed) in enumerate(zip(plan.pt_spp, plan.pt_seeds, strict=True)):
-        store(f"pt{k}", draw(spp, seed, False))
+        store(f"pt{k}", draw(spp, seed, False, variance))
     path_traced = content.get("target", "l1") == "pt"
-    target = draw(int(content["target_spp"]), plan.target_seed, not path_traced)
+    target = draw(int(content["target_spp"]), plan.target_seed, not path_traced, False)
     solve = 0.0
     if path_traced:
         store("target", target, primal="path_traced")
@@ -593,6 +605,14 @@ def build_dataset(
 
 
 # -------------------------------------------------------------------------------------- reading
+def _has_variance(root: Path) -> bool:
+    """Whether the dataset in ``root`` stores the inputs' variances (its ``dataset.json``)."""
+    try:
+        return bool(json.loads((root / CONFIG_FILE).read_text())["config"].get("variance"))
+    except (OSError, KeyError, ValueError):
+        return False
+
+
 class DatasetWarning(UserWarning):
     """A corrupt or partial shard was skipped."""
 
@@ -609,14 +629,16 @@ class CropDataset(Dataset):
     Args:
         root: dataset directory.
         kind: ``"gdpt"`` (gradient-domain inputs ``in<k>``), ``"pt"`` (path-traced inputs
-            ``pt<k>``, 2.5x the samples) or ``"pool"`` (``in<k>`` with ``pt<k>`` pooled into
-            its primal; the features of ``pt<k>``).
+            ``pt<k>``, 2.5x the samples), ``"pool"`` (``in<k>`` with ``pt<k>`` pooled into
+            its primal; the features of ``pt<k>``) or ``"pt-variance"`` (``pt<k>`` with
+            ``var_primal``).
         scenes: keep only crops whose scene index satisfies this predicate (``None``: all).
 
     Raises:
         FileNotFoundError: ``root`` is not a directory.
-        ValueError: unknown ``kind``; no finished crop (empty dataset, or none selected, or
-            all corrupt); crops of different sizes.
+        ValueError: unknown ``kind``; a kind reading ``var_primal`` on a dataset rendered
+            without variances; no finished crop (empty dataset, or none selected, or all
+            corrupt); crops of different sizes.
     """
 
     def __init__(
@@ -633,6 +655,11 @@ class CropDataset(Dataset):
             raise FileNotFoundError(f"dataset directory {self.root} does not exist")
         self.kind = kind
         self.prefix, self.features = INPUT_KINDS[kind]
+        if "var_primal" in self.features and not _has_variance(self.root):
+            raise ValueError(
+                f"{self.root}: rendered without variances, and input kind {kind!r} reads "
+                "var_primal; render a dataset with 'gdpt dataset --variance' (the default)"
+            )
         records, problems = read_manifest(self.root)
         if not records:
             raise ValueError(

@@ -106,11 +106,13 @@ def _timed(fn: Any, *args: Any) -> tuple[torch.Tensor, float]:
 def input_kind(reconstructor: Any) -> str:
     """The dataset input kind a reconstructor reads: ``"pool"`` when its card pools plain path
     samples into the primal (``sampling.primal_spp_factor``), else ``"gdpt"`` with gradients,
-    else ``"pt"``."""
+    else ``"pt-variance"`` with the primal's variance (KPCN), else ``"pt"``."""
     card = getattr(reconstructor, "card", {}) or {}
     if card.get("sampling", {}).get("primal_spp_factor"):
         return "pool"
-    return "gdpt" if "dx" in reconstructor.features else "pt"
+    if "dx" in reconstructor.features:
+        return "gdpt"
+    return "pt-variance" if "var_primal" in reconstructor.features else "pt"
 
 
 def compare_models(

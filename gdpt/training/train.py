@@ -20,6 +20,7 @@ from gdpt.training.combine import combiner_plan
 from gdpt.training.config import TrainConfig
 from gdpt.training.dense import dense_plan
 from gdpt.training.finetune import finetune_plan
+from gdpt.training.kpcn import kpcn_plan
 from gdpt.training.loop import PlanBuilder, training_loop
 
 __all__ = ["PLANS", "train"]
@@ -30,6 +31,7 @@ PLANS: Registry[PlanBuilder] = Registry("training plan")
 PLANS.register("dense-unet", dense_plan)
 PLANS.register("oidn-finetune", finetune_plan)
 PLANS.register("combiner", combiner_plan)
+PLANS.register("kpcn", kpcn_plan)
 
 
 def train(config: TrainConfig, *, resume: bool = False, progress: bool = True) -> Path:

@@ -18,7 +18,9 @@ from gdpt.metrics import relmse
 from gdpt.scenes import builtin_scene
 from gdpt.training.model_report import MAX_SHIPPED_MIB
 
-SHIPPED = {"oidn-grad": True, "oidn-tuned": False}  # name -> reads gradients
+SHIPPED = {"oidn-grad": True, "oidn-tuned": False, "kpcn": False}  # name -> reads gradients
+#: The shipped networks that build on Intel's OIDN weights (read from pyoidn).
+ON_OIDN = ("oidn-grad", "oidn-tuned")
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -80,9 +82,9 @@ def generated():
 @pytest.mark.parametrize("name", SHIPPED)
 def test_shipped_model_beats_l1_poisson_on_generated_scenes(name, generated, monkeypatch):
     """Equal time by the training data's rule (a G-PT sample costs 2.5 path samples):
-    oidn-tuned reads 40 path-traced spp against gdpt+l1 at 16 G-PT spp; oidn-grad reads 16 G-PT spp
-    with 40 plain path spp pooled into the primal (what its card asks for) against gdpt+l1 at
-    32 G-PT spp. Summed relMSE over both scenes."""
+    oidn-tuned and kpcn read 40 path-traced spp against gdpt+l1 at 16 G-PT spp; oidn-grad reads
+    16 G-PT spp with 40 plain path spp pooled into the primal (what its card asks for) against
+    gdpt+l1 at 32 G-PT spp. Summed relMSE over both scenes."""
     monkeypatch.delenv("GDPT_OIDN_GRAD_MODEL", raising=False)
     ours = l1 = 0.0
     for scene, reference in generated:
@@ -92,7 +94,7 @@ def test_shipped_model_beats_l1_poisson_on_generated_scenes(name, generated, mon
             assert b.metadata["primal_spp"] == 56
         else:
             g = gdpt.render(scene, spp=16, seed=2)
-            b = gdpt.render(scene, spp=40, seed=3, gradients=False)
+            b = gdpt.render(scene, spp=40, seed=3, **METHODS[name].sampling(40))
         l1 += relmse(reconstruct_image(g, method="l1").cpu(), reference)
         ours += relmse(reconstruct_image(b, method=name).cpu(), reference)
     assert ours < l1, (ours, l1)
@@ -105,7 +107,7 @@ def test_shipped_gradient_model_names_a_missing_buffer(cbox, monkeypatch):
         reconstruct_image(buffers, method="oidn-grad")
 
 
-@pytest.mark.parametrize("name", SHIPPED)
+@pytest.mark.parametrize("name", ON_OIDN)
 def test_missing_pyoidn_is_named_with_the_method(name, cbox, monkeypatch):
     import importlib.util
 

@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from gdpt.reconstruct.combiner import COMBINER_DESIGNS, CombinerNet, encode_combiner
 from gdpt.reconstruct.dense_unet import build_model
 from gdpt.reconstruct.families import FAMILIES, family_of, family_of_design
+from gdpt.reconstruct.kpcn import KPCN_DESIGNS, KPCNNet, encode_kpcn
 from gdpt.reconstruct.ngpt import encode_checkpoint
 from gdpt.reconstruct.oidn_ngpt import DESIGNS, base_model, encode_delta
 
@@ -42,6 +43,7 @@ def checkpoints(tmp_path_factory) -> dict[str, Path]:
         "combiner": write(
             root / "comb", encode_combiner(combiner, "combiner-grad", {"base_model": "base"})
         ),
+        "kpcn": write(root / "kpcn", encode_kpcn(KPCNNet(KPCN_DESIGNS["kpcn"]), "kpcn", note)),
     }
 
 
@@ -50,11 +52,12 @@ def buffers(h: int = 16, w: int = 20) -> dict[str, torch.Tensor]:
     out = {n: torch.rand(h, w, 3, generator=g) for n in ("primal", "albedo", "dx", "dy")}
     out["normal"] = F.normalize(torch.randn(h, w, 3, generator=g), dim=-1)
     out["depth"] = torch.rand(h, w, 1, generator=g)
+    out["var_primal"] = torch.rand(h, w, 1, generator=g) * 0.01
     return out
 
 
 def test_the_families_and_their_formats_are_distinct():
-    assert list(FAMILIES) == ["dense-unet", "oidn-finetune", "combiner"]
+    assert list(FAMILIES) == ["dense-unet", "oidn-finetune", "combiner", "kpcn"]
     assert len({f.card_format for f in FAMILIES.values()}) == len(FAMILIES)
 
 
@@ -67,14 +70,14 @@ def test_every_design_names_exactly_one_family():
             assert owners == [family.name], design
 
 
-@pytest.mark.parametrize("name", ["dense-unet", "oidn-finetune", "combiner"])
+@pytest.mark.parametrize("name", list(FAMILIES))
 def test_a_checkpoint_is_recognised_by_either_file(checkpoints, name):
     path = checkpoints[name]
     assert family_of(path) is FAMILIES[name]
     assert family_of(path.with_suffix(".json")) is FAMILIES[name]
 
 
-@pytest.mark.parametrize("name", ["dense-unet", "oidn-finetune", "combiner"])
+@pytest.mark.parametrize("name", list(FAMILIES))
 def test_load_and_encode_round_trip(checkpoints, name, tmp_path):
     """Loading, re-encoding the card without the family's own keys and loading again gives the
     same network (the delta family adds to OIDN's weights: one float32 rounding) and card."""
@@ -97,7 +100,7 @@ def test_load_and_encode_round_trip(checkpoints, name, tmp_path):
         torch.testing.assert_close(again.state_dict()[key], value, **tol, msg=key)
 
 
-@pytest.mark.parametrize("name", ["dense-unet", "oidn-finetune", "combiner"])
+@pytest.mark.parametrize("name", list(FAMILIES))
 def test_the_reconstructor_reads_its_features(checkpoints, name):
     rec = FAMILIES[name].reconstructor(checkpoints[name])
     b = buffers()
