@@ -29,6 +29,7 @@ from pathlib import Path
 from gdpt.cli_config import add_config_arguments, config_from_args
 from gdpt.denoise import METHODS
 from gdpt.scene_io import DEFAULT_MAX_DEPTH
+from gdpt.study.config import PROTOCOLS
 from gdpt.version import __version__
 
 
@@ -232,6 +233,12 @@ def _add_render_arguments(parser: argparse.ArgumentParser) -> None:
         "--spp)",
     )
     parser.add_argument("--variance", action="store_true", help="also store variance buffers")
+    parser.add_argument(
+        "--halves",
+        action="store_true",
+        help="also store the primal and features of two independent halves of the samples "
+        "(read by nfor and fuse)",
+    )
     parser.add_argument("--half", action="store_true", help="store half floats")
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")
 
@@ -254,6 +261,7 @@ def _run_render(args: argparse.Namespace) -> int:
         max_depth=max_depth,
         gradients=not args.no_gradients,
         variance=args.variance,
+        halves=args.halves,
         primal_spp=args.primal_spp,
     )
     args.output.parent.mkdir(parents=True, exist_ok=True)
@@ -428,6 +436,13 @@ def _add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--seed", type=int, help="base seed")
     parser.add_argument(
+        "--protocol",
+        choices=PROTOCOLS,
+        help="what a budget pays for: 'total' (sampling + reconstruction, default) or "
+        "'render-time' (sampling only, reconstruction reported beside it: the paper's "
+        "equal-time protocol)",
+    )
+    parser.add_argument(
         "--seeds",
         type=int,
         help="replicates per cell (paired: every method renders the same seeds); the report "
@@ -482,6 +497,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
         "max_depth": args.max_depth,
         "seed": args.seed,
         "seeds": args.seeds,
+        "protocol": args.protocol,
         "reference_dir": args.references,
         "keep_going": args.keep_going,
     }

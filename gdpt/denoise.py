@@ -18,6 +18,8 @@ those. Registered:
 * ``'kpcn'``: KPCN (Bako et al. 2017, :mod:`gdpt.reconstruct.kpcn`), shipped: per-pixel
   kernels over the path-traced primal, read with albedo, normal, depth and the primal's
   variance (no gradients; ``model=PATH`` runs another KPCN checkpoint).
+* ``'nfor'``: NFOR (Bitterli et al. 2016, :mod:`gdpt.reconstruct.nfor`) on the primal's and the
+  features' two half-buffers and the primal's variance (no gradients).
 * ``'oidn'``: Intel Open Image Denoise on the primal with albedo and normal (no gradients),
   :func:`oidn_denoise`: ``pyoidn`` on CPU tensors, OIDN's U-Net in torch
   (:mod:`gdpt.reconstruct.oidn_unet`, Intel's weights) on CUDA tensors.
@@ -488,6 +490,57 @@ METHODS.register(
             else ("fuse needs a primal-only denoiser: oidn-tuned or pyoidn")
         ),
         lambda **_: FUSE_PRIMAL_SPP_FACTOR,
+        statistics=True,
+    ),
+)
+
+
+def _nfor(buffers: GradientBuffers, *, alpha: float, **options: Any) -> torch.Tensor:
+    """NFOR (Bitterli et al. 2016; :func:`gdpt.reconstruct.nfor.nfor`) on the render's two
+    half-buffers of primal and features and the primal's variance (``alpha`` does not
+    apply). ``options`` are :class:`gdpt.reconstruct.nfor.NforConfig` fields;
+    ``buffers.metadata["nfor"]`` receives the non-finite input count and the bandwidths'
+    shares.
+
+    Raises:
+        ValueError: the buffers lack the half-buffers, the features or the variance (named,
+            with the render option that makes them), or an option is out of range (named).
+    """
+    from gdpt.reconstruct.nfor import NforConfig, nfor
+
+    needs = [("primal_a", "halves=True"), ("var_primal", "variance=True")]
+    needs += [(f"{f}_a", "features=True, halves=True") for f in ("albedo", "normal", "depth")]
+    missing = [(n, o) for n, o in needs if getattr(buffers, n) is None]
+    if missing:
+        raise ValueError(
+            "method 'nfor' reads "
+            + ", ".join(f"'{n}' (render with {o})" for n, o in missing)
+            + "; these buffers have none"
+        )
+    known = [f.name for f in dataclasses.fields(NforConfig)]
+    if unknown := sorted(set(options) - set(known)):
+        raise ValueError(f"method 'nfor': unknown options {unknown}; valid: {', '.join(known)}")
+    config = NforConfig(**options)
+    halves = [[getattr(buffers, f"{f}_{h}") for f in ("albedo", "normal", "depth")] for h in "ab"]
+    image, info = nfor(
+        buffers.primal_a, buffers.primal_b, buffers.var_primal, halves[0], halves[1], config
+    )
+    buffers.metadata["nfor"] = dataclasses.asdict(info)
+    if info.nonfinite:
+        warnings.warn(
+            f"nfor: {info.nonfinite} non-finite input values were replaced by 0", stacklevel=3
+        )
+    return image
+
+
+METHODS.register(
+    "nfor",
+    Method(
+        _nfor,
+        False,
+        True,
+        "NFOR (Bitterli et al. 2016): first-order regression on the features, cross-filtered "
+        "between the render's two half-buffers",
         statistics=True,
     ),
 )

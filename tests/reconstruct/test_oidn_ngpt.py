@@ -102,7 +102,6 @@ def test_non_finite_inputs_give_a_finite_output():
     assert torch.isfinite(out).all() and (out >= 0).all()
 
 
-
 def test_refined_reconstruction_passes_gradients_to_every_buffer_it_reads():
     """With the gated L1 refinement, ``dx``/``dy`` reach the image through the network and the
     L1 solve (its last IRLS weights); the weights stay frozen."""
@@ -113,6 +112,7 @@ def test_refined_reconstruction_passes_gradients_to_every_buffer_it_reads():
     for name in design.features:
         assert torch.isfinite(b[name].grad).all() and b[name].grad.abs().sum() > 0, name
     assert all(p.grad is None for net in rec._per_device.values() for p in net.parameters())
+
 
 def test_finetune_loss_is_zero_at_the_target_and_grows_away_from_it():
     from gdpt.reconstruct.oidn_unet import pu_forward
