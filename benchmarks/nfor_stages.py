@@ -7,13 +7,17 @@ four: two error maps, two selection maps), the second-pass regression, and the w
 :func:`~gdpt.reconstruct.nfor.nfor` call; next to ``pyoidn.denoise`` (HDR, albedo + normal,
 quality high) on the same buffers as the anchor, measured in the same run. Timings do not
 depend on the image content (fixed windows, no early exits), so synthetic buffers are used.
-Every task is run once untimed, then timed ``--repeats`` times (median); the load average is
-printed (the machine may be shared). The paper (Kettunen et al. 2019, sec. 4.6.2) quotes the
+Every task is run once untimed (``--no-warmup`` skips it: at 1280x720 the one-off allocations
+are a negligible part of a call of minutes), then timed ``--repeats`` times (median);
+``--stages`` restricts the run to the named tasks; the load average is printed (the machine
+may be shared). The paper (Kettunen et al. 2019, sec. 4.6.2) quotes the
 public NFOR implementation at about two minutes per 1280x720 image on an Intel i7 3770K
 (4 cores). Usage::
 
     .venv/bin/python benchmarks/nfor_stages.py                        # 128x128 and 1280x720
     .venv/bin/python benchmarks/nfor_stages.py --sizes 128x128 --repeats 3 --json out.json
+    .venv/bin/python benchmarks/nfor_stages.py --sizes 1280x720 --repeats 1 --no-warmup \
+        --stages "nfor total" "pyoidn (anchor)"
 """
 
 from __future__ import annotations
@@ -63,14 +67,24 @@ def main() -> None:
     parser.add_argument("--sizes", nargs="+", default=["128x128", "1280x720"])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", type=Path, help="also write the timings here")
+    parser.add_argument("--stages", nargs="+", help="only these tasks (default: all)")
+    parser.add_argument("--no-warmup", dest="warmup", action="store_false")
     args = parser.parse_args()
+    known = list(tasks(1, 1))
+    if args.stages and (unknown := sorted(set(args.stages) - set(known))):
+        parser.error(f"unknown --stages {unknown}; known: {known}")
+    if args.stages and "pyoidn (anchor)" not in args.stages:
+        parser.error("--stages must include 'pyoidn (anchor)': timings are reported against it")
     print(f"torch threads {torch.get_num_threads()}, load average {os.getloadavg()}")
     results = {}
     for size in args.sizes:
         width, height = (int(v) for v in size.split("x"))
         timings = {}
         for stage, fn in tasks(height, width).items():
-            fn()  # untimed: allocations, thread pools
+            if args.stages and stage not in args.stages:
+                continue
+            if args.warmup:
+                fn()  # untimed: allocations, thread pools
             timings[stage] = statistics.median(_time(fn) for _ in range(args.repeats))
         anchor = timings["pyoidn (anchor)"]
         print(f"\n{size}: stage, seconds, x pyoidn")

@@ -628,6 +628,15 @@ def _add_model_report_arguments(parser: argparse.ArgumentParser) -> None:
         help="held-out scenes, as in gdpt train (default: 10)",
     )
     parser.add_argument(
+        "--pair",
+        nargs=2,
+        action="append",
+        default=[],
+        metavar=("A", "B"),
+        help="also compare A with B element by element (per-element relMSE ratio, its 95%% "
+        "interval, share of elements where A is lower); repeat for several",
+    )
+    parser.add_argument(
         "--ship",
         nargs="*",
         metavar="NAME",
@@ -640,6 +649,8 @@ def _run_model_report(args: argparse.Namespace) -> int:
     from gdpt.training.model_report import (
         compare_models,
         comparison_markdown,
+        paired_comparison,
+        paired_markdown,
         plot_training,
         ship_model,
     )
@@ -658,11 +669,21 @@ def _run_model_report(args: argparse.Namespace) -> int:
         if not Path(path).is_file():
             raise FileNotFoundError(f"--model {item!r}: {path} not found")
         checkpoints[name] = Path(path)
+    baselines = ("gdpt+l1", "pt+oidn", "pt")
+    for a, b in args.pair:
+        if unknown := [x for x in (a, b) if x not in checkpoints and x not in baselines]:
+            raise ValueError(
+                f"--pair {a} {b}: {', '.join(unknown)} is neither a --run/--model name "
+                f"({', '.join(checkpoints)}) nor a baseline ({', '.join(baselines)})"
+            )
     args.out.mkdir(parents=True, exist_ok=True)
     plot_training(runs, args.out / "training.png")
     result = compare_models(args.data, checkpoints, holdout_every=args.holdout_every)
+    result["pairs"] = [paired_comparison(result, a, b) for a, b in args.pair]
     (args.out / "comparison.json").write_text(json.dumps(result, indent=2) + "\n")
     table = comparison_markdown(result)
+    for pair in result["pairs"]:
+        table += "\n" + paired_markdown(pair)
     (args.out / "comparison.md").write_text(table)
     print(table)
     if args.ship is not None:

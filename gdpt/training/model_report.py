@@ -137,8 +137,10 @@ def compare_models(
     Returns:
         ``{"crops": n, "resolution": [w, h], "levels": [{"spp", "pt_spp", "render_seconds":
         {"gdpt", "pt"}, "methods": {label: {"relmse", "flip", "seconds"}}}], "mean": {label:
-        {...}}}`` where
-        every number is a mean over the held-out crops; ``seconds`` is the reconstruction time.
+        {...}}, "elements": {"level": [...], label: {"relmse": [...], "flip": [...]}}}`` where
+        every number of ``levels`` and ``mean`` is a mean over the held-out crops; ``seconds``
+        is the reconstruction time; ``elements`` holds every held-out element's scores in one
+        order for all labels (paired comparisons: :func:`paired_comparison`).
     """
     from tqdm.auto import tqdm
 
@@ -168,6 +170,7 @@ def compare_models(
     gdpt_set = sets["gdpt"]
     levels = gdpt_set.levels
     scores: list[dict[str, list[float]]] = [{} for _ in range(levels)]
+    elements: dict[str, Any] = {"level": []}
     bar = tqdm(total=len(gdpt_set), unit="element", desc="compare", disable=not progress)
     for index in range(len(gdpt_set)):
         record, level = gdpt_set.element(index)
@@ -177,13 +180,16 @@ def compare_models(
         bucket.setdefault("spp", []).append(record["spp"][level])
         bucket.setdefault("pt_spp", []).append(record["pt_spp"][level])
         seconds = record["render_seconds"]
+        elements["level"].append(level)
         bucket.setdefault("render_gdpt", []).append(seconds[f"in{level}"])
         bucket.setdefault("render_pt", []).append(seconds[f"pt{level}"])
         for label, (kind, fn) in methods.items():
             with torch.no_grad():
                 image, took = _timed(fn, items[kind]["inputs"])
-            bucket.setdefault(f"{label}/relmse", []).append(relmse(image, target))
-            bucket.setdefault(f"{label}/flip", []).append(flip_ldr(image, target))
+            scored = {"relmse": relmse(image, target), "flip": flip_ldr(image, target)}
+            for metric, value in scored.items():
+                bucket.setdefault(f"{label}/{metric}", []).append(value)
+                elements.setdefault(label, {}).setdefault(metric, []).append(value)
             bucket.setdefault(f"{label}/seconds", []).append(took)
         bar.update(1)
     bar.close()
@@ -223,7 +229,73 @@ def compare_models(
         "inputs": {label: kind for label, (kind, _) in methods.items()},
         "levels": out_levels,
         "mean": overall,
+        "elements": elements,
     }
+
+
+def paired_comparison(
+    result: Mapping[str, Any], a: str, b: str, metric: str = "relmse"
+) -> dict[str, Any]:
+    """``a`` against ``b`` on the same held-out elements of a :func:`compare_models` result.
+
+    Per input level and over all levels: the geometric mean of the per-element ratio
+    ``metric(a) / metric(b)`` with its 95% Student-t interval (the mean of the per-element log
+    ratios, exponentiated), and the share of elements where ``a`` is lower. An interval that
+    excludes 1 separates the two; image-wide means can be dominated by a few elements, a ratio
+    per element cannot.
+
+    Returns:
+        ``{"a", "b", "metric", "levels": [{"spp", "n", "ratio", "low", "high", "a_lower"}],
+        "all": {...}}``.
+
+    Raises:
+        KeyError: ``a`` or ``b`` has no per-element scores in ``result``.
+        ValueError: a score is not positive (no log ratio).
+    """
+    import math
+
+    from gdpt.study.results import mean_interval
+
+    elements = result["elements"]
+    for label in (a, b):
+        if label not in elements:
+            raise KeyError(f"{label!r} is not in the comparison ({', '.join(result['mean'])})")
+    xs, ys = elements[a][metric], elements[b][metric]
+    if min(xs + ys) <= 0:
+        raise ValueError(f"{metric} of {a} or {b} is not positive on some element")
+    logs = [math.log(x / y) for x, y in zip(xs, ys, strict=True)]
+
+    def summary(indices: list[int]) -> dict[str, float]:
+        mean, low, high = mean_interval([logs[i] for i in indices])
+        lower = sum(logs[i] < 0 for i in indices) / len(indices)
+        n = len(indices)
+        return {"n": n, "ratio": math.exp(mean), "low": math.exp(low), "high": math.exp(high),
+                "a_lower": lower}  # fmt: skip
+
+    levels = []
+    for level, info in enumerate(result["levels"]):
+        indices = [i for i, lv in enumerate(elements["level"]) if lv == level]
+        levels.append({"spp": info["spp"], "pt_spp": info["pt_spp"], **summary(indices)})
+    return {"a": a, "b": b, "metric": metric, "levels": levels,
+            "all": summary(list(range(len(logs))))}  # fmt: skip
+
+
+def paired_markdown(pair: Mapping[str, Any]) -> str:
+    """A :func:`paired_comparison` as a Markdown table, one row per input level."""
+    a, b, metric = pair["a"], pair["b"], pair["metric"]
+    lines = [
+        f"| input spp (G-PT / PT) | elements | {metric} {a} / {b} (geometric mean, 95% interval) "
+        f"| {a} lower |",
+        "|---|---|---|---|",
+    ]
+    for level in [*pair["levels"], None]:
+        row = pair["all"] if level is None else level
+        spp = "all" if level is None else f"{level['spp']:.0f} / {level['pt_spp']:.0f}"
+        lines.append(
+            f"| {spp} | {row['n']} | {row['ratio']:.3f} [{row['low']:.3f}, {row['high']:.3f}] "
+            f"| {row['a_lower']:.0%} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def comparison_markdown(result: Mapping[str, Any]) -> str:

@@ -171,3 +171,57 @@ def test_a_model_of_an_unknown_family_is_refused_by_name(runs, tmp_path, capsys)
     err = capsys.readouterr().err
     assert "no known network family" in err and str(run / "model.json") in err
     assert not (tmp_path / "comparison.json").exists()
+
+
+def _synthetic_result(a: list[float], b: list[float], levels: list[int]) -> dict:
+    return {
+        "mean": {"a": {}, "b": {}},
+        "levels": [
+            {"spp": 4.0 * (k + 1), "pt_spp": 10.0 * (k + 1)} for k in range(1 + max(levels))
+        ],
+        "elements": {"level": levels, "a": {"relmse": a}, "b": {"relmse": b}},
+    }
+
+
+def test_paired_comparison_is_the_geometric_mean_ratio_with_a_t_interval():
+    import math
+
+    ratios = [0.5, 0.8, 1.25, 0.4]
+    b = [0.1, 2.0, 0.3, 5.0]
+    result = _synthetic_result([r * y for r, y in zip(ratios, b, strict=True)], b, [0, 1, 0, 1])
+    pair = model_report.paired_comparison(result, "a", "b")
+    logs = [math.log(r) for r in ratios]
+    mean = sum(logs) / 4
+    sd = math.sqrt(sum((x - mean) ** 2 for x in logs) / 3)
+    assert pair["all"]["ratio"] == pytest.approx(math.exp(mean))
+    assert pair["all"]["high"] == pytest.approx(math.exp(mean + 3.182 * sd / 2))
+    assert pair["all"]["a_lower"] == 0.75 and pair["all"]["n"] == 4
+    assert pair["levels"][0]["ratio"] == pytest.approx(math.sqrt(0.5 * 1.25))
+    assert pair["levels"][1]["a_lower"] == 1.0 and pair["levels"][1]["spp"] == 8.0
+    assert "| all | 4 |" in model_report.paired_markdown(pair)
+
+
+def test_paired_comparison_refuses_unknown_labels_and_non_positive_scores():
+    result = _synthetic_result([1.0, 0.0], [1.0, 1.0], [0, 0])
+    with pytest.raises(KeyError, match="'c' is not in the comparison"):
+        model_report.paired_comparison(result, "c", "b")
+    with pytest.raises(ValueError, match="not positive"):
+        model_report.paired_comparison(result, "a", "b")
+
+
+def test_cli_pairs_runs_element_by_element(runs, tmp_path, capsys):
+    data, run_dirs = runs
+    args = ["model-report", "--data", str(data), "--holdout-every", "1", "--out", str(tmp_path)]
+    args += [f"--run={k}={v}" for k, v in run_dirs.items()]
+    assert main([*args, "--pair", "dense", "dense-nograd", "--pair", "dense", "pt"]) == 0
+    result = json.loads((tmp_path / "comparison.json").read_text())
+    first, second = result["pairs"]
+    assert (first["a"], first["b"], second["b"]) == ("dense", "dense-nograd", "pt")
+    dense = result["elements"]["dense"]["relmse"]
+    pt = result["elements"]["pt"]["relmse"]
+    assert len(dense) == 2 * 5 and second["all"]["a_lower"] == sum(
+        x < y for x, y in zip(dense, pt, strict=True)
+    ) / len(dense)
+    assert "dense / dense-nograd" in (tmp_path / "comparison.md").read_text()
+    assert main([*args, "--pair", "dense", "nope"]) == 2
+    assert "--pair dense nope: nope is neither" in capsys.readouterr().err
