@@ -23,6 +23,10 @@ load average. Usage::
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/method_cost.py  # 128x128 and 1280x720
     .venv/bin/python benchmarks/method_cost.py --sizes 128x128 --repeats 5 --json cost.json
+    .venv/bin/python benchmarks/method_cost.py --methods kpcn m --model m=run/model.safetensors
+
+``--methods`` restricts the rows (the plain path-tracing row is always measured);
+``--model NAME=CHECKPOINT`` adds a ``gdpt train`` checkpoint as method ``NAME``.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ from pathlib import Path
 import torch
 
 import gdpt
-from gdpt.denoise import METHODS
+from gdpt.denoise import METHODS, register_checkpoint
 from gdpt.scene_io import generated_scene
 
 PLAIN = "(path tracing, no reconstruction)"
@@ -73,8 +77,11 @@ def median_seconds(fn, repeats: int) -> float:
     return statistics.median(times)
 
 
-def measure(size: tuple[int, int], spp: int, repeats: int) -> dict[str, dict[str, float]]:
-    """``method -> {'render_per_spp', 'reconstruct'}`` (seconds) at film size ``size``."""
+def measure(
+    size: tuple[int, int], spp: int, repeats: int, methods: list[str] | None = None
+) -> dict[str, dict[str, float]]:
+    """``method -> {'render_per_spp', 'reconstruct'}`` (seconds) at film size ``size``, for
+    ``methods`` (default: every registered method)."""
     import mitsuba as mi
 
     scene_dict = generated_scene("builtin:cbox-demo")
@@ -83,6 +90,8 @@ def measure(size: tuple[int, int], spp: int, repeats: int) -> dict[str, dict[str
     rows: dict[str, dict[str, float]] = {}
     plan = [(PLAIN, {"gradients": False, "features": True})]
     for name, method in METHODS.items():
+        if methods is not None and name not in methods:
+            continue
         reason = method.check()
         if reason is not None:
             print(f"  {name}: skipped ({reason})")
@@ -113,9 +122,24 @@ def main() -> None:
     parser.add_argument("--spp", type=int, default=4, help="gradient samples per pixel")
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per measurement")
     parser.add_argument("--json", type=Path, help="also write the numbers here")
+    parser.add_argument("--methods", nargs="+", help="only these methods (default: all)")
+    parser.add_argument(
+        "--model",
+        action="append",
+        default=[],
+        metavar="NAME=CHECKPOINT",
+        help="also measure a checkpoint of gdpt train as method NAME; repeat for several",
+    )
     args = parser.parse_args()
     if args.spp < 1 or args.repeats < 1:
         parser.error("--spp and --repeats must be >= 1")
+    for item in args.model:
+        name, _, path = item.partition("=")
+        if not name or not path:
+            parser.error(f"--model {item!r}: expected NAME=CHECKPOINT")
+        register_checkpoint(name, path)
+    if args.methods and (unknown := sorted(set(args.methods) - set(METHODS))):
+        parser.error(f"--methods: unknown {unknown}; known: {', '.join(METHODS)}")
 
     variant = gdpt.set_variant()
     results = {}
@@ -124,7 +148,7 @@ def main() -> None:
             f"{size[0]}x{size[1]} ({variant}, {torch.get_num_threads()} torch threads), "
             f"load average {os.getloadavg()[0]:.2f}"
         )
-        results[f"{size[0]}x{size[1]}"] = measure(size, args.spp, args.repeats)
+        results[f"{size[0]}x{size[1]}"] = measure(size, args.spp, args.repeats, args.methods)
 
     labels = list(results)
     print()

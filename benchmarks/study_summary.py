@@ -7,7 +7,8 @@ Per metric, over every scene x budget cell of ``results.json``:
   95% interval of ``log(best / second)`` over the replicates (the study renders the same seeds
   for every method) lies below 0;
 * for each candidate (``--candidates``, default ``gdpt+fuse auto``) against a baseline
-  (``--against``, default ``pt+oidn-tuned``): separated wins and losses, the geometric mean of
+  (``--against``, default ``pt+oidn-tuned``): the cells where its mean is lower, separated
+  wins and losses, the geometric mean of
   the ratio of means per scene and overall, and the largest per-cell ratio.
 
 Results of an earlier study name some methods by their deprecated names (``gdpt+ngpt``,
@@ -122,16 +123,19 @@ def summarise(results: dict, metric: str, candidates: list[str], against: str) -
     )
     lines.append("")
     lines += [
-        f"| candidate | vs {against}: wins / losses (separated) | geo. mean ratio | max ratio |",
-        "|---|---|---|---|",
+        f"| candidate | vs {against}: lower mean | wins / losses (separated) | geo. mean ratio "
+        "| max ratio |",
+        "|---|---|---|---|---|",
     ]
     for c in candidates:
         pairs = [(e[c], e[against]) for e in cells.values() if c in e and against in e]
         wins = sum(separated(a, b) == 1 for a, b in pairs)
         losses = sum(separated(a, b) == -1 for a, b in pairs)
+        lower = sum(mean(a) < mean(b) for a, b in pairs)
         ratios = [mean(a) / mean(b) for a, b in pairs if mean(b) > 0 and mean(a) > 0]
         lines.append(
-            f"| {c} | {wins} / {losses} of {len(pairs)} | {geo(ratios):.3f} | "
+            f"| {c} | {lower} of {len(pairs)} | {wins} / {losses} of {len(pairs)} | "
+            f"{geo(ratios):.3f} | "
             f"{max(ratios, default=float('nan')):.2f} |"
         )
     lines += ["", f"Geometric-mean ratio to {against} per scene:", ""]
