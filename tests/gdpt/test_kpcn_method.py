@@ -47,3 +47,25 @@ def test_a_registered_kpcn_checkpoint_reads_the_variance(tmp_path, random_buffer
         assert torch.isfinite(image).all()
     finally:
         METHODS.pop("mine-kpcn", None)
+
+
+def test_pt_kpcn_runs_in_the_study_under_the_default_protocol(tmp_path):
+    """``pt+kpcn`` in a tiny study (protocol ``total``): the reconstruction's seconds are part
+    of the charged time, and the image is scored."""
+    from gdpt.study.config import EvaluateConfig
+    from gdpt.study.evaluate import evaluate
+
+    cfg = EvaluateConfig(
+        budgets=(0.2,),
+        resolution=12,
+        reference_spp=32,
+        reference_chunk_spp=32,
+        metrics=("relmse",),
+        metric_options={},
+        methods=("pt+kpcn",),
+    )
+    results = evaluate(["random:3"], tmp_path / "study", cfg, progress=False, report=False)
+    cell = results["scenes"]["random-3"]["methods"]["pt+kpcn"]["cells"]["0.2"]
+    assert cell["protocol"] == "total" and cell["reconstruct_seconds"] > 0
+    assert cell["charged_seconds"] == pytest.approx(cell["seconds"])
+    assert cell["metrics"]["relmse"] > 0
