@@ -6,6 +6,9 @@ Per metric, over every scene x budget cell of ``results.json``:
 * which method has the lowest mean, and in how many cells that lead is *separated*: the paired
   95% interval of ``log(best / second)`` over the replicates (the study renders the same seeds
   for every method) lies below 0;
+* an overview: per method, its cells, per metric the geometric mean over its cells and the
+  geometric-mean ratio to ``--against`` over the cells both have, and its mean render and
+  reconstruction seconds per run;
 * for each candidate (``--candidates``, default ``gdpt+fuse auto``) against a baseline
   (``--against``, default ``pt+oidn-tuned``): the cells where its mean is lower, separated
   wins and losses, the geometric mean of
@@ -33,10 +36,7 @@ from collections import Counter
 from pathlib import Path
 
 from gdpt.study.methods import EVAL_METHODS
-from gdpt.study.results import read_results
-
-#: Two-sided 95% quantiles of Student's t for 1..10 degrees of freedom.
-T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228)
+from gdpt.study.results import mean_interval, read_results
 
 
 def replicate_values(cell: dict, metric: str) -> list[float] | None:
@@ -83,11 +83,8 @@ def paired_log_interval(a: list[float], b: list[float]) -> tuple[float, float] |
     fewer than 2 replicates or a non-positive value)."""
     if len(a) != len(b) or len(a) < 2 or min(a + b) <= 0:
         return None
-    d = [math.log(x / y) for x, y in zip(a, b, strict=True)]
-    m = mean(d)
-    sd = math.sqrt(sum((x - m) ** 2 for x in d) / (len(d) - 1))
-    half = T975[min(len(d) - 2, len(T975) - 1)] * sd / math.sqrt(len(d))
-    return m - half, m + half
+    _, low, high = mean_interval([math.log(x / y) for x, y in zip(a, b, strict=True)])
+    return low, high
 
 
 def separated(a: list[float], b: list[float]) -> int:
@@ -100,6 +97,47 @@ def separated(a: list[float], b: list[float]) -> int:
 
 def geo(ratios: list[float]) -> float:
     return math.exp(mean([math.log(r) for r in ratios])) if ratios else float("nan")
+
+
+def seconds(results: dict, key: str) -> dict[str, float]:
+    """Per method, the mean of the replicates' ``key`` (``render_seconds``,
+    ``reconstruct_seconds``) over all its cells."""
+    values: dict[str, list[float]] = {}
+    for entry in results["scenes"].values():
+        for method, data in entry.get("methods", {}).items():
+            for cell in data.get("cells", {}).values():
+                for r in cell.get("replicates") or [cell]:
+                    if r.get(key) is not None:
+                        values.setdefault(method, []).append(r[key])
+    return {m: mean(v) for m, v in values.items()}
+
+
+def overview(results: dict, metrics: list[str], against: str) -> list[str]:
+    """One row per method: its cells, per metric the geometric mean over its cells and the
+    geometric-mean ratio to ``against`` over the cells both have, and its mean render and
+    reconstruction seconds per run."""
+    tables = {m: table(results, m) for m in metrics}
+    methods = sorted({m for cells in tables.values() for e in cells.values() for m in e})
+    render, rec = seconds(results, "render_seconds"), seconds(results, "reconstruct_seconds")
+    head = ["method", "cells"]
+    for metric in metrics:
+        head += [f"{metric} geo. mean", f"ratio to {against}"]
+    lines = ["## Overview", "", "| " + " | ".join(head) + " | render s | reconstruct s |"]
+    lines.append("|---" * (len(head) + 2) + "|")
+    for method in methods:
+        row = [method, str(sum(method in e for e in tables[metrics[0]].values()))]
+        for metric in metrics:
+            cells = tables[metric].values()
+            own = [mean(e[method]) for e in cells if method in e and mean(e[method]) > 0]
+            ratios = [
+                mean(e[method]) / mean(e[against])
+                for e in cells
+                if method in e and against in e and mean(e[method]) > 0 and mean(e[against]) > 0
+            ]
+            row += [f"{geo(own):.4g}" if own else "-", f"{geo(ratios):.3f}" if ratios else "-"]
+        row += [f"{render.get(method, math.nan):.2f}", f"{rec.get(method, math.nan):.2f}"]
+        lines.append("| " + " | ".join(row) + " |")
+    return [*lines, ""]
 
 
 def summarise(results: dict, metric: str, candidates: list[str], against: str) -> list[str]:
@@ -179,6 +217,7 @@ def main() -> None:
     args.candidates = [EVAL_METHODS.resolve(c) for c in args.candidates]
     results = read_results(args.results)
     lines = [f"# {args.results}", "", "Per-cell values: mean [min, max] of the replicates.", ""]
+    lines += overview(results, args.metrics, args.against)
     for metric in args.metrics:
         lines += summarise(results, metric, args.candidates, args.against)
     text = "\n".join(lines)
