@@ -138,6 +138,8 @@ def main() -> None:
         if not name or not path:
             parser.error(f"--model {item!r}: expected NAME=CHECKPOINT")
         register_checkpoint(name, path)
+        if args.methods:
+            args.methods.append(name)  # measured as well as --methods
     if args.methods and (unknown := sorted(set(args.methods) - set(METHODS))):
         parser.error(f"--methods: unknown {unknown}; known: {', '.join(METHODS)}")
 

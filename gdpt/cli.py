@@ -633,8 +633,8 @@ def _add_model_report_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar=("A", "B"),
-        help="also compare A with B element by element (per-element relMSE ratio, its 95%% "
-        "interval, share of elements where A is lower); repeat for several",
+        help="also compare A with B element by element, in relMSE and in LDR-FLIP (per-element "
+        "ratio, its 95%% interval, share of elements where A is lower); repeat for several",
     )
     parser.add_argument(
         "--ship",
@@ -679,7 +679,11 @@ def _run_model_report(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     plot_training(runs, args.out / "training.png")
     result = compare_models(args.data, checkpoints, holdout_every=args.holdout_every)
-    result["pairs"] = [paired_comparison(result, a, b) for a, b in args.pair]
+    result["pairs"] = [
+        paired_comparison(result, a, b, metric)
+        for a, b in args.pair
+        for metric in ("relmse", "flip")
+    ]
     (args.out / "comparison.json").write_text(json.dumps(result, indent=2) + "\n")
     table = comparison_markdown(result)
     for pair in result["pairs"]:

@@ -215,13 +215,16 @@ def test_cli_pairs_runs_element_by_element(runs, tmp_path, capsys):
     args += [f"--run={k}={v}" for k, v in run_dirs.items()]
     assert main([*args, "--pair", "dense", "dense-nograd", "--pair", "dense", "pt"]) == 0
     result = json.loads((tmp_path / "comparison.json").read_text())
-    first, second = result["pairs"]
+    first, first_flip, second, second_flip = result["pairs"]
     assert (first["a"], first["b"], second["b"]) == ("dense", "dense-nograd", "pt")
-    dense = result["elements"]["dense"]["relmse"]
-    pt = result["elements"]["pt"]["relmse"]
-    assert len(dense) == 2 * 5 and second["all"]["a_lower"] == sum(
-        x < y for x, y in zip(dense, pt, strict=True)
-    ) / len(dense)
-    assert "dense / dense-nograd" in (tmp_path / "comparison.md").read_text()
+    assert [p["metric"] for p in result["pairs"]] == ["relmse", "flip"] * 2
+    for pair, metric in ((second, "relmse"), (second_flip, "flip")):
+        dense = result["elements"]["dense"][metric]
+        pt = result["elements"]["pt"][metric]
+        assert len(dense) == 2 * 5 and pair["all"]["a_lower"] == sum(
+            x < y for x, y in zip(dense, pt, strict=True)
+        ) / len(dense)
+    report = (tmp_path / "comparison.md").read_text()
+    assert "relmse dense / dense-nograd" in report and "flip dense / dense-nograd" in report
     assert main([*args, "--pair", "dense", "nope"]) == 2
     assert "--pair dense nope: nope is neither" in capsys.readouterr().err
