@@ -1,7 +1,7 @@
 """How much a gradient network uses its gradients: held-out error with ``dx``/``dy`` as rendered
 and with both set to zero, on the same inputs.
 
-For every fine-tuned OIDN checkpoint given (delta cards of ``gdpt.reconstruct.oidn_ngpt``
+For every fine-tuned OIDN checkpoint given (delta cards of ``gdpt.reconstruct.oidn_finetune``
 with gradient inputs), the network alone (no refinement: it reads the gradients as well) is run
 on evenly spaced held-out elements of a ``gdpt dataset`` (the input kind of its design, e.g.
 pooled), once as is and once with zero gradients, and the mean relMSE and LDR-FLIP of both
@@ -18,7 +18,7 @@ import argparse
 
 import torch
 from gdpt.reconstruct.losses import FLIPLoss
-from gdpt.reconstruct.oidn_ngpt import assemble, load_model, predict
+from gdpt.reconstruct.oidn_finetune import assemble, load_model, predict
 
 from gdpt.training.dataset import CropDataset
 from gdpt.training.validation import held_out_elements, image_metrics

@@ -30,8 +30,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
+from dense_unet_inference import _time, oidn_task, synthetic_buffers
 from gdpt.reconstruct.nfor import NforConfig, nfor, nlm_filter, regress
-from ngpt_inference import _time, oidn_task, synthetic_buffers
 
 
 def tasks(height: int, width: int) -> dict[str, Callable[[], object]]:

@@ -8,12 +8,12 @@ those. Registered:
   (:mod:`gdpt.reconstruct.poisson`, same names): the closed-form L2 solution, the reference
   IRLS L1 preset and the accelerated L1 solver (same or lower L1 energy, fewer CG iterations).
 * ``'oidn-grad'`` / ``'oidn-tuned'``: the shipped networks, Intel Open Image Denoise's U-Net
-  fine-tuned here (:mod:`gdpt.reconstruct.oidn_ngpt`, a delta to Intel's weights read from
+  fine-tuned here (:mod:`gdpt.reconstruct.oidn_finetune`, a delta to Intel's weights read from
   ``pyoidn``; ``gdpt/models/README.md``): ``oidn-grad`` reads the gradients (pooled primal,
   gated refinement), ``oidn-tuned`` is the same network fine-tuned on the same data without
   them. ``model=PATH`` (or ``$GDPT_OIDN_GRAD_MODEL`` for ``oidn-grad``) runs another trained
-  checkpoint instead, e.g. a dense U-Net (:mod:`gdpt.reconstruct.ngpt`). Their former names
-  ``'ngpt'`` / ``'ngpt-nograd'`` (and ``$GDPT_NGPT_MODEL``) still work, with a
+  checkpoint instead, e.g. a dense U-Net (:mod:`gdpt.reconstruct.dense_unet_reconstructor`).
+  Their former names ``'ngpt'`` / ``'ngpt-nograd'`` (and ``$GDPT_NGPT_MODEL``) still work, with a
   ``DeprecationWarning``.
 * ``'kpcn'``: KPCN (Bako et al. 2017, :mod:`gdpt.reconstruct.kpcn`), shipped: per-pixel
   kernels over the path-traced primal, read with albedo, normal, depth and the primal's
@@ -235,7 +235,7 @@ def _oidn_weights_missing(name: str, path: Path) -> str | None:
 def _network_primal_spp_factor(name: str, model: str | None = None, **_: Any) -> float:
     """The model card's ``sampling.primal_spp_factor`` (0 when the card has none or the
     checkpoint is missing: :func:`_network` reports that)."""
-    from gdpt.reconstruct.ngpt import read_card
+    from gdpt.reconstruct.cards import read_card
 
     try:
         _, _, card = read_card(model_path(name, model))
@@ -547,7 +547,8 @@ METHODS.register(
 
 
 #: Network families whose reconstructors run with autograd when an input buffer requires
-#: gradients (:mod:`gdpt.reconstruct.ngpt`, :mod:`gdpt.reconstruct.oidn_ngpt`).
+#: gradients (:mod:`gdpt.reconstruct.dense_unet_reconstructor`,
+#: :mod:`gdpt.reconstruct.oidn_finetune`).
 DIFFERENTIABLE_FAMILIES = ("dense-unet", "oidn-finetune")
 
 
@@ -573,8 +574,8 @@ def register_checkpoint(name: str, path: str | os.PathLike) -> Method:
         ValueError: ``name`` is already registered, or the checkpoint is unreadable or of no
             known network family (:func:`gdpt.reconstruct.families.family_of`).
     """
+    from gdpt.reconstruct.cards import read_card
     from gdpt.reconstruct.families import family_of
-    from gdpt.reconstruct.ngpt import read_card
 
     path = Path(path)
     _, _, card = read_card(path)

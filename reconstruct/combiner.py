@@ -23,7 +23,7 @@ Designs (:data:`COMBINER_DESIGNS`)::
     combiner-grad     base(G-PT), L1-Poisson(base, dx, dy)             yes
     combiner-nograd   base(PT)                                         no
 
-``base`` is a fine-tuned OIDN network (:mod:`.oidn_ngpt`) applied to the same buffers; the L1
+``base`` is a fine-tuned OIDN network (:mod:`.oidn_finetune`) applied to the same buffers; the L1
 candidate is screened Poisson L1 (:mod:`.poisson`, preset ``fast``) with the base network's
 image as its data term, so the gradients correct what the denoiser blurred. The noisy primal is
 not a candidate: a weight of 1e-3 on a firefly is already a visible error. The ``nograd``
@@ -52,9 +52,9 @@ from safetensors.torch import load_file, save
 from torch import nn
 from torch.nn import functional as F
 
+from .cards import read_card
 from .kernels import apply_kernels
-from .ngpt import read_card
-from .oidn_ngpt import OIDNReconstructor, signed_log
+from .oidn_finetune import OIDNReconstructor, signed_log
 from .oidn_unet import autoexposure, pu_forward, pu_inverse
 from .refine import GatedRefinement
 from .registry import Registry

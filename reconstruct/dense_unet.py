@@ -30,9 +30,9 @@ configurations save most of the full-resolution work.
 
 Registered configurations (:data:`CONFIGS`). Parameters count ``W``, ``s`` and ``b``; GFLOP for
 one 1280x720 image at 2 FLOP per multiply-add; time = median end-to-end CPU inference at
-1280x720 (untiled, :class:`~gdpt.reconstruct.ngpt.NGPTReconstructor`, torch 2.13, 2 *shared*
-AMD EPYC cores, two runs of ``benchmarks/ngpt_inference.py`` at load average ~2 and ~4-5; OIDN
-``high`` took 1.2 s and 1.8 s in the same runs):
+1280x720 (untiled, :class:`~gdpt.reconstruct.dense_unet_reconstructor.DenseUNetReconstructor`,
+torch 2.13, 2 *shared* AMD EPYC cores, two runs of ``benchmarks/dense_unet_inference.py`` at
+load average ~2 and ~4-5; OIDN ``high`` took 1.2 s and 1.8 s in the same runs):
 
 ============  ========  =======  ============  ================================================
 name          params    GFLOP    time          notes

@@ -90,7 +90,7 @@ class ELPIPSConfig:
             raise ValueError(f"unknown color_multiplication_mode {self.color_multiplication_mode}")
 
     @classmethod
-    def ngpt_training(cls) -> ELPIPSConfig:
+    def for_training(cls) -> ELPIPSConfig:
         """NGPT's training setting: 2 scale levels, fast mode, 3 samples averaged."""
         return cls(average_over=3, num_scales=2, fast_and_approximate=True)
 

@@ -8,14 +8,14 @@ A *family* is a kind of network with its own checkpoint format. Each one declare
   (the card keys it writes itself) and turn them into a reconstructor;
 * whether it builds on Intel's OIDN weights, and on another checkpoint stored next to its card.
 
-==================  ===================================  ==============================
-family              designs                              checkpoint (card ``"format"``)
-==================  ===================================  ==============================
-``dense-unet``      :data:`.dense_unet.CONFIGS`          :data:`.ngpt.CARD_FORMAT`
-``oidn-finetune``   :data:`.oidn_ngpt.DESIGNS`           :data:`.oidn_ngpt.DELTA_FORMAT`
-``combiner``        :data:`.combiner.COMBINER_DESIGNS`   :data:`.combiner.COMBINER_FORMAT`
-``kpcn``            :data:`.kpcn.KPCN_DESIGNS`           :data:`.kpcn.KPCN_FORMAT`
-==================  ===================================  ==============================
+================  ==================================  =============================================
+family            designs                             checkpoint (card ``"format"``)
+================  ==================================  =============================================
+``dense-unet``    :data:`.dense_unet.CONFIGS`         :data:`.dense_unet_reconstructor.CARD_FORMAT`
+``oidn-finetune`` :data:`.oidn_finetune.DESIGNS`      :data:`.oidn_finetune.DELTA_FORMAT`
+``combiner``      :data:`.combiner.COMBINER_DESIGNS`  :data:`.combiner.COMBINER_FORMAT`
+``kpcn``          :data:`.kpcn.KPCN_DESIGNS`          :data:`.kpcn.KPCN_FORMAT`
+================  ==================================  =============================================
 
 ``dense-unet`` is NGPT's network (Kettunen et al. 2019) trained from scratch;
 ``oidn-finetune`` is Intel Open Image Denoise's U-Net fine-tuned with gradient inputs;
@@ -39,7 +39,8 @@ from typing import Any
 
 from torch import nn
 
-from . import combiner, kpcn, ngpt, oidn_ngpt
+from . import combiner, dense_unet_reconstructor, kpcn, oidn_finetune
+from .cards import read_card
 from .dense_unet import CONFIGS, DenseUNet
 from .losses import LOSSES
 from .registry import Registry
@@ -58,6 +59,7 @@ class Family:
         name: the family's name.
         description: one line for messages and reports.
         card_format: the ``"format"`` of its model cards, which recognises its checkpoints.
+        former_card_formats: formats its cards had before, recognised as well.
         designs: design name -> design (``gdpt train --config``).
         losses: loss name -> the family's loss entry (``gdpt train --loss``), consumed by its
             training plan.
@@ -83,24 +85,25 @@ class Family:
     encode: Callable[[nn.Module, str, Mapping[str, Any]], tuple[bytes, str]]
     reconstructor: Callable[[str | Path], Any]
     card_keys: tuple[str, ...]
+    former_card_formats: tuple[str, ...] = ()
     oidn_weights: bool = False
     base: Callable[[Path, Mapping[str, Any]], Path | None] = lambda _path, _card: None
 
 
 # ------------------------------------------------------------------------------------ families
 def _load_dense(path: str | Path) -> Loaded:
-    model, card = ngpt.load_checkpoint(path)
+    model, card = dense_unet_reconstructor.load_checkpoint(path)
     return model, model.name, card
 
 
 def _encode_dense(net: nn.Module, design: str, card: Mapping[str, Any]) -> tuple[bytes, str]:
     if not isinstance(net, DenseUNet) or net.name != design:
         raise ValueError(f"a dense-unet checkpoint of {design!r} needs that DenseUNet")
-    return ngpt.encode_checkpoint(net, card)
+    return dense_unet_reconstructor.encode_checkpoint(net, card)
 
 
 def _load_delta(path: str | Path) -> Loaded:
-    net, _, card = oidn_ngpt.load_model(path)
+    net, _, card = oidn_finetune.load_model(path)
     return net, card["design"], card
 
 
@@ -121,13 +124,14 @@ FAMILIES.register(
     Family(
         name="dense-unet",
         description="NGPT's dense U-Net, trained from scratch",
-        card_format=ngpt.CARD_FORMAT,
+        card_format=dense_unet_reconstructor.CARD_FORMAT,
         designs=CONFIGS,
         losses=LOSSES,
         load=_load_dense,
         encode=_encode_dense,
-        reconstructor=ngpt.NGPTReconstructor.from_checkpoint,
-        card_keys=ngpt.CARD_KEYS,
+        reconstructor=dense_unet_reconstructor.DenseUNetReconstructor.from_checkpoint,
+        card_keys=dense_unet_reconstructor.CARD_KEYS,
+        former_card_formats=dense_unet_reconstructor.FORMER_CARD_FORMATS,
     ),
 )
 FAMILIES.register(
@@ -135,13 +139,13 @@ FAMILIES.register(
     Family(
         name="oidn-finetune",
         description="OIDN's U-Net fine-tuned with extra inputs (stored as a delta)",
-        card_format=oidn_ngpt.DELTA_FORMAT,
-        designs=oidn_ngpt.DESIGNS,
-        losses=oidn_ngpt.FINETUNE_LOSSES,
+        card_format=oidn_finetune.DELTA_FORMAT,
+        designs=oidn_finetune.DESIGNS,
+        losses=oidn_finetune.FINETUNE_LOSSES,
         load=_load_delta,
-        encode=oidn_ngpt.encode_delta,
-        reconstructor=oidn_ngpt.OIDNReconstructor.from_checkpoint,
-        card_keys=oidn_ngpt.CARD_KEYS,
+        encode=oidn_finetune.encode_delta,
+        reconstructor=oidn_finetune.OIDNReconstructor.from_checkpoint,
+        card_keys=oidn_finetune.CARD_KEYS,
         oidn_weights=True,
     ),
 )
@@ -189,9 +193,9 @@ def family_of(path: str | Path) -> Family:
         ValueError: an unreadable card, or a format of no known family (the message names the
             card and every known family with its format).
     """
-    _, card_path, card = ngpt.read_card(path)
+    _, card_path, card = read_card(path)
     for family in FAMILIES.values():
-        if card.get("format") == family.card_format:
+        if card.get("format") in (family.card_format, *family.former_card_formats):
             return family
     known = ", ".join(f"{f.name} ({f.card_format!r})" for f in FAMILIES.values())
     raise ValueError(

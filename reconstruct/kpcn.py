@@ -71,8 +71,8 @@ import torch
 from safetensors.torch import load_file, save
 from torch import nn
 
+from .cards import read_card
 from .kernels import apply_kernels
-from .ngpt import read_card
 from .registry import Registry
 
 __all__ = [

@@ -22,10 +22,10 @@ from .flip import FLIP_DEFAULT_PPD, check_tonemapper, hdr_flip, ldr_flip
 from .registry import Registry
 
 __all__ = [
+    "DenseUNetLoss",
     "ELPIPSLoss",
     "FLIPLoss",
     "LOSSES",
-    "NGPTLoss",
     "forward_differences",
     "get_loss",
     "gradient_l1_tonemapped",
@@ -174,7 +174,7 @@ class ELPIPSLoss(nn.Module):
         return self.elpips(display(pred), display(target)).mean()
 
 
-class NGPTLoss(nn.Module):
+class DenseUNetLoss(nn.Module):
     """``perceptual + beta L1(R(x), R(y)) + gamma L1(R~(grad x), R~(grad y)) + delta l1_log
     + rho l1_relative``.
 
@@ -222,21 +222,21 @@ def _elpips_loss(
     *,
     config: ELPIPSConfig | None = None,
     seed: int | None = None,
-) -> NGPTLoss:
+) -> DenseUNetLoss:
     """NGPT config 100: E-LPIPS (NGPT training config) + 0.01 L1(R) + 0.01 gradient L1."""
-    elpips = load_elpips_weights(weights, config or ELPIPSConfig.ngpt_training(), seed=seed)
-    return NGPTLoss(ELPIPSLoss(elpips))
+    elpips = load_elpips_weights(weights, config or ELPIPSConfig.for_training(), seed=seed)
+    return DenseUNetLoss(ELPIPSLoss(elpips))
 
 
 #: Loss name -> factory; every factory returns a module ``(pred, target) -> scalar`` on linear
 #: HDR ``(N, 3, H, W)`` tensors.
 LOSSES: Registry[Callable[..., nn.Module]] = Registry("loss")
-LOSSES.register("flip", lambda **kw: NGPTLoss(FLIPLoss("ldr", **kw)))
-LOSSES.register("flip_hdr", lambda **kw: NGPTLoss(FLIPLoss("hdr", **kw)))
-LOSSES.register("flip_log", lambda **kw: NGPTLoss(FLIPLoss("ldr", **kw), delta=0.1))
-LOSSES.register("flip_rel", lambda **kw: NGPTLoss(FLIPLoss("ldr", **kw), rho=1.0))
+LOSSES.register("flip", lambda **kw: DenseUNetLoss(FLIPLoss("ldr", **kw)))
+LOSSES.register("flip_hdr", lambda **kw: DenseUNetLoss(FLIPLoss("hdr", **kw)))
+LOSSES.register("flip_log", lambda **kw: DenseUNetLoss(FLIPLoss("ldr", **kw), delta=0.1))
+LOSSES.register("flip_rel", lambda **kw: DenseUNetLoss(FLIPLoss("ldr", **kw), rho=1.0))
 LOSSES.register("elpips", _elpips_loss)
-LOSSES.register("l1", lambda **kw: NGPTLoss(None, beta=1.0, gamma=0.01, **kw))
+LOSSES.register("l1", lambda **kw: DenseUNetLoss(None, beta=1.0, gamma=0.01, **kw))
 
 
 def get_loss(name: str, **kwargs: object) -> nn.Module:

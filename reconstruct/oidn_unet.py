@@ -49,7 +49,7 @@ such images can differ slightly near OIDN's tile seams), the directional lightma
 ``RTLightmap`` filter (its blobs load, but :func:`denoise` runs the ``RT`` filter only), and the
 reduced precision of OIDN's ``balanced``/``fast`` modes on some devices.
 
-Extra input channels (the gradient inputs of ``gdpt.reconstruct.oidn_ngpt``):
+Extra input channels (the gradient inputs of ``gdpt.reconstruct.oidn_finetune``):
 ``OIDNUNet(..., extra_channels=k)`` / ``OIDNUNet.from_weights(..., extra_channels=k)`` appends
 ``k`` input channels after OIDN's (``enc_conv0`` reads ``[oidn inputs, extra]``; so does
 ``dec_conv1a`` after the upsampled features, since the input joins the last skip). Their

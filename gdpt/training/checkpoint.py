@@ -2,7 +2,8 @@
 
 A checkpoint is two files, ``<path>.safetensors`` (weights) and ``<path>.json`` (model card),
 encoded by its family (:attr:`gdpt.reconstruct.families.Family.encode`; a dense U-Net's by
-:func:`gdpt.reconstruct.ngpt.encode_checkpoint`, which :func:`save_checkpoint` calls).
+:func:`gdpt.reconstruct.dense_unet_reconstructor.encode_checkpoint`, which
+:func:`save_checkpoint` calls).
 :func:`write_checkpoint` writes the weights first and the card last, each with
 :func:`gdpt.io.atomic.atomic_write`, so a card on disk always describes complete weights.
 """
@@ -14,8 +15,9 @@ from pathlib import Path
 from typing import Any
 
 from gdpt.io.atomic import atomic_write
+from gdpt.reconstruct.cards import checkpoint_paths
 from gdpt.reconstruct.dense_unet import DenseUNet
-from gdpt.reconstruct.ngpt import checkpoint_paths, encode_checkpoint
+from gdpt.reconstruct.dense_unet_reconstructor import encode_checkpoint
 
 
 def save_checkpoint(

@@ -83,7 +83,7 @@ def select_refinement(
     from tqdm.auto import tqdm
 
     from gdpt.metrics import flip_ldr, relmse
-    from gdpt.reconstruct.oidn_ngpt import OIDNReconstructor, load_model
+    from gdpt.reconstruct.oidn_finetune import OIDNReconstructor, load_model
     from gdpt.reconstruct.refine import GatedRefinement
     from gdpt.training.dataset import CropDataset
 

@@ -16,12 +16,12 @@ from pathlib import Path
 
 from gdpt.reconstruct.families import family_of_design
 from gdpt.reconstruct.registry import Registry
-from gdpt.training.combine import combiner_plan
+from gdpt.training.combiner import combiner_plan
 from gdpt.training.config import TrainConfig
-from gdpt.training.dense import dense_plan
-from gdpt.training.finetune import finetune_plan
+from gdpt.training.dense_unet import dense_plan
 from gdpt.training.kpcn import kpcn_plan
 from gdpt.training.loop import PlanBuilder, training_loop
+from gdpt.training.oidn_finetune import finetune_plan
 
 __all__ = ["PLANS", "train"]
 

@@ -13,8 +13,8 @@ import numpy as np
 import torch
 
 from gdpt.reconstruct.dense_unet import DenseUNet
+from gdpt.reconstruct.dense_unet_reconstructor import DenseUNetReconstructor
 from gdpt.reconstruct.losses import FLIPLoss
-from gdpt.reconstruct.ngpt import NGPTReconstructor
 from gdpt.training.dataset import CropDataset, DatasetWarning
 
 
@@ -89,7 +89,7 @@ def validate(
     model: DenseUNet, elements: list[_ValElement], features: tuple[str, ...], margin: int
 ) -> dict[str, float]:
     """Mean relMSE and FLIP of the network and of L1 Poisson over the validation elements."""
-    reconstructor = NGPTReconstructor(model, features=features, tile_size=None, margin=margin)
+    reconstructor = DenseUNetReconstructor(model, features=features, tile_size=None, margin=margin)
     flip = FLIPLoss("ldr")
     totals: dict[str, float] = {}
     for element in elements:

@@ -243,7 +243,7 @@ def test_corrupt_checkpoint_exits_2_naming_the_file(render, tmp_path, corrupt_ch
 def test_config_options_expose_every_field_with_the_dataclass_defaults(monkeypatch):
     from gdpt.reconstruct.combiner import COMBINER_LOSSES
     from gdpt.reconstruct.losses import LOSSES
-    from gdpt.reconstruct.oidn_ngpt import FINETUNE_LOSSES
+    from gdpt.reconstruct.oidn_finetune import FINETUNE_LOSSES
 
     from gdpt.training.config import TrainConfig
     from gdpt.training.dataset import DatasetConfig

@@ -1,4 +1,4 @@
-"""gdpt.training.combine: the combiner learns, writes a complete run directory, resumes
+"""gdpt.training.combiner: the combiner learns, writes a complete run directory, resumes
 exactly, and refuses a base network that does not fit."""
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ from gdpt.reconstruct.combiner import (
     combiner_loss,
     load_combiner,
 )
-from gdpt.reconstruct.oidn_ngpt import DESIGNS, OIDNReconstructor, base_model, encode_delta
+from gdpt.reconstruct.oidn_finetune import DESIGNS, OIDNReconstructor, base_model, encode_delta
 
 from gdpt.training.checkpoint import write_checkpoint
-from gdpt.training.combine import CandidateCache, make_combiner_batch
+from gdpt.training.combiner import CandidateCache, make_combiner_batch
 from gdpt.training.config import TrainConfig
 from gdpt.training.dataset import CropDataset
 from gdpt.training.model_report import ship_model

@@ -428,7 +428,7 @@ def registries_restored():
 
 
 def test_model_option_compares_a_checkpoint(variant, tmp_path, capsys, registries_restored):
-    from gdpt.reconstruct.oidn_ngpt import DESIGNS, base_model, encode_delta
+    from gdpt.reconstruct.oidn_finetune import DESIGNS, base_model, encode_delta
 
     from gdpt.training.checkpoint import write_checkpoint
 

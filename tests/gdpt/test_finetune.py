@@ -1,5 +1,5 @@
-"""gdpt.training.finetune: OIDN fine-tuning (the ``oidn-finetune`` family's plan) learns, writes
-its run directory, resumes exactly."""
+"""gdpt.training.oidn_finetune: OIDN fine-tuning (the ``oidn-finetune`` family's plan) learns,
+writes its run directory, resumes exactly."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from gdpt.reconstruct.oidn_ngpt import DESIGNS, base_model, finetune_loss, load_model
+from gdpt.reconstruct.oidn_finetune import DESIGNS, base_model, finetune_loss, load_model
 
 from gdpt.training.config import TrainConfig
 from gdpt.training.dataset import CropDataset
-from gdpt.training.finetune import make_finetune_batch
+from gdpt.training.oidn_finetune import make_finetune_batch
 from gdpt.training.run_dir import read_jsonl
 from gdpt.training.step import make_optimizer
 from gdpt.training.train import train

@@ -7,7 +7,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from gdpt.reconstruct.ngpt import NGPTReconstructor
+from gdpt.reconstruct.dense_unet_reconstructor import DenseUNetReconstructor
 
 from gdpt.cli import main
 from gdpt.io.exr import load_buffers
@@ -86,7 +86,7 @@ def test_comparison_scores_the_right_inputs(runs):
 def test_ship_model_writes_a_loadable_card_and_enforces_the_size_limit(runs, tmp_path, monkeypatch):
     _, run_dirs = runs
     path = model_report.ship_model(run_dirs["dense"], "dense", comparison={"x": 1}, dest=tmp_path)
-    card = NGPTReconstructor.from_checkpoint(path).card
+    card = DenseUNetReconstructor.from_checkpoint(path).card
     assert card["name"] == "dense" and card["heldout_comparison"] == {"x": 1}
     assert card["wall_clock_hours"] >= 0 and card["dataset"]["config"]["target_spp"] == 8
     assert card["train_config"]["model"] == "fast_xs"

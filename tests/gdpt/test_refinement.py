@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 
 import pytest
-from gdpt.reconstruct.oidn_ngpt import DESIGNS, OIDNReconstructor, base_model, encode_delta
+from gdpt.reconstruct.oidn_finetune import DESIGNS, OIDNReconstructor, base_model, encode_delta
 from gdpt.reconstruct.refine import GatedRefinement
 
 from gdpt.training.checkpoint import write_checkpoint

@@ -17,7 +17,7 @@ from gdpt.reconstruct.combiner import (
     encode_combiner,
     load_combiner,
 )
-from gdpt.reconstruct.oidn_ngpt import DESIGNS, OIDNReconstructor, base_model, encode_delta
+from gdpt.reconstruct.oidn_finetune import DESIGNS, OIDNReconstructor, base_model, encode_delta
 from gdpt.reconstruct.poisson import NonFiniteInputWarning
 
 

@@ -11,10 +11,10 @@ import torch
 import torch.nn.functional as F
 from gdpt.reconstruct.combiner import COMBINER_DESIGNS, CombinerNet, encode_combiner
 from gdpt.reconstruct.dense_unet import build_model
+from gdpt.reconstruct.dense_unet_reconstructor import encode_checkpoint
 from gdpt.reconstruct.families import FAMILIES, family_of, family_of_design
 from gdpt.reconstruct.kpcn import KPCN_DESIGNS, KPCNNet, encode_kpcn
-from gdpt.reconstruct.ngpt import encode_checkpoint
-from gdpt.reconstruct.oidn_ngpt import DESIGNS, base_model, encode_delta
+from gdpt.reconstruct.oidn_finetune import DESIGNS, base_model, encode_delta
 
 
 def write(path: Path, encoded: tuple[bytes, str]) -> Path:

@@ -93,7 +93,7 @@ def test_flip_losses_gradient_flow(image_pair) -> None:
 def test_elpips_gradient_flow(image_pair, tiny_elpips) -> None:
     a, b = image_pair()
     a = a.requires_grad_()
-    loss = L.NGPTLoss(L.ELPIPSLoss(tiny_elpips(ELPIPSConfig.ngpt_training())))
+    loss = L.DenseUNetLoss(L.ELPIPSLoss(tiny_elpips(ELPIPSConfig.for_training())))
     loss(4 * a, 4 * b).backward()
     assert torch.isfinite(a.grad).all() and a.grad.abs().sum() > 0
     assert all(p.grad is None for p in loss.parameters())  # the backbone is frozen

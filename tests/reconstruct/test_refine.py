@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from gdpt.reconstruct.oidn_ngpt import DESIGNS, OIDNReconstructor, base_model
+from gdpt.reconstruct.oidn_finetune import DESIGNS, OIDNReconstructor, base_model
 from gdpt.reconstruct.poisson import NonFiniteInputWarning
 from gdpt.reconstruct.refine import GatedRefinement
 

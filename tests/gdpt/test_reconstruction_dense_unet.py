@@ -1,4 +1,4 @@
-"""``reconstruct_image(buffers, method="oidn-grad", model=...)`` with a trained checkpoint (an NGPT
+"""``reconstruct_image(buffers, method="oidn-grad", model=...)`` with a trained checkpoint (a
 dense U-Net): checkpoint lookup, inference, errors, and the method's deprecated names."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from gdpt.denoise import model_path, reconstruct_image
 
 
 @pytest.fixture
-def ngpt_buffers(random_buffers):
-    """``f(gradients=True)``: 13x17 random NGPT input buffers (with or without dx, dy)."""
+def dense_unet_buffers(random_buffers):
+    """``f(gradients=True)``: 13x17 random dense U-Net input buffers (with or without dx, dy)."""
 
     def make(gradients: bool = True):
         names = FEATURES_WITH_GRADIENTS if gradients else FEATURES_WITHOUT_GRADIENTS
@@ -33,15 +33,15 @@ def checkpoint(tmp_path):
     return path
 
 
-def test_network_with_explicit_checkpoint(checkpoint, ngpt_buffers):
-    image = reconstruct_image(ngpt_buffers(), method="oidn-grad", model=checkpoint)
+def test_network_with_explicit_checkpoint(checkpoint, dense_unet_buffers):
+    image = reconstruct_image(dense_unet_buffers(), method="oidn-grad", model=checkpoint)
     assert image.shape == (13, 17, 3) and image.dtype == torch.float32
     assert torch.isfinite(image).all() and (image >= 0).all()  # radiance: clamped at 0
 
 
-def test_checkpoint_from_environment(checkpoint, monkeypatch, ngpt_buffers):
+def test_checkpoint_from_environment(checkpoint, monkeypatch, dense_unet_buffers):
     monkeypatch.setenv("GDPT_OIDN_GRAD_MODEL", str(checkpoint))
-    assert reconstruct_image(ngpt_buffers(), method="oidn-grad").shape == (13, 17, 3)
+    assert reconstruct_image(dense_unet_buffers(), method="oidn-grad").shape == (13, 17, 3)
 
 
 def test_deprecated_environment_variable_is_honoured_with_a_warning(checkpoint, monkeypatch):
@@ -55,8 +55,8 @@ def test_deprecated_environment_variable_is_honoured_with_a_warning(checkpoint, 
         model_path("oidn-grad")
 
 
-def test_deprecated_method_name_warns_and_runs_the_new_method(checkpoint, ngpt_buffers):
-    buffers = ngpt_buffers()
+def test_deprecated_method_name_warns_and_runs_the_new_method(checkpoint, dense_unet_buffers):
+    buffers = dense_unet_buffers()
     with pytest.warns(DeprecationWarning, match="'ngpt' is deprecated; use 'oidn-grad'") as caught:
         old = reconstruct_image(buffers, method="ngpt", model=checkpoint)
     assert caught[0].filename == __file__  # the warning names the caller's line
@@ -64,12 +64,14 @@ def test_deprecated_method_name_warns_and_runs_the_new_method(checkpoint, ngpt_b
     torch.testing.assert_close(old, new, rtol=0, atol=0)
 
 
-def test_missing_checkpoint_says_what_to_provide(tmp_path, monkeypatch, ngpt_buffers):
+def test_missing_checkpoint_says_what_to_provide(tmp_path, monkeypatch, dense_unet_buffers):
     monkeypatch.delenv("GDPT_OIDN_GRAD_MODEL", raising=False)
     with pytest.raises(FileNotFoundError, match="checkpoint not found: .*model=PATH"):
-        reconstruct_image(ngpt_buffers(), method="oidn-grad", model=tmp_path / "none.safetensors")
+        reconstruct_image(
+            dense_unet_buffers(), method="oidn-grad", model=tmp_path / "none.safetensors"
+        )
 
 
-def test_missing_gradients_named(checkpoint, ngpt_buffers):
+def test_missing_gradients_named(checkpoint, dense_unet_buffers):
     with pytest.raises((KeyError, ValueError), match="dx"):
-        reconstruct_image(ngpt_buffers(gradients=False), method="oidn-grad", model=checkpoint)
+        reconstruct_image(dense_unet_buffers(gradients=False), method="oidn-grad", model=checkpoint)

@@ -9,7 +9,8 @@ batch (:func:`gdpt.training.step.compute_loss` with a loss of
 :data:`gdpt.reconstruct.losses.LOSSES`) and validation (:mod:`gdpt.training.validation`:
 relMSE and FLIP of the network and of L1 Poisson on held-out crops). The network reads the
 G-PT input (16-channel configurations) or the path-traced one (10 channels). Checkpoints are
-:mod:`gdpt.reconstruct.ngpt` cards (:func:`gdpt.training.checkpoint.save_checkpoint`).
+:mod:`gdpt.reconstruct.dense_unet_reconstructor` cards
+(:func:`gdpt.training.checkpoint.save_checkpoint`).
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ from __future__ import annotations
 import torch
 
 from gdpt.reconstruct.dense_unet import build_model
+from gdpt.reconstruct.dense_unet_reconstructor import default_features
 from gdpt.reconstruct.losses import get_loss
-from gdpt.reconstruct.ngpt import default_features
 from gdpt.training.batches import make_batch, split_datasets
 from gdpt.training.checkpoint import save_checkpoint
 from gdpt.training.config import TrainConfig

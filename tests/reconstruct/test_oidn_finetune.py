@@ -1,10 +1,10 @@
-"""gdpt.reconstruct.oidn_ngpt: step 0 is OIDN, delta checkpoints round-trip, bad input."""
+"""gdpt.reconstruct.oidn_finetune: step 0 is OIDN, delta checkpoints round-trip, bad input."""
 
 from __future__ import annotations
 
 import pytest
 import torch
-from gdpt.reconstruct.oidn_ngpt import (
+from gdpt.reconstruct.oidn_finetune import (
     DESIGNS,
     OIDNReconstructor,
     assemble,

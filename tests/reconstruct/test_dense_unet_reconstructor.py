@@ -1,4 +1,5 @@
-"""Tests of NGPT inference: tiling, padding of tiny images, checkpoints and input errors."""
+"""Tests of the dense U-Net reconstructor: tiling, padding of tiny images, checkpoints and
+input errors."""
 
 from __future__ import annotations
 
@@ -7,9 +8,10 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from gdpt.reconstruct import ngpt
+from gdpt.reconstruct import cards, dense_unet_reconstructor
+from gdpt.reconstruct.cards import CheckpointMismatchError
 from gdpt.reconstruct.dense_unet import DenseUNet, ModelConfig, build_model
-from gdpt.reconstruct.ngpt import CheckpointMismatchError, NGPTReconstructor
+from gdpt.reconstruct.dense_unet_reconstructor import DenseUNetReconstructor
 
 from gdpt.training.checkpoint import save_checkpoint
 
@@ -55,8 +57,8 @@ def _buffers(h: int, w: int, seed: int = 0) -> dict[str, torch.Tensor]:
 def test_tiled_equals_untiled(config, size, tile):
     model = _model(config)
     bufs = _buffers(*size)
-    untiled = NGPTReconstructor(model, tile_size=None)(bufs)
-    tiled_rec = NGPTReconstructor(model, tile_size=tile)
+    untiled = DenseUNetReconstructor(model, tile_size=None)(bufs)
+    tiled_rec = DenseUNetReconstructor(model, tile_size=tile)
     tiled = tiled_rec(bufs)
     assert len(tiled_rec.tiles(size[0] + 24, size[1] + 24)) > 4
     assert tiled.shape == (*size, 3) and tiled.dtype == torch.float32
@@ -65,7 +67,7 @@ def test_tiled_equals_untiled(config, size, tile):
 
 
 def test_tiny_images_batches_and_nonfinite_inputs():
-    rec = NGPTReconstructor(_model("fast_xs"))
+    rec = DenseUNetReconstructor(_model("fast_xs"))
     bufs = _buffers(3, 5)
     bufs["primal"][1, 1] = float("nan")
     bufs["dx"][0, 0] = float("inf")
@@ -81,7 +83,7 @@ def test_tiny_images_batches_and_nonfinite_inputs():
 
 
 def test_missing_and_malformed_buffers():
-    rec = NGPTReconstructor(_model(TINY))
+    rec = DenseUNetReconstructor(_model(TINY))
     bufs = _buffers(16, 16)
     del bufs["dy"], bufs["albedo"]
     with pytest.raises(KeyError, match=r"missing feature buffers \['dy', 'albedo'\]"):
@@ -103,14 +105,38 @@ def test_checkpoint_round_trip(tmp_path):
     stored = json.loads(card_path.read_text())
     assert stored["config_name"] == "nograd" and stored["steps"] == 12
     assert stored["features"] == ["primal", "albedo", "normal", "depth"]
-    rec = NGPTReconstructor.from_checkpoint(card_path)
+    rec = DenseUNetReconstructor.from_checkpoint(card_path)
     assert rec.features == ("primal", "albedo", "normal", "depth")
     assert rec.card["validation"] == {"relmse": 0.125}
     bufs = _buffers(24, 24)
     del bufs["dx"], bufs["dy"]
-    torch.testing.assert_close(rec(bufs), NGPTReconstructor(model)(bufs))
+    torch.testing.assert_close(rec(bufs), DenseUNetReconstructor(model)(bufs))
     with pytest.raises(ValueError, match="reserved"):
         save_checkpoint(model, tmp_path / "x", {"config": 1})
+
+
+def test_cards_of_the_former_format_still_load(tmp_path):
+    """A card written before the format was renamed (``gdpt-ngpt-checkpoint/1``) is recognised
+    as a dense U-Net and loads like a current one; new cards carry the current format."""
+    from gdpt.reconstruct.families import FAMILIES, family_of
+
+    model = _model(TINY)
+    _, card_path = save_checkpoint(model, tmp_path / "m")
+    card = json.loads(card_path.read_text())
+    assert card["format"] == dense_unet_reconstructor.CARD_FORMAT == "gdpt-dense-unet-checkpoint/1"
+    card["format"] = "gdpt-ngpt-checkpoint/1"
+    card_path.write_text(json.dumps(card))
+    loaded, stored = dense_unet_reconstructor.load_checkpoint(card_path)
+    assert stored["format"] == "gdpt-ngpt-checkpoint/1"
+    assert family_of(card_path) is FAMILIES["dense-unet"]
+    bufs = _buffers(24, 24)
+    expected = DenseUNetReconstructor(model)(bufs)
+    torch.testing.assert_close(DenseUNetReconstructor(loaded)(bufs), expected)
+    torch.testing.assert_close(DenseUNetReconstructor.from_checkpoint(card_path)(bufs), expected)
+    card["format"] = "gdpt-unknown-checkpoint/1"
+    card_path.write_text(json.dumps(card))
+    with pytest.raises(CheckpointMismatchError, match="this code reads"):
+        dense_unet_reconstructor.load_checkpoint(card_path)
 
 
 def test_checkpoint_mismatch_errors(tmp_path):
@@ -118,19 +144,19 @@ def test_checkpoint_mismatch_errors(tmp_path):
     model.name = "fast"  # pretend a registered name with a different config
     _, card_path = save_checkpoint(model, tmp_path / "m")
     with pytest.raises(CheckpointMismatchError, match="differs from the code's 'fast'.*growth"):
-        ngpt.load_checkpoint(card_path)
+        dense_unet_reconstructor.load_checkpoint(card_path)
     card = json.loads(card_path.read_text())
     card["config_name"] = None
     card["config"]["growth_rates"] = [8, 12, 16]
     card_path.write_text(json.dumps(card))
     with pytest.raises(CheckpointMismatchError, match="does not match the config.*stored"):
-        ngpt.load_checkpoint(card_path)
+        dense_unet_reconstructor.load_checkpoint(card_path)
     card["config"]["colour"] = 1
     card_path.write_text(json.dumps(card))
     with pytest.raises(CheckpointMismatchError, match="unknown ModelConfig fields"):
-        ngpt.load_checkpoint(card_path)
+        dense_unet_reconstructor.load_checkpoint(card_path)
     with pytest.raises(FileNotFoundError, match="need .safetensors"):
-        ngpt.load_checkpoint(tmp_path / "absent.safetensors")
+        dense_unet_reconstructor.load_checkpoint(tmp_path / "absent.safetensors")
 
 
 @pytest.mark.parametrize(
@@ -150,7 +176,11 @@ def test_corrupt_weights_are_a_value_error_naming_the_file(tmp_path, damage, pro
     weights, card_path = save_checkpoint(_model(TINY), tmp_path / "m")
     weights.write_bytes(damage(weights.read_bytes()))
     expected = rf"m\.safetensors: not a readable safetensors file \(.*{problem}"
-    for read in (ngpt.read_card, ngpt.load_checkpoint, NGPTReconstructor.from_checkpoint):
+    for read in (
+        cards.read_card,
+        dense_unet_reconstructor.load_checkpoint,
+        DenseUNetReconstructor.from_checkpoint,
+    ):
         with pytest.raises(ValueError, match=expected):
             read(card_path)
     with pytest.raises(ValueError, match=expected):
@@ -162,10 +192,10 @@ def test_card_that_is_not_a_json_object_names_the_file(tmp_path):
     _, card_path = save_checkpoint(_model(TINY), tmp_path / "m")
     card_path.write_text("{truncated")
     with pytest.raises(ValueError, match=r"m\.json: model card is not valid JSON"):
-        ngpt.read_card(card_path)
+        cards.read_card(card_path)
     card_path.write_text("[]")
     with pytest.raises(ValueError, match=r"m\.json: model card is not a JSON object"):
-        ngpt.read_card(card_path)
+        cards.read_card(card_path)
 
 
 def test_input_gradients_match_finite_differences():
@@ -173,7 +203,7 @@ def test_input_gradients_match_finite_differences():
     against central differences. The differences converge to the derivative as the step
     shrinks (at step 1e-2 they were still 16% off for ``dy``: curvature and leaky-ReLU kinks);
     at 3e-4 float32 rounding leaves 0.7-2.4% (measured), hence 5%."""
-    rec = NGPTReconstructor(_model(TINY), tile_size=None)
+    rec = DenseUNetReconstructor(_model(TINY), tile_size=None)
     bufs = _buffers(16, 20)
     gen = torch.Generator().manual_seed(1)
     weight = torch.rand(16, 20, 3, generator=gen)
@@ -192,7 +222,7 @@ def test_input_gradients_match_finite_differences():
 
 
 def test_inference_mode_unless_a_buffer_requires_gradients():
-    rec = NGPTReconstructor(_model(TINY))
+    rec = DenseUNetReconstructor(_model(TINY))
     bufs = _buffers(8, 8)
     assert rec(bufs).is_inference()
     bufs["depth"].requires_grad_(True)

@@ -1,5 +1,5 @@
 """The training plan of the ``oidn-finetune`` family: OIDN's U-Net fine-tuned with gradient
-inputs (:mod:`gdpt.reconstruct.oidn_ngpt`) on a :mod:`gdpt.training.dataset`.
+inputs (:mod:`gdpt.reconstruct.oidn_finetune`) on a :mod:`gdpt.training.dataset`.
 
 ``gdpt train --config oidn-grad`` (or another design of ``DESIGNS``, e.g. ``oidn-nograd``)
 runs :func:`finetune_plan` in the training loop (:mod:`gdpt.training.loop`: run directory,
@@ -12,19 +12,19 @@ with the dense U-Net's plan; what differs:
   weights), so step 0 reproduces OIDN exactly;
 * ``extra_lr_scale`` lets the extra inputs' weights move faster than the rest (the fine-tuning
   rate is small to keep OIDN's skill, and zero-started weights would stay near zero under it);
-* inputs are OIDN's encoding (:func:`~gdpt.reconstruct.oidn_ngpt.assemble`); sub-crops
+* inputs are OIDN's encoding (:func:`~gdpt.reconstruct.oidn_finetune.assemble`); sub-crops
   (``crop``) must be multiples of 16; there is no mirror padding (``pad`` and
   ``vary_padding`` are ignored: OIDN's convolutions zero-pad, as at inference);
-* loss (``config.loss``, :data:`~gdpt.reconstruct.oidn_ngpt.FINETUNE_LOSSES`): ``l1`` is
+* loss (``config.loss``, :data:`~gdpt.reconstruct.oidn_finetune.FINETUNE_LOSSES`): ``l1`` is
   OIDN's own L1 in its PU space,
-  ``l1_rel`` adds the Noise2Noise relative MSE (:func:`~gdpt.reconstruct.oidn_ngpt
+  ``l1_rel`` adds the Noise2Noise relative MSE (:func:`~gdpt.reconstruct.oidn_finetune
   .finetune_loss`), unbiased under the zero-mean noise of path-traced targets
   (``gdpt dataset --target pt``), ``l1_grad`` an L1 on the PU image's forward differences
   (NGPT's gradient term);
 * the ``oidn-grad-l1`` design's L1 Poisson input is solved once per dataset element
   ('l1-fast', alpha 0.2) and augmented like the primal (flips and scalings commute with the
   solve; a sub-crop of the solution stands in for the solution of the sub-crop);
-* checkpoints store the difference to OIDN's weights (:func:`~gdpt.reconstruct.oidn_ngpt
+* checkpoints store the difference to OIDN's weights (:func:`~gdpt.reconstruct.oidn_finetune
   .encode_delta`); the exact weights and the Adam state go to the ``.pt`` file of the run
   (never committed), which resume reads (as for every family);
 * validation (``val.jsonl``) scores the network, OIDN on the same input (step 0), OIDN on the
@@ -41,7 +41,7 @@ from pathlib import Path
 import torch
 
 from gdpt.reconstruct.losses import FLIPLoss
-from gdpt.reconstruct.oidn_ngpt import (
+from gdpt.reconstruct.oidn_finetune import (
     DESIGNS,
     FINETUNE_LOSSES,
     Design,

@@ -4,7 +4,7 @@
 ``gdpt train --config combiner-grad --base-model RUN/model.safetensors`` (or
 ``combiner-nograd``) runs :func:`combiner_plan` in the training loop
 (:mod:`gdpt.training.loop`). The base network
-(a fine-tuned OIDN delta checkpoint, :mod:`gdpt.reconstruct.oidn_ngpt`) is frozen: its output
+(a fine-tuned OIDN delta checkpoint, :mod:`gdpt.reconstruct.oidn_finetune`) is frozen: its output
 and the other candidates are computed once per dataset element, on the un-augmented buffers,
 and then augmented with the element (flips, transposition and colour scalings commute with the
 candidates up to the base network's own equivariance error; a sub-crop of a candidate stands in
@@ -13,7 +13,7 @@ see (another ``gdpt dataset --seed``), so that its candidates are as good as the
 scenes, not as good as on the base network's training set.
 
 The augmentations, held-out split and per-step seeding are the fine-tuning plan's
-(:mod:`gdpt.training.finetune`). The loss (:data:`~gdpt.reconstruct.combiner.COMBINER_LOSSES`,
+(:mod:`gdpt.training.oidn_finetune`). The loss (:data:`~gdpt.reconstruct.combiner.COMBINER_LOSSES`,
 :func:`~gdpt.reconstruct.combiner.combiner_loss`) is OIDN's PU-L1 plus a relative error
 against the base image. The run directory holds a copy of the base network (``base.*``, the
 card's ``base_model``), so it is a complete model. Validation (``val.jsonl``) scores the
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import torch
 
+from gdpt.reconstruct.cards import read_card
 from gdpt.reconstruct.combiner import (
     COMBINER_DESIGNS,
     COMBINER_LOSSES,
@@ -36,8 +37,7 @@ from gdpt.reconstruct.combiner import (
     encode_combiner,
 )
 from gdpt.reconstruct.losses import FLIPLoss
-from gdpt.reconstruct.ngpt import read_card
-from gdpt.reconstruct.oidn_ngpt import OIDNReconstructor
+from gdpt.reconstruct.oidn_finetune import OIDNReconstructor
 from gdpt.training.augment import augment, sample_augmentation
 from gdpt.training.batches import split_datasets, step_seed
 from gdpt.training.checkpoint import write_checkpoint

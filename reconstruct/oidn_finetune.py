@@ -59,8 +59,8 @@ import torch
 from safetensors.torch import load_file, save
 
 from .autograd import records
+from .cards import read_card
 from .losses import forward_differences
-from .ngpt import read_card
 from .oidn_unet import OIDNUNet, autoexposure, decode_output, encode_inputs, pu_forward
 from .refine import GatedRefinement
 from .registry import Registry

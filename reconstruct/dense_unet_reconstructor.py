@@ -1,6 +1,6 @@
-"""NGPT inference: checkpoints (safetensors + JSON model card) and the tiled reconstructor.
+"""The dense U-Net's checkpoints (safetensors + JSON model card) and its tiled reconstructor.
 
-A checkpoint is two files next to each other::
+A checkpoint is two files next to each other (:mod:`.cards`)::
 
     model.safetensors   the DenseUNet state dict (float32)
     model.json          the model card: {"format", "config_name", "config", "features",
@@ -10,11 +10,12 @@ The free-form part of the card is whatever the trainer passes to :func:`encode_c
 expected keys are ``"training"`` (data description), ``"steps"`` and ``"validation"``
 (metric name -> value). :func:`load_checkpoint` rebuilds the network from the card's config and
 fails with a readable message (not a shape traceback) when the card disagrees with the code's
-registered configuration of the same name, or with the stored weights.
+registered configuration of the same name, or with the stored weights. Cards with a
+:data:`FORMER_CARD_FORMATS` format are read like current ones.
 
-:class:`NGPTReconstructor` turns a buffer dict into the reconstruction::
+:class:`DenseUNetReconstructor` turns a buffer dict into the reconstruction::
 
-    rec = NGPTReconstructor.from_checkpoint("runs/00007-paper/model.safetensors")
+    rec = DenseUNetReconstructor.from_checkpoint("runs/00007-paper/model.safetensors")
     image = rec({"primal": p, "dx": dx, "dy": dy, "albedo": a, "normal": n, "depth": d})
 
 The dense U-Net's configurations, losses and this checkpoint format form the ``dense-unet``
@@ -24,7 +25,7 @@ Layout, dtype, device: HWC float tensors as in ``gdpt.buffers``; the network run
 of the input buffers (the weights are copied there on first use) in channels-last memory format
 under ``torch.inference_mode``, unless autograd records an input buffer: then the result is
 differentiable w.r.t. the buffers (not the weights, which are frozen). Only torch, safetensors
-and json are imported (layering rule of ``gdpt.reconstruct``).
+and the standard library are imported (layering rule of ``gdpt.reconstruct``).
 """
 
 from __future__ import annotations
@@ -37,10 +38,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save
 
 from .autograd import records
+from .cards import CheckpointMismatchError, read_card
 from .dense_unet import CONFIGS, DenseUNet, ModelConfig, parameter_count
 from .transforms import (
     FEATURE_CHANNELS,
@@ -55,13 +56,11 @@ from .transforms import (
 )
 
 #: Value of the card's ``"format"`` key written by this version.
-CARD_FORMAT = "gdpt-ngpt-checkpoint/1"
+CARD_FORMAT = "gdpt-dense-unet-checkpoint/1"
+#: Former values of the card's ``"format"`` key, still read (cards written by gdpt 0.1).
+FORMER_CARD_FORMATS = ("gdpt-ngpt-checkpoint/1",)
 #: Card keys written by :func:`encode_checkpoint` (the rest of a card is training information).
 CARD_KEYS = ("format", "config_name", "config", "features", "parameter_count")
-
-
-class CheckpointMismatchError(ValueError):
-    """A checkpoint's card does not match the code or its weights."""
 
 
 def default_features(in_channels: int) -> tuple[str, ...]:
@@ -74,41 +73,6 @@ def default_features(in_channels: int) -> tuple[str, ...]:
         if sum(FEATURE_CHANNELS[f] for f in features) == in_channels:
             return features
     raise ValueError(f"no standard feature set has {in_channels} channels; pass features=")
-
-
-def checkpoint_paths(path: str | Path) -> tuple[Path, Path]:
-    path = Path(path)
-    return path.with_suffix(".safetensors"), path.with_suffix(".json")
-
-
-def read_card(path: str | Path) -> tuple[Path, Path, dict[str, Any]]:
-    """``(weights_path, card_path, card)`` of the checkpoint at ``path`` (either of its two
-    files; any checkpoint format of gdpt).
-
-    The weights file's header is parsed (not its tensors), so a corrupt or truncated file is
-    refused here, before any work that would need it.
-
-    Raises:
-        FileNotFoundError: one of the two files is missing.
-        ValueError: the weights are not a readable safetensors file (corrupt, truncated, not
-            safetensors), or the card is not a JSON object; the message names the file.
-    """
-    weights_path, card_path = checkpoint_paths(path)
-    for p in (weights_path, card_path):
-        if not p.is_file():
-            raise FileNotFoundError(f"checkpoint file {p} not found (need .safetensors + .json)")
-    try:
-        with safe_open(str(weights_path), framework="pt"):
-            pass
-    except SafetensorError as error:
-        raise ValueError(f"{weights_path}: not a readable safetensors file ({error})") from None
-    try:
-        card = json.loads(card_path.read_text())
-    except (UnicodeDecodeError, ValueError) as error:
-        raise ValueError(f"{card_path}: model card is not valid JSON ({error})") from None
-    if not isinstance(card, dict):
-        raise ValueError(f"{card_path}: model card is not a JSON object")
-    return weights_path, card_path, card
 
 
 def encode_checkpoint(
@@ -188,7 +152,7 @@ def load_checkpoint(
             the card's config.
     """
     weights_path, card_path, card = read_card(path)
-    if card.get("format") != CARD_FORMAT:
+    if card.get("format") not in (CARD_FORMAT, *FORMER_CARD_FORMATS):
         raise CheckpointMismatchError(
             f"{card_path}: format {card.get('format')!r}, this code reads {CARD_FORMAT!r}"
         )
@@ -230,8 +194,8 @@ def _as_mapping(buffers: Any, names: Sequence[str]) -> Mapping[str, torch.Tensor
     return {n: getattr(buffers, n) for n in names if getattr(buffers, n, None) is not None}
 
 
-class NGPTReconstructor:
-    """Apply an NGPT network to gradient-domain buffers, tiled, on the inputs' device.
+class DenseUNetReconstructor:
+    """Apply a dense U-Net to gradient-domain buffers, tiled, on the inputs' device.
 
     The input is transformed (:mod:`~gdpt.reconstruct.transforms`), mirror-padded by ``margin``
     and up to the network alignment, cut into tiles of ``tile_size`` output pixels that overlap
@@ -276,7 +240,7 @@ class NGPTReconstructor:
         self._per_device: dict[torch.device, DenseUNet] = {}
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, **kwargs: Any) -> NGPTReconstructor:
+    def from_checkpoint(cls, path: str | Path, **kwargs: Any) -> DenseUNetReconstructor:
         """Load with :func:`load_checkpoint`; ``kwargs`` go to the constructor.
 
         The card's ``features`` are used unless ``features`` is given.

@@ -5,17 +5,18 @@ Measures, in one process and one run:
 * the fp32 3x3-convolution throughput of this machine (128 -> 128 channels, 256x512,
   channels-last, ``torch.inference_mode``) as the practical peak in GFLOP/s;
 * ``pyoidn.denoise(color, albedo=..., normal=..., hdr=True, quality="high")`` at the image size;
-* :class:`gdpt.reconstruct.ngpt.NGPTReconstructor` end to end (transforms, padding, network,
-  ``exp(y) - 1``, crop) for each config with freshly initialised weights.
+* :class:`gdpt.reconstruct.dense_unet_reconstructor.DenseUNetReconstructor` end to end
+  (transforms, padding, network, ``exp(y) - 1``, crop) for each config with freshly initialised
+  weights.
 
 Every task is warmed up once, then all tasks are timed in ``--repeats`` interleaved rounds;
 times, GFLOP/s, fractions of the peak and ratios to OIDN are medians over the rounds. FLOPs count
 2 per multiply-add of every convolution; "executed" FLOPs include the tile overlap. The load
 average is recorded because the machine may be shared. Usage::
 
-    .venv/bin/python benchmarks/ngpt_inference.py                      # all configs, 1280x720
-    .venv/bin/python benchmarks/ngpt_inference.py --configs fast fast_xs --tile-size 512 \\
-        --json benchmarks/results/ngpt_inference.json
+    .venv/bin/python benchmarks/dense_unet_inference.py                # all configs, 1280x720
+    .venv/bin/python benchmarks/dense_unet_inference.py --configs fast fast_xs --tile-size 512 \\
+        --json benchmarks/results/dense_unet_inference.json
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from gdpt.reconstruct.dense_unet import CONFIGS, build_model, parameter_count
-from gdpt.reconstruct.ngpt import NGPTReconstructor
+from gdpt.reconstruct.dense_unet_reconstructor import DenseUNetReconstructor
 
 
 def _time(fn: Callable[[], object]) -> float:
@@ -143,7 +144,7 @@ def main() -> None:
     info = {}
     for name in args.configs:
         model = build_model(name)
-        rec = NGPTReconstructor(model, tile_size=args.tile_size or None)
+        rec = DenseUNetReconstructor(model, tile_size=args.tile_size or None)
         ph = h + 2 * rec.margin + (-(h + 2 * rec.margin) % rec.alignment)
         pw = w + 2 * rec.margin + (-(w + 2 * rec.margin) % rec.alignment)
         executed = sum(model.flops(y1 - y0, x1 - x0) for _, (y0, y1, x0, x1) in rec.tiles(ph, pw))
@@ -209,7 +210,7 @@ def main() -> None:
 
     if args.json:
         result = {
-            "benchmark": "ngpt_inference",
+            "benchmark": "dense_unet_inference",
             "metadata": {
                 "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
                 "commit": _git_commit(),

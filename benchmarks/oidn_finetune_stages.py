@@ -1,4 +1,4 @@
-"""Stage timings of the fine-tuned-OIDN reconstructions (``gdpt.reconstruct.oidn_ngpt``) next
+"""Stage timings of the fine-tuned-OIDN reconstructions (``gdpt.reconstruct.oidn_finetune``) next
 to OIDN alone, at several image sizes.
 
 Per design (``oidn-grad``, ``oidn-grad-l1``, ``oidn-nograd``) and size: input assembly
@@ -12,8 +12,9 @@ the weights' values, so Intel's weights with zero extra-channel weights are used
 warmed up once, then timed in ``--repeats`` interleaved rounds; medians are reported, with the
 load average (the machine may be shared). Usage::
 
-    .venv/bin/python benchmarks/oidn_ngpt_stages.py                       # 128x128 and 1280x720
-    .venv/bin/python benchmarks/oidn_ngpt_stages.py --sizes 128x128 --repeats 5 --json out.json
+    .venv/bin/python benchmarks/oidn_finetune_stages.py                 # 128x128 and 1280x720
+    .venv/bin/python benchmarks/oidn_finetune_stages.py --sizes 128x128 --repeats 5 \\
+        --json out.json
 """
 
 from __future__ import annotations
@@ -26,12 +27,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
-from gdpt.reconstruct.oidn_ngpt import DESIGNS, OIDNReconstructor, assemble, base_model
+from dense_unet_inference import _time, oidn_task, synthetic_buffers
+from gdpt.reconstruct.oidn_finetune import DESIGNS, OIDNReconstructor, assemble, base_model
 from gdpt.reconstruct.oidn_unet import decode_output
 from gdpt.reconstruct.oidn_unet import denoise as torch_oidn
 from gdpt.reconstruct.poisson import reconstruct as poisson
 from gdpt.reconstruct.refine import GatedRefinement
-from ngpt_inference import _time, oidn_task, synthetic_buffers
 
 
 def stage_tasks(design_name: str, buffers: dict[str, torch.Tensor]) -> dict[str, Callable]:
