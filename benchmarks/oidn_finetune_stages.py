@@ -31,7 +31,7 @@ from dense_unet_inference import _time, oidn_task, synthetic_buffers
 from gdpt.reconstruct.oidn_finetune import DESIGNS, OIDNReconstructor, assemble, base_model
 from gdpt.reconstruct.oidn_unet import decode_output
 from gdpt.reconstruct.oidn_unet import denoise as torch_oidn
-from gdpt.reconstruct.poisson import reconstruct as poisson
+from gdpt.reconstruct.poisson import solve as poisson
 from gdpt.reconstruct.refine import GatedRefinement
 
 
@@ -44,7 +44,7 @@ def stage_tasks(design_name: str, buffers: dict[str, torch.Tensor]) -> dict[str,
     tasks: dict[str, Callable] = {}
     if design.l1:
         p, dx, dy = buffers["primal"], buffers["dx"], buffers["dy"]
-        tasks["l1-fast solve"] = lambda: poisson(p, dx, dy, method="l1-fast", alpha=0.2)
+        tasks["l1-fast solve"] = lambda: poisson(p, dx, dy, solver="l1-fast", alpha=0.2)
         l1 = tasks["l1-fast solve"]()
     x, scale = assemble(buffers, design, l1=l1)
     with torch.inference_mode():

@@ -118,8 +118,8 @@ def _poisson(
         )
     from gdpt.reconstruct import poisson
 
-    return poisson.reconstruct(
-        buffers.primal, buffers.dx, buffers.dy, method=method, alpha=alpha, **options
+    return poisson.solve(
+        buffers.primal, buffers.dx, buffers.dy, solver=method, alpha=alpha, **options
     )
 
 

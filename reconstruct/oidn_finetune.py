@@ -234,9 +234,9 @@ def assemble(
         parts = [signed_log(scale * dx), signed_log(scale * dy)]
         if design.l1:
             if l1 is None:
-                from .poisson import reconstruct  # noqa: PLC0415 (only this design solves)
+                from .poisson import solve  # noqa: PLC0415 (only this design solves)
 
-                l1 = reconstruct(primal, dx, dy, method="l1-fast", alpha=0.2)
+                l1 = solve(primal, dx, dy, solver="l1-fast", alpha=0.2)
             parts.append(pu_forward((scale * _finite(l1)).clamp_min(0.0)))
         if design.neighbours:
             parts.append(pu_forward((scale * neighbour_estimate(primal, dx, dy)).clamp_min(0.0)))

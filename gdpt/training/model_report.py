@@ -146,7 +146,7 @@ def compare_models(
 
     from gdpt.denoise import load_reconstructor, oidn_check, oidn_denoise
     from gdpt.metrics import flip_ldr, relmse
-    from gdpt.reconstruct.poisson import reconstruct as poisson
+    from gdpt.reconstruct.poisson import solve as poisson
     from gdpt.training.dataset import CropDataset
 
     held = lambda s: s % holdout_every == holdout_every - 1  # noqa: E731
@@ -161,7 +161,7 @@ def compare_models(
     }
     methods["gdpt+l1"] = (
         "gdpt",
-        lambda b: poisson(b["primal"], b["dx"], b["dy"], method="l1", alpha=0.2),
+        lambda b: poisson(b["primal"], b["dx"], b["dy"], solver="l1", alpha=0.2),
     )
     if oidn_check() is None:
         methods["pt+oidn"] = ("pt", lambda b: oidn_denoise(b["primal"], b["albedo"], b["normal"]))

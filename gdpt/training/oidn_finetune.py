@@ -106,10 +106,10 @@ class L1Cache:
     def __call__(self, index: int, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
         """``(H, W, 3)`` solution for element ``index`` with buffers ``inputs``."""
         if index not in self._cache:
-            from gdpt.reconstruct.poisson import reconstruct
+            from gdpt.reconstruct.poisson import solve
 
             p, dx, dy = inputs["primal"], inputs["dx"], inputs["dy"]
-            self._cache[index] = reconstruct(p, dx, dy, method="l1-fast", alpha=0.2)
+            self._cache[index] = solve(p, dx, dy, solver="l1-fast", alpha=0.2)
         return self._cache[index]
 
 
@@ -170,16 +170,16 @@ def load_finetune_validation(
     same input (``oidn_``), OIDN on the equal-time path-traced input (``pt_oidn_``) and L1
     Poisson on the equal-time G-PT input (``l1_``)."""
     from gdpt.reconstruct.oidn_unet import denoise
-    from gdpt.reconstruct.poisson import reconstruct
+    from gdpt.reconstruct.poisson import solve
 
     flip = FLIPLoss("ldr")
     elements = []
     for inputs, target, buffers in held_out_elements(dataset, count, device, ("in", "pt")):
         g, pt = buffers["in"], buffers["pt"]
-        l1 = reconstruct(g.primal, g.dx, g.dy, method="l1", alpha=0.2)
+        l1 = solve(g.primal, g.dx, g.dy, solver="l1", alpha=0.2)
         l1_fast = None
         if design.l1:
-            l1_fast = reconstruct(g.primal, g.dx, g.dy, method="l1-fast", alpha=0.2)
+            l1_fast = solve(g.primal, g.dx, g.dy, solver="l1-fast", alpha=0.2)
         with torch.no_grad():
             same = denoise(inputs["primal"], inputs["albedo"], inputs["normal"])
             pt_oidn = denoise(pt.primal, pt.albedo, pt.normal)

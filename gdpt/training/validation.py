@@ -72,13 +72,13 @@ def load_validation(dataset: CropDataset, count: int, device: torch.device) -> l
     crop and level (for a path-traced dataset: the equal-time G-PT input). Unreadable elements
     are skipped with a warning.
     """
-    from gdpt.reconstruct.poisson import reconstruct
+    from gdpt.reconstruct.poisson import solve
 
     flip = FLIPLoss("ldr")
     elements = []
     for inputs, target, buffers in held_out_elements(dataset, count, device):
         g = buffers["in"]
-        l1 = reconstruct(g.primal, g.dx, g.dy, method="l1", alpha=0.2)
+        l1 = solve(g.primal, g.dx, g.dy, solver="l1", alpha=0.2)
         elements.append(_ValElement(inputs, target, image_metrics(l1, target, flip)))
     if not elements:
         raise ValueError(f"{dataset.root}: no readable validation element")

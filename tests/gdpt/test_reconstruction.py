@@ -16,11 +16,11 @@ from gdpt.denoise import METHODS, reconstruct_image
 def fake_poisson(monkeypatch):
     calls = []
 
-    def fake(primal, dx, dy, *, method, alpha, **options):
-        calls.append((method, alpha, options))
+    def fake(primal, dx, dy, *, solver, alpha, **options):
+        calls.append((solver, alpha, options))
         return primal + 1
 
-    module = types.SimpleNamespace(reconstruct=fake)
+    module = types.SimpleNamespace(solve=fake)
     monkeypatch.setitem(sys.modules, "gdpt.reconstruct.poisson", module)
     monkeypatch.setattr(gdpt.reconstruct, "poisson", module, raising=False)
     return calls

@@ -172,7 +172,7 @@ def test_dct2_matches_scipy_ortho(shape: tuple[int, ...]) -> None:
 @pytest.mark.parametrize("method", ["l2", "l2-cg", "l1", "l1-fast"])
 def test_exact_inputs_recover_image(method: str) -> None:
     img, p, dx, dy = rand_problem(24, 31, seed=2)
-    x = poisson.reconstruct(p, dx, dy, method=method)
+    x = poisson.solve(p, dx, dy, solver=method)
     assert x.dtype == torch.float32 and x.shape == p.shape
     rel = np.linalg.norm(x.numpy() - img) / np.linalg.norm(img)
     assert rel < 1e-4
@@ -259,8 +259,8 @@ def test_unused_last_column_and_row_have_no_effect() -> None:
     dx2[:, -1] = 1e3
     dy2[-1, :] = -1e3
     for method in ("l2", "l1-fast"):
-        a = poisson.reconstruct(p, dx, dy, method=method)
-        b = poisson.reconstruct(p, dx2, dy2, method=method)
+        a = poisson.solve(p, dx, dy, solver=method)
+        b = poisson.solve(p, dx2, dy2, solver=method)
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     assert poisson.l1_energy(p, p, dx, dy) == poisson.l1_energy(p, p, dx2, dy2)
 
@@ -291,7 +291,7 @@ def test_l1_beats_l2_on_sparse_gradient_outliers() -> None:
         d += mask * torch.tensor(rng.choice([-8.0, 8.0], size=(32, 40, 1)))
     err = {}
     for method in ("l2", "l1", "l1-fast"):
-        x = poisson.reconstruct(p, dx, dy, method=method).numpy()
+        x = poisson.solve(p, dx, dy, solver=method).numpy()
         err[method] = np.sqrt(np.mean((x - img) ** 2))
     assert err["l1"] < 0.3 * err["l2"]
     assert err["l1-fast"] < 0.3 * err["l2"]
@@ -404,10 +404,10 @@ def test_property_l1_fast_finite_and_shift_equivariant(
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 3), (1, 9, 3), (9, 1, 3), (1, 2, 1), (2, 1, 2)])
-@pytest.mark.parametrize("method", list(poisson.METHODS))
+@pytest.mark.parametrize("method", list(poisson.SOLVERS))
 def test_degenerate_thin_images_work(shape: tuple[int, int, int], method: str) -> None:
     img, p, dx, dy = rand_problem(*shape, seed=13)
-    x = poisson.reconstruct(p, dx, dy, method=method)
+    x = poisson.solve(p, dx, dy, solver=method)
     assert x.shape == shape and torch.isfinite(x).all()
     np.testing.assert_allclose(x.numpy(), img, atol=1e-4)  # exact data -> exact answer
     if shape[:2] == (1, 1):  # no gradient constraints at all: x = primal
@@ -418,9 +418,9 @@ def test_batched_input_equals_separate_solves() -> None:
     probs = [g_pt_like(12, 16, seed=s) for s in (20, 21)]
     p, dx, dy = (torch.stack([pr[i] for pr in probs]) for i in range(3))
     for method in ("l2", "l1-fast"):
-        xb = poisson.reconstruct(p, dx, dy, method=method)
+        xb = poisson.solve(p, dx, dy, solver=method)
         for i, pr in enumerate(probs):
-            xi = poisson.reconstruct(*pr, method=method)
+            xi = poisson.solve(*pr, solver=method)
             torch.testing.assert_close(xb[i], xi, rtol=1e-5, atol=1e-5)
 
 
@@ -439,8 +439,8 @@ def test_batched_input_equals_separate_solves() -> None:
 )
 def test_output_dtype(dtype: torch.dtype, expected: torch.dtype) -> None:
     _, p, dx, dy = rand_problem(6, 7, seed=14, noise=0.2)
-    for method in poisson.METHODS:
-        x = poisson.reconstruct(p.to(dtype), dx.to(dtype), dy.to(dtype), method=method)
+    for method in poisson.SOLVERS:
+        x = poisson.solve(p.to(dtype), dx.to(dtype), dy.to(dtype), solver=method)
         assert x.dtype == expected
 
 
@@ -472,24 +472,24 @@ def test_huge_values_give_finite_output() -> None:
         dxh[2, 3] = big
         ph[4, 4] = -big
         for method in ("l2", "l2-cg"):
-            x = poisson.reconstruct(ph, dxh, dy, method=method)
+            x = poisson.solve(ph, dxh, dy, solver=method)
             assert torch.isfinite(x).all()
             assert float(x[4, 4].max()) < -big / 1e3  # the data were used, not flushed to zero
         for method in ("l1", "l1-fast"):
             # (Robustness of L1 to large outliers: test_fast_preset_robust_to_huge_outliers.)
-            x = poisson.reconstruct(ph, dxh, dy, method=method)
+            x = poisson.solve(ph, dxh, dy, solver=method)
             assert torch.isfinite(x).all()
 
 
 def test_reconstruct_progress_and_info() -> None:
     _, p, dx, dy = rand_problem(8, 10, seed=17, noise=0.3)
     calls: list[tuple[int, int]] = []
-    x, info = poisson.reconstruct(
-        p, dx, dy, method="l1-fast", progress=lambda d, t: calls.append((d, t)), return_info=True
+    x, info = poisson.solve(
+        p, dx, dy, solver="l1-fast", progress=lambda d, t: calls.append((d, t)), return_info=True
     )
     rounds = poisson.L1_PRESETS["fast"].rounds
     assert calls == [(k, rounds) for k in range(1, rounds + 1)]
-    assert info.method == "l1-fast" and info.preset == "fast"
+    assert info.solver == "l1-fast" and info.preset == "fast"
     assert info.energy == pytest.approx(poisson.l1_energy(x, p, dx, dy), rel=1e-5)
     assert info.n_missing == {"primal": 0, "dx": 0, "dy": 0}
 
@@ -521,14 +521,14 @@ def test_nonfinite_constraints_are_dropped_l2() -> None:
     np.testing.assert_allclose(x.numpy(), ref, atol=1e-8, rtol=0)
 
 
-@pytest.mark.parametrize("method", list(poisson.METHODS))
+@pytest.mark.parametrize("method", list(poisson.SOLVERS))
 def test_nonfinite_everywhere_never_returns_nan(method: str) -> None:
     img, p, dx, dy = rand_problem(10, 10, seed=19)
     rng = np.random.default_rng(19)
     for t in (p, dx, dy):
         t[torch.tensor(rng.random(t.shape) < 0.2)] = math.nan
     with pytest.warns(poisson.NonFiniteInputWarning):
-        x = poisson.reconstruct(p, dx, dy, method=method)
+        x = poisson.solve(p, dx, dy, solver=method)
     assert torch.isfinite(x).all()
     # The remaining data are exact and consistent, so every pixel with a present primal sample
     # is still recovered (pixels with no information at all go to 0 - nothing to recover).
@@ -537,7 +537,7 @@ def test_nonfinite_everywhere_never_returns_nan(method: str) -> None:
     np.testing.assert_allclose(x.numpy()[present], img[present], atol=1e-3)
     allnan = torch.full_like(p, math.nan)
     with pytest.warns(poisson.NonFiniteInputWarning):
-        x = poisson.reconstruct(allnan, allnan, allnan, method=method)
+        x = poisson.solve(allnan, allnan, allnan, solver=method)
     assert torch.isfinite(x).all()
 
 
@@ -555,11 +555,11 @@ def test_missing_single_pixel_filled_from_gradients_l1() -> None:
 
 
 @pytest.mark.parametrize("alpha", [0.0, -0.2, math.nan, math.inf])
-@pytest.mark.parametrize("method", list(poisson.METHODS))
+@pytest.mark.parametrize("method", list(poisson.SOLVERS))
 def test_bad_alpha(alpha: float, method: str) -> None:
     _, p, dx, dy = rand_problem(4, 5)
     with pytest.raises(ValueError, match="alpha"):
-        poisson.reconstruct(p, dx, dy, method=method, alpha=alpha)
+        poisson.solve(p, dx, dy, solver=method, alpha=alpha)
     with pytest.raises(ValueError, match="alpha"):
         poisson.l1_energy(p, p, dx, dy, alpha=alpha)
 
@@ -582,7 +582,7 @@ def test_mismatched_shapes_name_buffers() -> None:
 def test_empty_image_rejected(shape: tuple[int, ...]) -> None:
     z = torch.zeros(shape)
     with pytest.raises(ValueError, match="empty"):
-        poisson.reconstruct(z, z, z)
+        poisson.solve(z, z, z)
 
 
 def test_other_bad_inputs() -> None:
@@ -590,7 +590,7 @@ def test_other_bad_inputs() -> None:
     with pytest.raises(ValueError, match=r"(?s)unknown L1 preset 'nope'.*'l1'.*'fast'"):
         poisson.solve_l1(p, dx, dy, preset="nope")
     with pytest.raises(ValueError, match=r"(?s)unknown reconstruction method.*'l2'.*'l1-fast'"):
-        poisson.reconstruct(p, dx, dy, method="l3")
+        poisson.solve(p, dx, dy, solver="l3")
     with pytest.raises(ValueError, match="preconditioner"):
         poisson.solve_weighted_cg(p, dx, dy, precondition="ilu")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="weights_primal"):
@@ -607,5 +607,5 @@ def test_clean_input_emits_no_warning() -> None:
     _, p, dx, dy = rand_problem(6, 6, seed=23, noise=0.1)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        for method in poisson.METHODS:
-            poisson.reconstruct(p, dx, dy, method=method)
+        for method in poisson.SOLVERS:
+            poisson.solve(p, dx, dy, solver=method)

@@ -117,10 +117,10 @@ def test_l1_gradient_ignores_a_gross_outlier_as_its_solution_does(preset):
     assert abs(gradient(l1)) < 0.01 * abs(l2)
 
 
-@pytest.mark.parametrize("method", list(poisson.METHODS))
+@pytest.mark.parametrize("method", list(poisson.SOLVERS))
 def test_every_method_passes_gradients_to_all_three_buffers(method):
     p, dx, dy = _inputs(6, 7, 3, seed=5)
-    out = poisson.reconstruct(p.float(), dx.float(), dy.float(), method=method)
+    out = poisson.solve(p.float(), dx.float(), dy.float(), solver=method)
     out.square().sum().backward()
     for t in (p, dx, dy):
         assert t.grad is not None and t.grad.dtype == torch.float64

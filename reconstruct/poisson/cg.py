@@ -1,0 +1,255 @@
+"""The weighted normal equations ``P^T W P x = P^T W b`` and their solution by
+(preconditioned) conjugate gradients.
+
+:class:`Operator` applies ``A = alpha^2 Wp + Dx^T Wx Dx + Dy^T Wy Dy`` as a 5-point stencil,
+:func:`rhs` builds ``P^T W b``, :func:`pcg` runs CG per ``(B, C)`` system,
+:func:`make_precond` builds the ``"none"``, ``"jacobi"`` or ``"dct"`` preconditioner and
+:func:`l2_exact` solves the unweighted problem (DCT closed form, or DCT-preconditioned CG when
+constraints are missing). Everything works on the internal ``(B, C, H, W)`` layout of
+:class:`~.problem.Problem`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+
+from .dct import LaplaceDCT
+from .problem import MISSING_PRIMAL_WEIGHT, Problem
+
+
+def gradient(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Valid forward differences: ``(B,C,H,W-1)`` and ``(B,C,H-1,W)``."""
+    return x[..., 1:] - x[..., :-1], x[..., 1:, :] - x[..., :-1, :]
+
+
+def _grad_adj_(out: torch.Tensor, gx: torch.Tensor, gy: torch.Tensor) -> torch.Tensor:
+    """``out += Dx^T gx + Dy^T gy`` in place."""
+    if gx.shape[-1] > 0:
+        out[..., :-1] -= gx
+        out[..., 1:] += gx
+    if gy.shape[-2] > 0:
+        out[..., :-1, :] -= gy
+        out[..., 1:, :] += gy
+    return out
+
+
+@dataclass
+class Weights:
+    """Per-constraint weights on the internal layout (``None`` = all ones).
+
+    ``p``: ``(B, 1|C, H, W)``; ``x``: ``(B, 1|C, H, W-1)``; ``y``: ``(B, 1|C, H-1, W)``.
+    """
+
+    p: torch.Tensor | None = None
+    x: torch.Tensor | None = None
+    y: torch.Tensor | None = None
+
+
+class Operator:
+    """``A = P^T W P = alpha^2 Wp + Dx^T Wx Dx + Dy^T Wy Dy`` as a 5-point stencil.
+
+    The diagonal is precomputed (it is also the Jacobi preconditioner), so one product costs
+    one multiply and four shifted fused multiply-adds.
+    """
+
+    def __init__(self, prob: Problem, w: Weights) -> None:
+        self.w = w
+        self.diag = _diag_a(prob, w)
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        out = x * self.diag
+        wx, wy = self.w.x, self.w.y
+        if x.shape[-1] > 1:
+            if wx is None:
+                out[..., :-1].sub_(x[..., 1:])
+                out[..., 1:].sub_(x[..., :-1])
+            else:
+                out[..., :-1].addcmul_(wx, x[..., 1:], value=-1.0)
+                out[..., 1:].addcmul_(wx, x[..., :-1], value=-1.0)
+        if x.shape[-2] > 1:
+            if wy is None:
+                out[..., :-1, :].sub_(x[..., 1:, :])
+                out[..., 1:, :].sub_(x[..., :-1, :])
+            else:
+                out[..., :-1, :].addcmul_(wy, x[..., 1:, :], value=-1.0)
+                out[..., 1:, :].addcmul_(wy, x[..., :-1, :], value=-1.0)
+        return out
+
+
+def rhs(prob: Problem, w: Weights) -> torch.Tensor:
+    """``P^T W b = alpha^2 Wp p + Dx^T Wx dx + Dy^T Wy dy``."""
+    a2 = prob.alpha**2
+    out = prob.p * a2 if w.p is None else prob.p * (w.p * a2)
+    gx = prob.gx if w.x is None else prob.gx * w.x
+    gy = prob.gy if w.y is None else prob.gy * w.y
+    return _grad_adj_(out, gx, gy)
+
+
+def mask_weights(prob: Problem) -> Weights:
+    """Weights of the plain problem: 1 for present constraints, 0 (primal: tiny) for missing."""
+    if not prob.has_missing:
+        return Weights()
+    assert prob.mp is not None
+    wp = prob.mp + (1.0 - prob.mp) * MISSING_PRIMAL_WEIGHT
+    return Weights(wp, prob.mx, prob.my)
+
+
+def default_tol(dtype: torch.dtype) -> float:
+    """Default relative CG tolerance: ``1e-5`` for float32 compute, ``1e-10`` for float64."""
+    return 1e-10 if dtype == torch.float64 else 1e-5
+
+
+def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Per-system inner products over ``(H, W)``: ``(B, C, 1, 1)``."""
+    return torch.linalg.vecdot(a.flatten(2), b.flatten(2)).unsqueeze(-1).unsqueeze(-1)
+
+
+def _safe_div(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
+    ok = den > 0
+    return torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(num))
+
+
+def pcg(
+    apply_a: Callable[[torch.Tensor], torch.Tensor],
+    b: torch.Tensor,
+    x: torch.Tensor,
+    *,
+    max_iter: int,
+    tol: float,
+    precond: Callable[[torch.Tensor], torch.Tensor] | None,
+    rtol0: float = 0.0,
+) -> tuple[torch.Tensor, int, float]:
+    """(Preconditioned) CG on ``A x = b`` per ``(B, C)`` system, warm-started from ``x``.
+
+    A system is done once ``||r|| <= tol ||b||`` or once ``||r||`` dropped below ``rtol0``
+    times its initial value. Done systems are frozen (step 0), so every system gets the
+    iterations it needs independently of the others. Stops when all are done or after
+    ``max_iter`` iterations.
+
+    Returns:
+        ``(x, iterations, max relative residual ||r|| / ||b||)``.
+    """
+    x = x.clone()
+    r = b - apply_a(x)
+    tiny = torch.finfo(b.dtype).tiny
+    bnorm = _dot(b, b).sqrt().clamp_min(tiny)
+    rr = _dot(r, r)
+
+    def relres(rr: torch.Tensor) -> float:
+        return float((rr.sqrt() / bnorm).max())
+
+    if max_iter <= 0 or (tol > 0 and bool((rr <= (tol * bnorm) ** 2).all())):
+        return x, 0, relres(rr)
+    z = precond(r) if precond is not None else r
+    p = z.clone()
+    rz = _dot(r, z)
+    thresh = torch.maximum((tol * bnorm) ** 2, rtol0**2 * rr)  # on ||r||^2, per system
+    check = tol > 0 or rtol0 > 0  # a host sync per iteration only when stopping early
+    active = torch.ones_like(rz, dtype=torch.bool)
+    it = 0
+    while True:
+        ap = apply_a(p)
+        step = _safe_div(rz, _dot(p, ap))
+        if check:
+            step = torch.where(active, step, torch.zeros_like(step))
+        x.addcmul_(step, p)
+        r.addcmul_(step, ap, value=-1.0)
+        it += 1
+        z = precond(r) if precond is not None else r
+        rz_new = _dot(r, z)
+        if check:
+            rr = _dot(r, r) if precond is not None else rz_new
+            active &= rr > thresh
+            if not bool(active.any()):
+                break
+        if it >= max_iter:
+            break
+        beta = _safe_div(rz_new, rz)
+        p = torch.addcmul(z, p, beta, out=p)  # p = z + beta * p, in place
+        rz = rz_new
+    if precond is not None or not check:
+        rr = _dot(r, r)
+    return x, it, relres(rr)
+
+
+def relative_residual_of(prob: Problem, x: torch.Tensor, w: Weights) -> float:
+    b = rhs(prob, w)
+    r = b - Operator(prob, w)(x)
+    tiny = torch.finfo(b.dtype).tiny
+    return float((_dot(r, r).sqrt() / _dot(b, b).sqrt().clamp_min(tiny)).max())
+
+
+def l2_exact(
+    prob: Problem, dct: LaplaceDCT, *, tol: float, max_iter: int, refine: int
+) -> tuple[torch.Tensor, int, float]:
+    """Exact L2 solve on the internal problem.
+
+    Without missing constraints this is the DCT closed form plus ``refine`` steps of iterative
+    refinement (each one more DCT solve on the residual). With missing constraints the closed
+    form of the zero-filled problem warm-starts DCT-preconditioned CG.
+    """
+    a2 = prob.alpha**2
+    x = dct.solve(rhs(prob, Weights()), a2)
+    if not prob.has_missing:
+        w = Weights()
+        for _ in range(refine):
+            x += dct.solve(rhs(prob, w) - Operator(prob, w)(x), a2)
+        return x, 0, math.nan
+    w = mask_weights(prob)
+    return pcg(
+        Operator(prob, w),
+        rhs(prob, w),
+        x,
+        max_iter=max_iter,
+        tol=tol,
+        precond=lambda r: dct.solve(r, a2),
+    )
+
+
+Precondition = Literal["none", "jacobi", "dct"]
+PRECONDITIONERS = ("none", "jacobi", "dct")
+
+
+def _diag_a(prob: Problem, w: Weights) -> torch.Tensor:
+    """Diagonal of ``A = alpha^2 Wp + Dx^T Wx Dx + Dy^T Wy Dy``: ``(B, 1|C, H, W)``."""
+    a2 = prob.alpha**2
+    ref = prob.p[:, :1]
+    d = torch.full_like(ref, a2) if w.p is None else (w.p * a2).expand_as(ref).clone()
+    wx = torch.ones_like(prob.gx[:, :1]) if w.x is None else w.x
+    wy = torch.ones_like(prob.gy[:, :1]) if w.y is None else w.y
+    if wx.shape[1] != d.shape[1] or wy.shape[1] != d.shape[1]:
+        c = max(wx.shape[1], wy.shape[1], d.shape[1])
+        d = d.expand(-1, c, -1, -1).clone()
+    if wx.shape[-1] > 0:
+        d[..., :-1] += wx
+        d[..., 1:] += wx
+    if wy.shape[-2] > 0:
+        d[..., :-1, :] += wy
+        d[..., 1:, :] += wy
+    return d
+
+
+def make_precond(
+    kind: str, prob: Problem, w: Weights, dct: LaplaceDCT, op: Operator
+) -> Callable[[torch.Tensor], torch.Tensor] | None:
+    if kind == "none":
+        return None
+    if kind == "jacobi":
+        # Positive: the diagonal has alpha^2 * Wp > 0 (missing primals keep a tiny weight) unless
+        # a caller passes zero primal weights; guard so the preconditioner stays finite.
+        inv = op.diag.clamp_min(torch.finfo(prob.p.dtype).tiny).reciprocal()
+        return lambda r: r * inv
+    if kind == "dct":
+        a2 = prob.alpha**2
+        cp = w.p.mean(dim=(2, 3), keepdim=True) * a2 if w.p is not None else a2
+        mx = w.x.mean(dim=(2, 3), keepdim=True) if w.x is not None and w.x.numel() else 1.0
+        my = w.y.mean(dim=(2, 3), keepdim=True) if w.y is not None and w.y.numel() else 1.0
+        cg = 0.5 * (mx + my)
+        return lambda r: dct.solve(r, cp, cg)
+    valid = ", ".join(repr(k) for k in PRECONDITIONERS)
+    raise ValueError(f"unknown preconditioner {kind!r}; valid: {valid}")
