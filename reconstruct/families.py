@@ -8,14 +8,14 @@ A *family* is a kind of network with its own checkpoint format. Each one declare
   (the card keys it writes itself) and turn them into a reconstructor;
 * whether it builds on Intel's OIDN weights, and on another checkpoint stored next to its card.
 
-================  ==================================  =============================================
-family            designs                             checkpoint (card ``"format"``)
-================  ==================================  =============================================
-``dense-unet``    :data:`.dense_unet.CONFIGS`         :data:`.dense_unet_reconstructor.CARD_FORMAT`
-``oidn-finetune`` :data:`.oidn_finetune.DESIGNS`      :data:`.oidn_finetune.DELTA_FORMAT`
-``combiner``      :data:`.combiner.COMBINER_DESIGNS`  :data:`.combiner.COMBINER_FORMAT`
-``kpcn``          :data:`.kpcn.KPCN_DESIGNS`          :data:`.kpcn.KPCN_FORMAT`
-================  ==================================  =============================================
+=================  ==================================  =============================================
+family             designs                             checkpoint (card ``"format"``)
+=================  ==================================  =============================================
+``dense-unet``     :data:`.dense_unet.CONFIGS`         :data:`.dense_unet_reconstructor.CARD_FORMAT`
+``oidn-finetune``  :data:`.oidn_finetune.DESIGNS`      :data:`.oidn_finetune.DELTA_FORMAT`
+``combiner``       :data:`.combiner.COMBINER_DESIGNS`  :data:`.combiner.COMBINER_FORMAT`
+``kpcn``           :data:`.kpcn.KPCN_DESIGNS`          :data:`.kpcn.KPCN_FORMAT`
+=================  ==================================  =============================================
 
 ``dense-unet`` is NGPT's network (Kettunen et al. 2019) trained from scratch;
 ``oidn-finetune`` is Intel Open Image Denoise's U-Net fine-tuned with gradient inputs;
