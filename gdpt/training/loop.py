@@ -24,6 +24,8 @@ loop does the rest:
 from __future__ import annotations
 
 import os
+import pickle
+import sys
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -40,7 +42,7 @@ from gdpt.training.config import TrainConfig
 from gdpt.training.run_dir import (
     append_jsonl,
     checkpoint_base,
-    latest_checkpoint,
+    complete_checkpoints,
     prepare_run,
     prune_checkpoints,
     truncate_jsonl,
@@ -133,28 +135,43 @@ def _resume(
     optimizer: torch.optim.Optimizer,
     device: torch.device,
     world: int,
-) -> tuple[int, float]:
-    """Load the newest checkpoint's ``.pt`` state into ``net`` and ``optimizer``.
+) -> tuple[int, float, str | None]:
+    """Load the newest readable checkpoint's ``.pt`` state into ``net`` and ``optimizer``.
+
+    A checkpoint whose ``.pt`` file cannot be read (truncated, damaged) is skipped for the one
+    before it; nothing is deleted.
 
     Returns:
-        ``(steps done, training seconds so far)``; ``(0, 0.0)`` without a checkpoint.
+        ``(steps done, training seconds so far, one line saying where the run resumes)``;
+        ``(0, 0.0, None)`` without a checkpoint.
+
+    Raises:
+        ValueError: a checkpoint of an older gdpt (no network state), or no checkpoint readable.
     """
-    found = latest_checkpoint(run)
-    if found is None:
-        return 0, 0.0
-    path = found[1].with_suffix(".pt")
-    state = torch.load(path, map_location=device, weights_only=True)
-    if "model" not in state:
-        raise ValueError(f"{path}: no network state (an older gdpt's run); start a new run")
-    net.load_state_dict(state["model"])
-    optimizer.load_state_dict(state["optimizer"])
-    if state["world_size"] != world:
-        warnings.warn(
-            f"resuming a {state['world_size']}-process run with {world} processes: batches "
-            "differ from the original run",
-            stacklevel=3,
-        )
-    return int(state["step"]), float(state["elapsed"])
+    found = complete_checkpoints(run)
+    skipped: list[str] = []
+    for _, base in found:
+        path = base.with_suffix(".pt")
+        try:
+            state = torch.load(path, map_location=device, weights_only=True)
+        except (RuntimeError, EOFError, OSError, pickle.UnpicklingError) as error:
+            skipped.append(f"{path.name} is unreadable ({str(error).splitlines()[0]})")
+            continue
+        if "model" not in state:
+            raise ValueError(f"{path}: no network state (an older gdpt's run); start a new run")
+        net.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        if state["world_size"] != world:
+            warnings.warn(
+                f"resuming a {state['world_size']}-process run with {world} processes: "
+                "batches differ from the original run",
+                stacklevel=3,
+            )
+        said = "; ".join(skipped + [f"resuming {run} from step {int(state['step'])} ({path.name})"])
+        return int(state["step"]), float(state["elapsed"]), said
+    if skipped:
+        raise ValueError(f"{run}: no readable checkpoint: " + "; ".join(skipped))
+    return 0, 0.0, None
 
 
 def training_loop(
@@ -209,7 +226,11 @@ def training_loop(
             write_json(run / "config.json", config.to_dict())
             _write_files(run, plan.files)
         optimizer = make_optimizer(plan.net, config)
-        start, elapsed = _resume(run, plan.net, optimizer, device, world) if resume else (0, 0.0)
+        start, elapsed, said = (
+            _resume(run, plan.net, optimizer, device, world) if resume else (0, 0.0, None)
+        )
+        if said and rank == 0:
+            print(f"gdpt train: {said}", file=sys.stderr, flush=True)
         if rank == 0:
             for name in ("log.jsonl", "val.jsonl"):
                 truncate_jsonl(run / name, start)

@@ -76,15 +76,14 @@ def prepare_run(config: TrainConfig, resume: bool) -> TrainConfig:
     return check_resume(TrainConfig.from_dict(json.loads(path.read_text())), config)
 
 
-def latest_checkpoint(run: Path) -> tuple[int, Path] | None:
-    """``(step, path without suffix)`` of the newest complete checkpoint, or ``None``."""
-    best = None
+def complete_checkpoints(run: Path) -> list[tuple[int, Path]]:
+    """``(step, path without suffix)`` of every complete checkpoint, newest first."""
+    found = []
     for state in (run / "checkpoints").glob(f"{_CKPT_PREFIX}*.pt"):
         base = state.with_suffix("")
         if base.with_suffix(".safetensors").is_file() and base.with_suffix(".json").is_file():
-            step = int(base.name[len(_CKPT_PREFIX) :])
-            best = max(best or (step, base), (step, base))
-    return best
+            found.append((int(base.name[len(_CKPT_PREFIX) :]), base))
+    return sorted(found, reverse=True)
 
 
 def checkpoint_base(run: Path, step: int) -> Path:

@@ -274,6 +274,38 @@ def test_training_keeps_keep_checkpoints_and_resumes_from_the_last(data, tiny, t
     assert sorted(p.name for p in (run / "checkpoints").iterdir())[0] == "ckpt-0000004.json"
 
 
+def test_a_truncated_newest_checkpoint_falls_back_to_the_one_before(
+    data, tiny, tmp_path, capfd, assert_same_state
+):
+    """A damaged newest ``.pt`` is skipped, said in one line; the resumed run is the same run."""
+    run = tmp_path / "run"
+    config = tiny(data, run, val_every=0, ckpt_every=1, keep_checkpoints=3)
+    train(config, progress=False)
+    newest = run / "checkpoints" / "ckpt-0000003.pt"
+    before = torch.load(newest, weights_only=True)
+    newest.write_bytes(newest.read_bytes()[:100])
+    capfd.readouterr()
+    train(config, resume=True, progress=False)
+    said = [line for line in capfd.readouterr().err.splitlines() if "gdpt train:" in line]
+    assert len(said) == 1
+    assert "ckpt-0000003.pt is unreadable" in said[0] and "from step 2" in said[0]
+    after = torch.load(newest, weights_only=True)
+    assert_same_state(
+        {k: before[k] for k in ("step", "model", "optimizer")},
+        {k: after[k] for k in ("step", "model", "optimizer")},
+    )
+
+
+def test_no_readable_checkpoint_is_refused_naming_them(data, tiny, tmp_path):
+    run = tmp_path / "run"
+    config = tiny(data, run, steps=1, val_every=0)
+    train(config, progress=False)
+    state = run / "checkpoints" / "ckpt-0000001.pt"
+    state.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="no readable checkpoint: ckpt-0000001.pt is unreadable"):
+        train(config, resume=True, progress=False)
+
+
 def test_resume_from_a_state_without_the_network_is_refused(data, tiny, tmp_path):
     """A ``.pt`` without the exact weights (written by an older gdpt) cannot resume exactly."""
     run = tmp_path / "run"
