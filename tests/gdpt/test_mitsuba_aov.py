@@ -3,6 +3,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import OpenEXR
 import pytest
@@ -10,7 +13,7 @@ import torch
 
 import gdpt
 from gdpt.io import mitsuba_aov
-from gdpt.io.exr import describe_exr, load_buffers, save_buffers, save_image
+from gdpt.io.exr import describe_exr, load_buffers, load_image, save_buffers, save_image
 
 try:
     import pyoidn
@@ -84,9 +87,35 @@ def test_mitsuba_aov_exr_is_denoised(mitsuba_aov_exr, method):
     assert not torch.equal(image, buffers.primal)
 
 
-@pytest.mark.parametrize("method", ["l1", "l2", "fuse"])
+@needs_pyoidn
+def test_gdpt_reconstruct_denoises_an_aov_exr(mitsuba_aov_exr, tmp_path):
+    out = tmp_path / "denoised.exr"
+    command = ["reconstruct", str(mitsuba_aov_exr[0]), "--method", "oidn-tuned", "-o", str(out)]
+    result = subprocess.run(
+        [sys.executable, "-m", "gdpt", *command],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr
+    image = load_image(out)
+    assert image.shape == (16, 24, 3) and bool(torch.isfinite(image).all())
+
+
+@pytest.mark.parametrize("method", ["l1", "l1-fast", "l2", "fuse"])
 def test_gradient_method_on_aov_exr_names_the_gradients(mitsuba_aov_exr, method):
     with pytest.raises(ValueError, match=r"dx"):
+        gdpt.reconstruct_image(load_buffers(mitsuba_aov_exr[0]), method=method)
+
+
+@pytest.mark.parametrize(
+    ("method", "match"),
+    [("kpcn", r"lack var_primal"), ("nfor", r"'primal_a' \(render with halves")],
+)
+def test_statistics_methods_on_aov_exr_name_what_is_missing(mitsuba_aov_exr, method, match):
+    """KPCN reads the primal's variance, NFOR half-buffers: an AOV EXR has neither."""
+    with pytest.raises((KeyError, ValueError), match=match):
         gdpt.reconstruct_image(load_buffers(mitsuba_aov_exr[0]), method=method)
 
 
