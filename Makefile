@@ -2,17 +2,33 @@
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
-# The CPU build of torch; override (e.g. TORCH_SPEC=torch) on a CUDA machine.
-TORCH_SPEC ?= torch==2.13.0
-STAMP  := $(VENV)/.installed
+# torch is installed before the package, from TORCH_SPEC (a pip requirement) and TORCH_INDEX (an
+# index URL, optional). pip takes the newest wheel that matches from every place it is configured
+# to look: on a standard Linux x86_64 install that is PyPI's torch==2.13.0, a CUDA build (with
+# NVIDIA's CUDA libraries, several GB); where pip is configured with a local wheel folder
+# (find-links) holding torch-2.13.0+cpu, as on this project's CI machines, it is that CPU build.
+# CPU-only anywhere: make TORCH_INDEX=https://download.pytorch.org/whl/cpu
+# A CUDA build for your driver: make TORCH_INDEX=https://download.pytorch.org/whl/cu126
+TORCH_SPEC  ?= torch==2.13.0
+TORCH_INDEX ?=
+TORCH       := $(TORCH_SPEC)$(if $(TORCH_INDEX), --index-url $(TORCH_INDEX))
+# The torch request the venv was set up with; a different one reinstalls torch (and the package).
+TORCH_STAMP := $(VENV)/.torch-spec
+STAMP       := $(VENV)/.installed
 
-.PHONY: setup lint test test-all test-gpu demo bench clean
+.PHONY: setup lint test test-all test-gpu demo bench clean FORCE
 
-$(STAMP): pyproject.toml Makefile tools/ensure_llvm.sh
-	@tools/ensure_llvm.sh >/dev/null
+$(TORCH_STAMP): FORCE
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q "$(TORCH_SPEC)"
+	@if [ "$$(cat $@ 2>/dev/null)" != "$(TORCH)" ]; then \
+	  if [ -f $@ ]; then $(PY) -m pip uninstall -q -y torch; fi; \
+	  $(PY) -m pip install -q --upgrade pip && \
+	  $(PY) -m pip install -q "$(TORCH_SPEC)" $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) && \
+	  echo "$(TORCH)" > $@; \
+	fi
+
+$(STAMP): $(TORCH_STAMP) pyproject.toml Makefile tools/ensure_llvm.sh
+	@tools/ensure_llvm.sh >/dev/null
 	$(PY) -m pip install -q -e ".[test,bench]"
 	@touch $(STAMP)
 

@@ -11,6 +11,7 @@ use; submodules keep their own names (no function shadows a module)::
     image = gdpt.render_and_denoise("scene.xml", spp=64, method="l1").image
     image = gdpt.reconstruct_image(buffers, method="oidn")   # reconstruct existing buffers
     image = gdpt.render_differentiable(scene, params, spp=4)  # mi.TensorXf in the AD graph
+    buffers = gdpt.buffers_from_aovs(mi.render(scene), scene.integrator())  # gdpt plugin in XML
 
 :func:`reconstruct_image` is the one reconstruction call (methods: :data:`gdpt.denoise.METHODS`);
 ``gdpt.reconstruct`` is the subpackage of reconstruction algorithms (Poisson solvers, networks,
@@ -33,6 +34,7 @@ from gdpt.version import __version__
 #: Public name -> module that defines it (imported on first attribute access).
 _LAZY: dict[str, str] = {
     "GradientBuffers": "gdpt.buffers",
+    "buffers_from_aovs": "gdpt.aovs",
     "load_buffers": "gdpt.io.exr",
     "save_buffers": "gdpt.io.exr",
     "load_scene": "gdpt.scene_io",
@@ -46,6 +48,7 @@ _LAZY: dict[str, str] = {
 __all__ = [
     "GradientBuffers",
     "__version__",
+    "buffers_from_aovs",
     "load_buffers",
     "load_scene",
     "reconstruct_image",
@@ -57,6 +60,7 @@ __all__ = [
 ]
 
 if TYPE_CHECKING:
+    from gdpt.aovs import buffers_from_aovs
     from gdpt.backend import set_variant
     from gdpt.buffers import GradientBuffers
     from gdpt.denoise import reconstruct_image

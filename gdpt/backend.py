@@ -1,7 +1,10 @@
 """Choose and activate the Mitsuba variant gdpt runs on, and the matching torch device.
 
-gdpt runs on ``cuda_ad_rgb`` when Dr.Jit sees a CUDA device and on ``llvm_ad_rgb`` otherwise.
-The environment variable ``GDPT_VARIANT`` overrides the automatic choice.
+gdpt runs on ``cuda_ad_rgb`` when Dr.Jit sees a CUDA device and the installed torch is a CUDA
+build (the buffers go from Dr.Jit to torch through DLPack, without a copy, so both must hold
+them on the GPU), and on ``llvm_ad_rgb`` otherwise; with a CUDA device but a CPU-only torch the
+automatic choice takes ``llvm_ad_rgb`` and says so in a warning. The environment variable
+``GDPT_VARIANT`` overrides the automatic choice.
 
 Dr.Jit's LLVM backend loads a system ``libLLVM`` when ``drjit`` is first imported, and it needs
 LLVM >= 16 (some distributions also ship older versions that it would otherwise pick up).
@@ -19,6 +22,7 @@ from __future__ import annotations
 import importlib
 import os
 import sys
+import warnings
 from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING
@@ -46,6 +50,11 @@ _INSTALL_HINT = (
     "install LLVM >= 16 (Debian/Ubuntu: 'apt-get install libllvm19', or run "
     "tools/ensure_llvm.sh) or point DRJIT_LIBLLVM_PATH at a libLLVM >= 16 shared library; "
     "for the CUDA backend install an NVIDIA driver"
+)
+
+_TORCH_CPU = (
+    "the installed torch has no CUDA (a CPU-only build, or no driver it can use); install a "
+    "CUDA build (e.g. make TORCH_INDEX=https://download.pytorch.org/whl/cu126, docs/mitsuba.md)"
 )
 
 _callback_installed = False
@@ -89,7 +98,8 @@ def set_variant(name: str | None = None) -> str:
     """Activate a Mitsuba variant and register the gdpt integrators for it.
 
     Precedence: the ``name`` argument, then ``$GDPT_VARIANT``, then ``cuda_ad_rgb`` if Dr.Jit
-    has a CUDA device, else ``llvm_ad_rgb``. Calling it again is cheap and idempotent.
+    has a CUDA device and torch is a CUDA build, else ``llvm_ad_rgb`` (with a ``UserWarning``
+    when only torch lacks CUDA). Calling it again is cheap and idempotent.
 
     Args:
         name (str | None): a variant from :data:`SUPPORTED_VARIANTS`, or ``None`` to choose
@@ -100,7 +110,8 @@ def set_variant(name: str | None = None) -> str:
 
     Raises:
         ValueError: ``name`` (or ``$GDPT_VARIANT``) is not a supported variant.
-        RuntimeError: the requested backend, or no backend at all, is available.
+        RuntimeError: the requested backend, or no backend at all, is available, or
+            ``cuda_ad_rgb`` is requested and torch has no CUDA.
     """
     source = "set_variant()"
     if name is None and os.environ.get(ENV_VARIANT):
@@ -121,6 +132,12 @@ def set_variant(name: str | None = None) -> str:
                 f"gdpt found no Dr.Jit backend (neither CUDA nor LLVM): {_INSTALL_HINT}"
             )
         name = "cuda_ad_rgb" if has_cuda else "llvm_ad_rgb"
+        if has_cuda and has_llvm and not _torch_has_cuda():
+            warnings.warn(
+                f"gdpt uses llvm_ad_rgb (CPU): Dr.Jit has a CUDA device but {_TORCH_CPU}",
+                stacklevel=2,
+            )
+            name = "llvm_ad_rgb"
     elif name.startswith("cuda_") and not has_cuda:
         raise RuntimeError(
             f"{source} requested {name!r} but Dr.Jit found no CUDA device/driver; "
@@ -130,6 +147,11 @@ def set_variant(name: str | None = None) -> str:
         raise RuntimeError(
             f"{source} requested {name!r} but Dr.Jit cannot load libLLVM: {_INSTALL_HINT}"
         )
+    if name.startswith("cuda_") and not _torch_has_cuda():
+        raise RuntimeError(
+            f"{source}: {name!r} needs a CUDA build of torch, but {_TORCH_CPU}, or use "
+            "'llvm_ad_rgb'"
+        )
 
     import mitsuba as mi
 
@@ -137,6 +159,13 @@ def set_variant(name: str | None = None) -> str:
     _register_plugins()
     _install_variant_callback(mi)
     return name
+
+
+def _torch_has_cuda() -> bool:
+    """Whether torch can use a CUDA device (imports torch)."""
+    import torch
+
+    return bool(torch.cuda.is_available())
 
 
 def ensure_variant() -> str:

@@ -177,11 +177,21 @@ def check_writable(path: PathLike, *, force: bool) -> None:
 
 
 # ----------------------------------------------------------------------------------------- read
-def load_buffers(path: PathLike) -> GradientBuffers:
-    """Read a file written by :func:`save_buffers`.
+def load_buffers(path: PathLike, *, aov_kinds: dict[str, str] | None = None) -> GradientBuffers:
+    """Read a file written by :func:`save_buffers`, or by Mitsuba's ``aov`` integrator.
+
+    A Mitsuba AOV EXR (the image's ``R, G, B`` channels beside AOV layers such as
+    ``albedo.R/G/B``, ``nn.X/Y/Z``, ``dd.y.T``; :mod:`gdpt.io.mitsuba_aov`) gives buffers with
+    ``primal`` and whichever of ``albedo``, ``normal``, ``depth`` it holds, no gradients,
+    ``spp`` 0 and ``metadata["source"] = "mitsuba-aov-exr"`` (with the layers read, in
+    ``metadata["aovs"]``).
 
     Args:
-        path (str | os.PathLike): an EXR file with at least the ``primal.R/G/B`` channels.
+        path (str | os.PathLike): an EXR file with the ``primal.R/G/B`` channels, or a Mitsuba
+            AOV EXR.
+        aov_kinds (dict[str, str] | None): for a Mitsuba AOV EXR, ``{kind: layer}`` where the
+            layer of a kind (``primal``, ``albedo``, ``normal``, ``depth``) is ambiguous, e.g.
+            ``{"normal": "nn"}``.
 
     Returns:
         The buffers as ``float32`` CPU tensors (half-stored files are widened), with ``spp``
@@ -192,11 +202,26 @@ def load_buffers(path: PathLike) -> GradientBuffers:
         IsADirectoryError: ``path`` is a directory.
         ValueError: not an OpenEXR file, truncated or corrupt, written in a newer format
             version, ``gdpt.metadata`` not a JSON object, a required channel or part of a layer
-            is missing, a channel has the wrong size or type, or the buffers are inconsistent.
-            The message names the file (and the channel or header attribute).
+            is missing (and the file is no Mitsuba AOV EXR, or an ambiguous one), a channel has
+            the wrong size or type, or the buffers are inconsistent. The message names the file
+            (and the channels found, or the channel or header attribute).
     """
     path = Path(path)
     header, channels = _read_exr(path)
+    return _buffers(path, header, channels, aov_kinds)
+
+
+def _buffers(
+    path: Path,
+    header: dict[str, Any],
+    channels: dict[str, np.ndarray],
+    aov_kinds: dict[str, str] | None,
+) -> GradientBuffers:
+    """:func:`load_buffers` of a file already read."""
+    if "primal.R" not in channels and not _written_by_gdpt(header):
+        return _aov_buffers(path, header, channels, aov_kinds)
+    if aov_kinds:
+        raise ValueError(f"{path}: a gdpt buffers EXR; aov_kinds (--aov) applies to AOV EXRs")
     tensors: dict[str, torch.Tensor] = {}
     for name in CHANNELS:
         names = channel_names(name)
@@ -206,9 +231,10 @@ def load_buffers(path: PathLike) -> GradientBuffers:
         missing = [n for n in names if n not in channels]
         if missing:
             what = "required channel" if not found else f"channel of layer '{name}':"
+            hint = "" if found else _image_hint(channels)
             raise ValueError(
                 f"{path}: missing {what} '{missing[0]}' "
-                f"(channels present: {', '.join(sorted(channels)) or 'none'})"
+                f"(channels present: {', '.join(sorted(channels)) or 'none'}){hint}"
             )
         tensors[name] = _stack(path, names, channels)
     try:
@@ -222,6 +248,47 @@ def load_buffers(path: PathLike) -> GradientBuffers:
         return GradientBuffers(**tensors, spp=spp, metadata=metadata)
     except (TypeError, ValueError) as error:
         raise ValueError(f"{path}: {error}") from error
+
+
+def _written_by_gdpt(header: dict[str, Any]) -> bool:
+    return _KEY_FORMAT in header or _KEY_METADATA in header
+
+
+def _image_hint(channels: dict[str, np.ndarray]) -> str:
+    """What a gdpt file with ``R, G, B`` and no ``primal`` layer is (for the error message)."""
+    if {"R", "G", "B"} <= set(channels):
+        return (
+            ": a reconstructed image (gdpt reconstruct / render-and-denoise), not buffers; "
+            "reconstruct from the EXR of 'gdpt render'"
+        )
+    return ""
+
+
+def _aov_buffers(
+    path: Path,
+    header: dict[str, Any],
+    channels: dict[str, np.ndarray],
+    aov_kinds: dict[str, str] | None,
+) -> GradientBuffers:
+    """Buffers of a Mitsuba AOV EXR (:mod:`gdpt.io.mitsuba_aov`)."""
+    from gdpt.io import mitsuba_aov
+
+    try:
+        recognised = mitsuba_aov.recognise(channels, aov_kinds)
+        arrays = mitsuba_aov.aov_arrays(channels, recognised)
+    except ValueError as error:
+        raise ValueError(
+            f"{path}: missing required channel 'primal.R' of a gdpt render, and not readable as "
+            f"a Mitsuba AOV EXR: {error}"
+        ) from None
+    metadata = {
+        "source": mitsuba_aov.SOURCE,
+        "aovs": {kind: list(names) for kind, names in recognised.items()},
+    }
+    if isinstance(header.get("generatedBy"), str):
+        metadata["generated_by"] = header["generatedBy"]
+    tensors = {kind: torch.from_numpy(array) for kind, array in arrays.items()}
+    return GradientBuffers(**tensors, spp=0, metadata=metadata)
 
 
 def load_image(path: PathLike, layer: str | None = None) -> torch.Tensor:
@@ -323,3 +390,83 @@ def _stack(path: Path, names: tuple[str, ...], channels: dict[str, np.ndarray]) 
                 "(subsampled channels are not supported)"
             )
     return torch.from_numpy(np.stack([channels[n] for n in names], axis=-1).astype(np.float32))
+
+
+# ------------------------------------------------------------------------------------- describe
+def describe_exr(path: PathLike) -> str:
+    """A readable description of an EXR file (what ``gdpt info`` prints): its kind (gdpt
+    buffers, a reconstructed image, a Mitsuba AOV EXR, another EXR), size, spp, the buffers
+    or layers with their channels and NaN/Inf counts, and the metadata.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        IsADirectoryError: ``path`` is a directory.
+        ValueError: not a readable OpenEXR file, or a gdpt buffers EXR that
+            :func:`load_buffers` refuses (the message names the file).
+    """
+    from gdpt.io import mitsuba_aov
+
+    path = Path(path)
+    header, channels = _read_exr(path)
+    rows: list[tuple[str, list[str]]] = []
+    lines = [f"file:     {path}"]
+    metadata: dict[str, Any] | None = None
+    heading = "layers:"
+    height, width = next(iter(channels.values())).shape if channels else (0, 0)
+    if "primal.R" in channels or (_written_by_gdpt(header) and not _image_hint(channels)):
+        buffers = _buffers(path, header, channels, None)
+        mode = "gradient-domain (dx, dy)" if buffers.has_gradients else "primal-only"
+        lines += [
+            f"kind:     gdpt buffers (gdpt render), written by gdpt {_writer(header)}",
+            f"size:     {buffers.width} x {buffers.height} (W x H)",
+            f"spp:      {buffers.spp}",
+            f"mode:     {mode}",
+        ]
+        rows = [(name, list(channel_names(name))) for name in buffers.present()]
+        metadata, heading = buffers.metadata, "buffers:"
+    elif _written_by_gdpt(header):
+        metadata = _metadata(path, header)
+        method = metadata.get("method")
+        made = f"method {method}" if method else "gdpt"
+        lines += [
+            f"kind:     reconstructed image ({made}), written by gdpt {_writer(header)}",
+            f"size:     {width} x {height} (W x H)",
+        ]
+        if "spp" in metadata:
+            lines.append(f"spp:      {metadata['spp']}")
+        rows = [("image", ["R", "G", "B"])]
+    else:
+        try:
+            recognised = mitsuba_aov.recognise(channels)
+            mitsuba_aov.aov_arrays(channels, recognised)
+        except ValueError as error:
+            recognised = {}
+            kind = f"EXR that gdpt does not read as buffers ({error})"
+        else:
+            by = header.get("generatedBy")
+            made = f"{by}; " if isinstance(by, str) else ""
+            kind = f"Mitsuba AOV EXR ({made}gdpt.load_buffers reads {', '.join(recognised)})"
+            heading = "buffers:"
+        lines += [f"kind:     {kind}", f"size:     {width} x {height} (W x H)"]
+        rows = [(name, list(names)) for name, names in recognised.items()]
+        read = {n for _, names in rows for n in names}
+        rows += [
+            ("(unread)", names)
+            for names in mitsuba_aov.layers(channels).values()
+            if not read & set(names)
+        ]
+    lines.append(heading)
+    lines.append(f"  {'name':<11} {'channels':<32} {'NaN':>8} {'Inf':>8}")
+    for name, names in rows:
+        values = [channels[n] for n in names]
+        nan = sum(int(np.isnan(v).sum()) for v in values if v.dtype.kind == "f")
+        inf = sum(int(np.isinf(v).sum()) for v in values if v.dtype.kind == "f")
+        lines.append(f"  {name:<11} {','.join(names):<32} {nan:>8} {inf:>8}")
+    if metadata is not None:
+        lines.append(f"metadata: {json.dumps(metadata, indent=2, sort_keys=True)}")
+    return "\n".join(lines)
+
+
+def _writer(header: dict[str, Any]) -> str:
+    """The gdpt version (and format version) that wrote a file, from its header."""
+    return f"{header.get(_KEY_VERSION, '(unknown)')}, format {header.get(_KEY_FORMAT, 0)}"

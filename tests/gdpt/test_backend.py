@@ -157,3 +157,37 @@ def test_existing_libllvm_path_is_respected():
     assert run_python(code, DRJIT_LIBLLVM_PATH=other, GDPT_VARIANT=None) == other
     stale = run_python(code, DRJIT_LIBLLVM_PATH="/nonexistent/libLLVM.so", GDPT_VARIANT=None)
     assert stale == found
+
+
+@pytest.fixture
+def cuda_drjit_cpu_torch(monkeypatch):
+    """Dr.Jit reports both backends, torch has no CUDA (a CPU wheel on a GPU machine)."""
+    import drjit as dr
+    import torch
+
+    monkeypatch.delenv("GDPT_VARIANT", raising=False)
+    monkeypatch.setattr(dr, "has_backend", lambda _backend: True)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+
+
+@pytest.mark.usefixtures("cuda_drjit_cpu_torch", "restore_variant")
+def test_auto_choice_takes_llvm_when_torch_has_no_cuda():
+    import mitsuba as mi
+
+    with pytest.warns(UserWarning, match=r"llvm_ad_rgb \(CPU\): Dr\.Jit has a CUDA device but"):
+        assert backend.set_variant() == "llvm_ad_rgb"
+    assert mi.variant() == "llvm_ad_rgb"
+
+
+@pytest.mark.usefixtures("cuda_drjit_cpu_torch", "restore_variant")
+@pytest.mark.parametrize("env", [False, True])
+def test_explicit_cuda_with_cpu_torch_is_a_clear_error(monkeypatch, env):
+    import mitsuba as mi
+
+    before = mi.variant()
+    if env:
+        monkeypatch.setenv("GDPT_VARIANT", "cuda_ad_rgb")
+    source = r"\$GDPT_VARIANT" if env else r"set_variant\(\)"
+    with pytest.raises(RuntimeError, match=source + r": 'cuda_ad_rgb' needs a CUDA build of torch"):
+        backend.set_variant(None if env else "cuda_ad_rgb")
+    assert mi.variant() == before
