@@ -17,6 +17,7 @@ Command: ``gdpt model-report --data DIR --run oidn-grad=RUN --run oidn-tuned=RUN
 from __future__ import annotations
 
 import json
+import math
 import statistics
 import time
 from collections.abc import Mapping
@@ -25,6 +26,7 @@ from typing import Any
 
 import torch
 
+from gdpt.statistics import mean_interval
 from gdpt.training.run_dir import read_jsonl
 
 #: Largest network (float32 weights) shipped inside the package.
@@ -252,10 +254,6 @@ def paired_comparison(
         KeyError: ``a`` or ``b`` has no per-element scores in ``result``.
         ValueError: a score is not positive (no log ratio).
     """
-    import math
-
-    from gdpt.study.results import mean_interval
-
     elements = result["elements"]
     for label in (a, b):
         if label not in elements:
