@@ -537,7 +537,7 @@ _DATASET_EXCLUDED = ("scene_config",)
 
 
 def _add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
-    from gdpt.training.dataset import TARGET_KINDS, DatasetConfig
+    from gdpt.training.preprocess import TARGET_KINDS, DatasetConfig
 
     parser.add_argument("--out", type=Path, required=True, help="dataset directory")
     add_config_arguments(
@@ -564,7 +564,7 @@ def _add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_dataset(args: argparse.Namespace) -> int:
-    from gdpt.training.dataset import DatasetConfig, build_dataset
+    from gdpt.training.preprocess import DatasetConfig, build_dataset
 
     config = config_from_args(DatasetConfig, args, exclude=_DATASET_EXCLUDED)
     summary = build_dataset(

@@ -27,6 +27,7 @@ from typing import Any
 import torch
 
 from gdpt.statistics import mean_interval
+from gdpt.training.dataset import CropDataset
 from gdpt.training.run_dir import read_jsonl
 
 #: Largest network (float32 weights) shipped inside the package.
@@ -149,7 +150,6 @@ def compare_models(
     from gdpt.denoise import load_reconstructor, oidn_check, oidn_denoise
     from gdpt.metrics import flip_ldr, relmse
     from gdpt.reconstruct.poisson import reconstruct as poisson
-    from gdpt.training.dataset import CropDataset
 
     held = lambda s: s % holdout_every == holdout_every - 1  # noqa: E731
     nets = {}

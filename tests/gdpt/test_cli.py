@@ -246,7 +246,7 @@ def test_config_options_expose_every_field_with_the_dataclass_defaults(monkeypat
     from gdpt.reconstruct.oidn_ngpt import FINETUNE_LOSSES
 
     from gdpt.training.config import TrainConfig
-    from gdpt.training.dataset import DatasetConfig
+    from gdpt.training.preprocess import DatasetConfig
 
     parser = build_parser()
     args = parser.parse_args(["train", "--config", "fast_xs", "--data", "d", "--out", "o"])
