@@ -28,7 +28,7 @@ from pathlib import Path
 
 from gdpt.cli_config import add_config_arguments, config_from_args
 from gdpt.denoise import METHODS
-from gdpt.scene_io import DEFAULT_MAX_DEPTH
+from gdpt.scenes.loading import DEFAULT_MAX_DEPTH
 from gdpt.study.config import PROTOCOLS
 from gdpt.version import __version__
 
@@ -167,7 +167,8 @@ def _run_reconstruct(args: argparse.Namespace) -> int:
 def _add_scene_arguments(parser: argparse.ArgumentParser) -> None:
     """The scene and sampling options shared by ``render`` and ``render-and-denoise``."""
     parser.add_argument(
-        "scene", help="Mitsuba XML file, builtin:NAME or random:SEED[:VIEW] (see gdpt.scene_io)"
+        "scene",
+        help="Mitsuba XML file, builtin:NAME or random:SEED[:VIEW] (see gdpt.scenes.loading)",
     )
     parser.add_argument("--spp", type=int, default=64, help="samples per pixel (default: 64)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
@@ -193,14 +194,14 @@ def _add_scene_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _load_scene(args: argparse.Namespace) -> tuple[object, int]:
-    """The scene of ``args`` (:func:`gdpt.scene_io.read_scene` with ``--box-filter`` and
+    """The scene of ``args`` (:func:`gdpt.scenes.loading.read_scene` with ``--box-filter`` and
     ``--long-side``) and the max depth to render with; prints what loading changed and where
     the depth comes from.
 
     Raises:
         UsageError: a bad option value, or a film without a box filter and no ``--box-filter``.
     """
-    from gdpt.scene_io import BOX_FILTER, choose_max_depth, read_scene
+    from gdpt.scenes.loading import BOX_FILTER, choose_max_depth, read_scene
 
     if args.spp < 1:
         raise UsageError(f"--spp must be >= 1, got {args.spp}")

@@ -19,7 +19,7 @@ import torch
 
 from gdpt.buffers import GradientBuffers, pool_primal
 from gdpt.integrators import PLUGINS
-from gdpt.scene_io import load_scene
+from gdpt.scenes.loading import load_scene
 
 
 @dataclass

@@ -55,7 +55,7 @@ from gdpt.denoise import reconstruct_image
 from gdpt.io.atomic import atomic_write
 from gdpt.io.exr import save_buffers
 from gdpt.rendering import render
-from gdpt.scene_io import load_scene
+from gdpt.scenes.loading import load_scene
 from gdpt.training.config import require_positive
 from gdpt.training.manifest import (
     CONFIG_FILE,
