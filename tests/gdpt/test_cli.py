@@ -14,7 +14,7 @@ import torch
 
 from gdpt import denoise
 from gdpt.cli import COMMANDS, build_parser, main
-from gdpt.cli_config import config_from_args
+from gdpt.cli.config_options import config_from_args
 from gdpt.io.exr import load_image, save_buffers
 
 
@@ -60,6 +60,19 @@ def test_help_lists_commands():
     with pytest.raises(SystemExit) as exit_info:
         main(["reconstruct", "--help"])
     assert exit_info.value.code == 0
+
+
+def test_help_imports_neither_torch_nor_mitsuba():
+    code = (
+        "import sys\n"
+        "from gdpt.cli import main\n"
+        "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+        "print(sorted({'drjit', 'mitsuba', 'torch'} & set(sys.modules)))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], check=True, capture_output=True, text=True, timeout=120
+    )
+    assert "model-report" in result.stdout and result.stdout.splitlines()[-1] == "[]"
 
 
 def test_no_command_is_a_usage_error():
