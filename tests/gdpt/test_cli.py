@@ -144,6 +144,26 @@ def test_primal_only_render_is_a_clear_error(tmp_path, capsys, random_buffers):
 
 
 @pytest.mark.parametrize(
+    ("method", "lacking", "option"),
+    [
+        ("kpcn", {"var_primal": None}, "render with variance=True (gdpt render --variance)"),
+        ("oidn-grad", {"dx": None, "dy": None}, "gdpt render without --no-gradients"),
+    ],
+)
+def test_network_without_the_buffers_it_reads_exits_2_naming_the_render_option(
+    tmp_path, random_buffers, capsys, method, lacking, option
+):
+    """``gdpt reconstruct --method kpcn`` on buffers without ``var_primal`` (and a gradient
+    network on primal-only buffers): one line naming the buffer and the render option."""
+    path = save_buffers(tmp_path / "render.exr", random_buffers().replace(**lacking))
+    out = tmp_path / "o.exr"
+    assert main(["reconstruct", str(path), "--method", method, "-o", str(out)]) == 2
+    line = one_line_error(capsys.readouterr().err)
+    assert f"the buffers lack {', '.join(lacking)}" in line and option in line
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
     ("command", "match"),
     [
         (["info", "{missing}"], "missing.exr: no such file"),
