@@ -35,7 +35,7 @@ def oidn_on_cuda(size: tuple[int, int], spp: int, repeats: int) -> dict[str, flo
     """Seconds of each way to run ``oidn`` on CUDA buffers (an error message where one fails)."""
     import mitsuba as mi
 
-    from gdpt.scene_io import generated_scene
+    from gdpt.scenes.loading import generated_scene
 
     scene_dict = generated_scene("builtin:cbox-demo")
     scene_dict["sensor"]["film"]["width"], scene_dict["sensor"]["film"]["height"] = size

@@ -43,7 +43,7 @@ import torch
 
 import gdpt
 from gdpt.denoise import METHODS, register_checkpoint
-from gdpt.scene_io import generated_scene
+from gdpt.scenes.loading import generated_scene
 
 PLAIN = "(path tracing, no reconstruction)"
 

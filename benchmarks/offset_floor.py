@@ -102,7 +102,7 @@ def _scene_row(name: str, args) -> str:
     """Time path, the floor with and without offsets, and gdpt on one scene: a table row."""
     import mitsuba as mi
 
-    from gdpt.scene_io import load_scene
+    from gdpt.scenes.loading import load_scene
 
     scene = load_scene(SHARED / name / "scene.xml", box_filter=True, long_side=args.resolution)
     sensor = scene.sensors()[0]

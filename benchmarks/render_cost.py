@@ -70,7 +70,7 @@ def main() -> None:
     import mitsuba as mi
 
     import gdpt
-    from gdpt.scene_io import load_scene
+    from gdpt.scenes.loading import load_scene
 
     variant = gdpt.set_variant()
     rows = []

@@ -31,7 +31,7 @@ _CHILD = """
 import json, resource, sys, time
 import drjit as dr, mitsuba as mi
 import gdpt
-from gdpt.scene_io import load_scene
+from gdpt.scenes.loading import load_scene
 args = json.loads(sys.argv[1])
 gdpt.set_variant()
 from gdpt.integrators.common import plan_passes

@@ -41,8 +41,8 @@ def main() -> None:
 
     import gdpt
     from gdpt.metrics import relmse
-    from gdpt.scene_io import load_scene
     from gdpt.scenes import builtin_scene
+    from gdpt.scenes.loading import load_scene
 
     gdpt.set_variant()
     scene = load_scene(builtin_scene(args.scene, resolution=(args.resolution,) * 2))

@@ -35,8 +35,9 @@ import math
 from collections import Counter
 from pathlib import Path
 
+from gdpt.statistics import mean_interval
 from gdpt.study.methods import EVAL_METHODS
-from gdpt.study.results import mean_interval, read_results
+from gdpt.study.results import read_results
 
 
 def replicate_values(cell: dict, metric: str) -> list[float] | None:

@@ -42,7 +42,7 @@ import mitsuba as mi
 import numpy as np
 
 import gdpt
-from gdpt.scene_io import load_scene
+from gdpt.scenes.loading import load_scene
 
 #: The optimised parameter and its start value (the scene's truth is 20, 15.5, 10).
 KEY = "light.emitter.radiance.value"

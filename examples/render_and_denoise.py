@@ -13,8 +13,8 @@ from pathlib import Path
 
 import gdpt
 from gdpt.io.images import save_png
-from gdpt.scene_io import load_scene
 from gdpt.scenes import builtin_scene
+from gdpt.scenes.loading import load_scene
 
 
 def main() -> None:

@@ -17,7 +17,7 @@ use; submodules keep their own names (no function shadows a module)::
 ``gdpt.reconstruct`` is the subpackage of reconstruction algorithms (Poisson solvers, networks,
 losses).
 
-The pipeline, one module per stage: :mod:`gdpt.scene_io` (load a scene) ->
+The pipeline, one module per stage: :mod:`gdpt.scenes.loading` (load a scene) ->
 :mod:`gdpt.rendering` (integrator -> :class:`~gdpt.buffers.GradientBuffers`) ->
 :mod:`gdpt.denoise` (reconstruction methods) -> :mod:`gdpt.study` (equal-time evaluation);
 :mod:`gdpt.differentiable` renders and reconstructs inside Mitsuba's AD graph;
@@ -37,7 +37,7 @@ _LAZY: dict[str, str] = {
     "buffers_from_aovs": "gdpt.aovs",
     "load_buffers": "gdpt.io.exr",
     "save_buffers": "gdpt.io.exr",
-    "load_scene": "gdpt.scene_io",
+    "load_scene": "gdpt.scenes.loading",
     "set_variant": "gdpt.backend",
     "render": "gdpt.rendering",
     "render_and_denoise": "gdpt.rendering",
@@ -67,7 +67,7 @@ if TYPE_CHECKING:
     from gdpt.differentiable import render_differentiable
     from gdpt.io.exr import load_buffers, save_buffers
     from gdpt.rendering import render, render_and_denoise
-    from gdpt.scene_io import load_scene
+    from gdpt.scenes.loading import load_scene
 
 
 def __getattr__(name: str) -> Any:

@@ -180,17 +180,43 @@ def load_reconstructor(path: Path) -> Any:
     return family_of(path).reconstructor(path)
 
 
+class MissingBuffersError(ValueError, KeyError):
+    """The buffers lack one that a network reads: a ``ValueError`` like the other methods'
+    missing buffers, and the ``KeyError`` the networks raise."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+#: Buffer a network reads -> the render option that makes it (``gdpt.render``, ``gdpt render``).
+_RENDER_OPTIONS = {
+    **dict.fromkeys(("dx", "dy"), "gradients=True (gdpt render without --no-gradients)"),
+    **dict.fromkeys(("albedo", "normal", "depth"), "features=True (the default)"),
+    **dict.fromkeys(("var_primal", "var_dx", "var_dy"), "variance=True (gdpt render --variance)"),
+}
+
+
 def _network(
     buffers: GradientBuffers, *, name: str, alpha: float, model: str | None = None, **_: Any
 ) -> torch.Tensor:
     """Neural reconstruction with a trained network (``alpha`` does not apply).
 
     Raises:
-        KeyError: the buffers lack one the model reads (named).
+        MissingBuffersError: the buffers lack one the model's card lists (named, with the
+            render option that makes it), before the model is loaded.
         RuntimeError: the model builds on OIDN's weights and ``pyoidn`` (whose library holds
             them) is not installed or its weights are not recognised.
     """
+    from gdpt.reconstruct.cards import read_card
+
     path = model_path(name, model).resolve()
+    reads = read_card(path)[2].get("features", ())
+    if missing := [n for n in reads if getattr(buffers, n, None) is None]:
+        options = dict.fromkeys(_RENDER_OPTIONS.get(n, n) for n in missing)
+        raise MissingBuffersError(
+            f"method {name!r}: the buffers lack {', '.join(missing)}, which its network reads; "
+            f"render with {' and '.join(options)}"
+        )
     if reason := _oidn_weights_missing(name, path):
         raise RuntimeError(reason)
     factor = _network_primal_spp_factor(name, model)

@@ -116,7 +116,7 @@ def render_differentiable(
     import drjit as dr
     import mitsuba as mi
 
-    from gdpt.scene_io import load_scene
+    from gdpt.scenes.loading import load_scene
 
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")

@@ -1,6 +1,6 @@
 """Rendering gradient-domain buffers in-process: scene -> :class:`GradientBuffers` -> image.
 
-:func:`render` samples a scene (loaded by :func:`gdpt.scene_io.load_scene`) with ``gdpt`` or
+:func:`render` samples a scene (loaded by :func:`gdpt.scenes.loading.load_scene`) with ``gdpt`` or
 ``gdpt_rr``; :func:`render_and_denoise` also reconstructs (:func:`gdpt.reconstruct_image`).
 
 Sampling (Dr.Jit) and reconstruction (torch) run in the same process. The integrator's output
@@ -19,7 +19,7 @@ import torch
 
 from gdpt.buffers import GradientBuffers, pool_primal
 from gdpt.integrators import PLUGINS
-from gdpt.scene_io import load_scene
+from gdpt.scenes.loading import load_scene
 
 
 @dataclass

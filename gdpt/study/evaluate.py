@@ -50,6 +50,7 @@ from typing import Any
 
 import torch
 
+from gdpt.statistics import mean_interval
 from gdpt.study.calibration import calibrate, run_at_budget, timed_run
 from gdpt.study.config import PRESETS, EvaluateConfig
 from gdpt.study.methods import EVAL_METHODS, EvalMethod, MethodResult, MethodUnavailable
@@ -61,7 +62,6 @@ from gdpt.study.results import (
     finite,
     load_results,
     machine_info,
-    mean_interval,
     replicate_seed,
     versions,
     write_json,

@@ -1,5 +1,7 @@
-"""The study's scenes: :func:`resolve_scenes` (arguments -> :class:`SceneSpec`) and
-:func:`load_eval_scene` (through :func:`gdpt.scene_io.read_scene`, box filter and resizing).
+"""The study's scenes: :func:`resolve_scenes` (``gdpt evaluate --scenes`` arguments, folders of
+``*/scene.xml`` included -> named :class:`SceneSpec`) and :func:`load_eval_scene` (the study's
+policy on top of :func:`gdpt.scenes.loading.read_scene`: box filter forced, the study's
+resolution and path length, every change recorded for the report).
 """
 
 from __future__ import annotations
@@ -10,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gdpt.scene_io import BOX_FILTER
+from gdpt.scenes.loading import BOX_FILTER, GENERATED_PREFIXES, choose_max_depth, read_scene
 
 
 # ------------------------------------------------------------------------------------ scenes
@@ -116,8 +118,6 @@ def load_eval_scene(spec: SceneSpec, *, resolution: int, max_depth: int | None =
         FileNotFoundError: the XML file does not exist.
         ValueError: Mitsuba cannot load it, or an unknown builtin/random specification.
     """
-    from gdpt.scene_io import GENERATED_PREFIXES, choose_max_depth, read_scene
-
     generated = spec.source.startswith(GENERATED_PREFIXES)
     loaded = read_scene(
         spec.source if generated else Path(spec.source), box_filter=True, long_side=resolution

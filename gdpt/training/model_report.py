@@ -10,27 +10,34 @@
   the 2.5x rule can be checked) and the measured reconstruction times.
 * :func:`ship_model`: copy a run's final network into ``gdpt/models/<name>`` with a model card
   (data, steps, wall time, the comparison numbers).
-
-Command: ``gdpt model-report --data DIR --run oidn-grad=RUN --run oidn-tuned=RUN --out DIR``.
+* :func:`write_report`: all of these into a report folder (``gdpt model-report --data DIR --run
+  oidn-grad=RUN --run oidn-tuned=RUN --out DIR``).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import statistics
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from gdpt.statistics import mean_interval
+from gdpt.training.dataset import CropDataset
 from gdpt.training.run_dir import read_jsonl
 
 #: Largest network (float32 weights) shipped inside the package.
 MAX_SHIPPED_MIB = 20
 #: Scene selection of the held-out set: the same rule as ``gdpt train --holdout-every``.
 HOLDOUT_EVERY = 10
+#: Labels of the baselines :func:`compare_models` scores beside the networks (``pt+oidn`` when
+#: ``pyoidn`` is installed).
+BASELINES = ("gdpt+l1", "pt+oidn", "pt")
 
 
 def _smooth(values: list[float], window: int) -> list[float]:
@@ -147,7 +154,6 @@ def compare_models(
     from gdpt.denoise import load_reconstructor, oidn_check, oidn_denoise
     from gdpt.metrics import flip_ldr, relmse
     from gdpt.reconstruct.poisson import solve as poisson
-    from gdpt.training.dataset import CropDataset
 
     held = lambda s: s % holdout_every == holdout_every - 1  # noqa: E731
     nets = {}
@@ -252,10 +258,6 @@ def paired_comparison(
         KeyError: ``a`` or ``b`` has no per-element scores in ``result``.
         ValueError: a score is not positive (no log ratio).
     """
-    import math
-
-    from gdpt.study.results import mean_interval
-
     elements = result["elements"]
     for label in (a, b):
         if label not in elements:
@@ -415,3 +417,76 @@ def ship_model(
         extra["base_model"] = base_target.name
     weights, _ = write_checkpoint(target, *family.encode(model, design, extra))
     return weights
+
+
+@dataclass(frozen=True)
+class Report:
+    """What :func:`write_report` wrote.
+
+    Attributes:
+        comparison: ``comparison.json``: the :func:`compare_models` result with ``"pairs"``,
+            the :func:`paired_comparison` of every pair in relMSE and in LDR-FLIP.
+        markdown: ``comparison.md``: :func:`comparison_markdown` and one
+            :func:`paired_markdown` table per pair.
+        shipped: the ``.safetensors`` files :func:`ship_model` wrote, one per shipped run.
+    """
+
+    comparison: dict[str, Any]
+    markdown: str
+    shipped: tuple[Path, ...]
+
+
+def write_report(
+    data: str | Path,
+    runs: Mapping[str, str | Path],
+    out: str | Path,
+    *,
+    models: Mapping[str, str | Path] | None = None,
+    holdout_every: int = HOLDOUT_EVERY,
+    pairs: Sequence[tuple[str, str]] = (),
+    ship: Sequence[str] = (),
+    progress: bool = True,
+) -> Report:
+    """Report on trained networks in ``out``: ``training.png`` (:func:`plot_training` of
+    ``runs``), ``comparison.json`` and ``comparison.md`` (the final network of each run and
+    each of ``models`` on the held-out crops of ``data``, :func:`compare_models`, with the
+    paired comparisons), then ship the runs named in ``ship`` (:func:`ship_model`, with the
+    comparison in their card).
+
+    Args:
+        data: ``gdpt dataset`` directory.
+        runs: name -> ``gdpt train`` run directory holding ``model.safetensors``.
+        out: report folder (created; its files are overwritten).
+        models: name -> further checkpoint to compare (neither plotted nor shipped); names
+            other than those of ``runs``.
+        holdout_every: the held-out rule of :func:`compare_models`.
+        pairs: ``(a, b)`` labels (of ``runs``, ``models`` or :data:`BASELINES`) to compare
+            element by element, in relMSE and in LDR-FLIP.
+        ship: names of ``runs`` to ship into ``gdpt/models``.
+        progress: show a progress bar.
+
+    Returns:
+        What was written.
+
+    Raises:
+        FileNotFoundError: a run has no ``log.jsonl`` or a checkpoint is missing.
+        KeyError: a label of ``pairs`` or ``ship`` is unknown.
+        ValueError: a checkpoint is of no known network family, or a network is too large to
+            ship.
+    """
+    out = Path(out)
+    checkpoints = {name: Path(run) / "model.safetensors" for name, run in runs.items()}
+    checkpoints.update({name: Path(path) for name, path in (models or {}).items()})
+    out.mkdir(parents=True, exist_ok=True)
+    plot_training(runs, out / "training.png")
+    result = compare_models(data, checkpoints, holdout_every=holdout_every, progress=progress)
+    result["pairs"] = [
+        paired_comparison(result, a, b, metric) for a, b in pairs for metric in ("relmse", "flip")
+    ]
+    (out / "comparison.json").write_text(json.dumps(result, indent=2) + "\n")
+    markdown = comparison_markdown(result)
+    for pair in result["pairs"]:
+        markdown += "\n" + paired_markdown(pair)
+    (out / "comparison.md").write_text(markdown)
+    shipped = tuple(ship_model(runs[name], name, comparison=result) for name in ship)
+    return Report(result, markdown, shipped)

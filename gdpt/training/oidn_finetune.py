@@ -56,8 +56,9 @@ from gdpt.training.augment import augment, sample_augmentation
 from gdpt.training.batches import split_datasets, step_seed
 from gdpt.training.checkpoint import write_checkpoint
 from gdpt.training.config import TrainConfig
-from gdpt.training.dataset import CONFIG_FILE, CropDataset
+from gdpt.training.dataset import CropDataset
 from gdpt.training.loop import RunContext, TrainingPlan
+from gdpt.training.manifest import CONFIG_FILE
 from gdpt.training.step import UpdateScale
 from gdpt.training.validation import held_out_elements, image_metrics
 

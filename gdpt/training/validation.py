@@ -15,7 +15,8 @@ import torch
 from gdpt.reconstruct.dense_unet import DenseUNet
 from gdpt.reconstruct.dense_unet_reconstructor import DenseUNetReconstructor
 from gdpt.reconstruct.losses import FLIPLoss
-from gdpt.training.dataset import CropDataset, DatasetWarning
+from gdpt.training.dataset import CropDataset
+from gdpt.training.manifest import DatasetWarning
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """Fixtures of the dataset, training, fine-tuning and model-report tests.
 
-* ``tiny_dataset_config``: a factory of :class:`~gdpt.training.dataset.DatasetConfig` for
+* ``tiny_dataset_config``: a factory of :class:`~gdpt.training.preprocess.DatasetConfig` for
   16x16 crops of one-object scenes (fast kernels): 1 scene, 2 views, 1-4 spp, 8-spp targets,
   depth 4; keyword arguments override fields.
 * ``tiny_dataset``: that dataset (``tiny_dataset_config()``, 2 crops), rendered once per
@@ -30,13 +30,13 @@ import pytest
 
 if TYPE_CHECKING:
     from gdpt.training.config import TrainConfig
-    from gdpt.training.dataset import DatasetConfig
+    from gdpt.training.preprocess import DatasetConfig
 
 
 def make_tiny_dataset_config(**changes) -> DatasetConfig:
     """16x16 crops of one-object scenes (fast kernels), a handful of samples."""
     from gdpt.scenes import RandomSceneConfig
-    from gdpt.training.dataset import DatasetConfig
+    from gdpt.training.preprocess import DatasetConfig
 
     scene = RandomSceneConfig(
         num_objects=(1, 1), p_extra_light=0.0, p_window=0.0, p_bitmap_env=0.0, p_thinlens=0.0
@@ -63,7 +63,7 @@ def tiny_dataset_config() -> Callable[..., DatasetConfig]:
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory) -> Path:
     """The two rendered crops of ``tiny_dataset_config()`` (do not modify)."""
-    from gdpt.training.dataset import build_dataset
+    from gdpt.training.preprocess import build_dataset
 
     root = tmp_path_factory.mktemp("dataset") / "tiny"
     summary = build_dataset(make_tiny_dataset_config(), root, progress=False)
@@ -74,7 +74,7 @@ def tiny_dataset(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def pt_dataset(tmp_path_factory) -> Path:
     """Two 32x32 crops with path-traced inputs and targets (do not modify)."""
-    from gdpt.training.dataset import build_dataset
+    from gdpt.training.preprocess import build_dataset
 
     root = tmp_path_factory.mktemp("pt-dataset") / "data"
     config = make_tiny_dataset_config(resolution=32, levels=2, target_spp=16, target="pt")

@@ -14,7 +14,7 @@ import torch
 
 from gdpt import denoise
 from gdpt.cli import COMMANDS, build_parser, main
-from gdpt.cli_config import config_from_args
+from gdpt.cli.config_options import config_from_args
 from gdpt.io.exr import load_image, save_buffers
 
 
@@ -60,6 +60,19 @@ def test_help_lists_commands():
     with pytest.raises(SystemExit) as exit_info:
         main(["reconstruct", "--help"])
     assert exit_info.value.code == 0
+
+
+def test_help_imports_neither_torch_nor_mitsuba():
+    code = (
+        "import sys\n"
+        "from gdpt.cli import main\n"
+        "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+        "print(sorted({'drjit', 'mitsuba', 'torch'} & set(sys.modules)))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], check=True, capture_output=True, text=True, timeout=120
+    )
+    assert "model-report" in result.stdout and result.stdout.splitlines()[-1] == "[]"
 
 
 def test_no_command_is_a_usage_error():
@@ -128,6 +141,26 @@ def test_primal_only_render_is_a_clear_error(tmp_path, capsys, random_buffers):
     assert main(["reconstruct", str(path), "-o", str(tmp_path / "o.exr")]) == 2
     line = one_line_error(capsys.readouterr().err)
     assert "needs dx and dy" in line and "primal-only" in line
+
+
+@pytest.mark.parametrize(
+    ("method", "lacking", "option"),
+    [
+        ("kpcn", {"var_primal": None}, "render with variance=True (gdpt render --variance)"),
+        ("oidn-grad", {"dx": None, "dy": None}, "gdpt render without --no-gradients"),
+    ],
+)
+def test_network_without_the_buffers_it_reads_exits_2_naming_the_render_option(
+    tmp_path, random_buffers, capsys, method, lacking, option
+):
+    """``gdpt reconstruct --method kpcn`` on buffers without ``var_primal`` (and a gradient
+    network on primal-only buffers): one line naming the buffer and the render option."""
+    path = save_buffers(tmp_path / "render.exr", random_buffers().replace(**lacking))
+    out = tmp_path / "o.exr"
+    assert main(["reconstruct", str(path), "--method", method, "-o", str(out)]) == 2
+    line = one_line_error(capsys.readouterr().err)
+    assert f"the buffers lack {', '.join(lacking)}" in line and option in line
+    assert not out.exists()
 
 
 @pytest.mark.parametrize(
@@ -246,7 +279,7 @@ def test_config_options_expose_every_field_with_the_dataclass_defaults(monkeypat
     from gdpt.reconstruct.oidn_finetune import FINETUNE_LOSSES
 
     from gdpt.training.config import TrainConfig
-    from gdpt.training.dataset import DatasetConfig
+    from gdpt.training.preprocess import DatasetConfig
 
     parser = build_parser()
     args = parser.parse_args(["train", "--config", "fast_xs", "--data", "d", "--out", "o"])

@@ -1,5 +1,5 @@
-"""gdpt.training.dataset: deterministic plans, resumable rendering, manifest safety, corrupt
-shards, Ray."""
+"""gdpt.training.preprocess, .manifest and .dataset: deterministic plans, resumable rendering,
+manifest safety, corrupt shards, Ray."""
 
 from __future__ import annotations
 
@@ -11,19 +11,12 @@ from pathlib import Path
 import pytest
 import torch
 
-import gdpt.training.dataset as dataset_module
+import gdpt.training.preprocess as dataset_module
 from gdpt.cli import main
 from gdpt.io.exr import load_buffers
-from gdpt.training.dataset import (
-    MANIFEST_FILE,
-    CropDataset,
-    DatasetConfig,
-    DatasetWarning,
-    append_manifest,
-    build_dataset,
-    plan_crop,
-    read_manifest,
-)
+from gdpt.training.dataset import CropDataset
+from gdpt.training.manifest import MANIFEST_FILE, DatasetWarning, append_manifest, read_manifest
+from gdpt.training.preprocess import DatasetConfig, build_dataset, plan_crop
 
 #: Manifest fields that depend on timing (and thus on file headers), not on the content.
 TIMING_FIELDS = ("render_seconds", "bytes")

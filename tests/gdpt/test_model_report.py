@@ -14,7 +14,7 @@ from gdpt.io.exr import load_buffers
 from gdpt.metrics import relmse
 from gdpt.training import model_report
 from gdpt.training.config import TrainConfig
-from gdpt.training.dataset import read_manifest
+from gdpt.training.manifest import read_manifest
 from gdpt.training.train import train
 
 

@@ -13,15 +13,15 @@ from gdpt.rendering import make_integrator, render, shared_integrator
 
 @pytest.fixture
 def scene(variant):
-    from gdpt.scene_io import load_scene
     from gdpt.scenes import builtin_scene
+    from gdpt.scenes.loading import load_scene
 
     return load_scene(builtin_scene("cbox-demo", resolution=(16, 16)))
 
 
 def test_renders_of_one_scene_with_the_same_settings_share_one_integrator(scene):
-    from gdpt.scene_io import load_scene
     from gdpt.scenes import builtin_scene
+    from gdpt.scenes.loading import load_scene
 
     first = shared_integrator(scene, "gdpt", max_depth=3, features=False)
     assert shared_integrator(scene, "gdpt", features=False, max_depth=3) is first

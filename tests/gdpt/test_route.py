@@ -12,7 +12,8 @@ import torch
 import gdpt
 from gdpt import route
 from gdpt.scenes import builtin_scene
-from gdpt.study.results import mean_interval, replicate_seed
+from gdpt.statistics import mean_interval
+from gdpt.study.results import replicate_seed
 
 pytestmark = pytest.mark.usefixtures("variant", "single_thread")
 

@@ -69,7 +69,7 @@ def test_shipped_model_reduces_error(name, cbox, monkeypatch):
 @pytest.fixture(scope="module")
 def generated():
     """Two procedural scenes no model was trained on (the training sets use scene seeds drawn
-    by ``gdpt.training.dataset.scene_seed``), 64 px, with 2048-spp path-traced references."""
+    by ``gdpt.training.preprocess.scene_seed``), 64 px, with 2048-spp path-traced references."""
     gdpt.set_variant("llvm_ad_rgb")
     scenes = []
     for source in ("random:4242", "random:777:1"):

@@ -408,7 +408,7 @@ def test_validation_skips_an_unreadable_element_with_a_warning(data, tmp_path):
     others are still validated (the fine-tuning validation uses the same element loader)."""
     import shutil
 
-    from gdpt.training.dataset import DatasetWarning
+    from gdpt.training.manifest import DatasetWarning
     from gdpt.training.validation import load_validation
 
     root = tmp_path / "data"

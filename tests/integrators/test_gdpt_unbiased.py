@@ -96,7 +96,7 @@ BUILTIN_FAST = {
 def _load(name: str):
     """A real scene (``tests/conftest.py`` skips or fails a ``shared_scenes`` test without the
     folder; a scene missing from it fails) or a built-in one."""
-    from gdpt.scene_io import load_scene
+    from gdpt.scenes.loading import load_scene
 
     if name in REAL:
         return load_scene(SHARED_SCENES / name / "scene.xml", box_filter=True, long_side=REAL_RES)

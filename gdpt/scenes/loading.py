@@ -1,4 +1,4 @@
-"""THE scene loader: every part of gdpt (render, CLI, dataset, study) loads scenes here.
+"""The scene loader: every part of gdpt (render, CLI, dataset, study) loads scenes here.
 
 A scene source is one of:
 

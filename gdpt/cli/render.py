@@ -1,0 +1,313 @@
+"""The render commands: ``info``, ``reconstruct``, ``render`` and ``render-and-denoise``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+from gdpt.cli.command import Command, UsageError
+from gdpt.denoise import METHODS
+from gdpt.scenes.loading import DEFAULT_MAX_DEPTH
+
+
+# ----------------------------------------------------------------------------------------- info
+def _add_info_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", type=Path, help="an EXR file written by gdpt")
+
+
+def _run_info(args: argparse.Namespace) -> int:
+    import torch
+
+    from gdpt.io.exr import channel_names, load_buffers
+
+    buffers = load_buffers(args.file)
+    mode = "gradient-domain (dx, dy)" if buffers.has_gradients else "primal-only"
+    print(f"file:     {args.file}")
+    print(f"size:     {buffers.width} x {buffers.height} (W x H)")
+    print(f"spp:      {buffers.spp}")
+    print(f"mode:     {mode}")
+    print("buffers:")
+    print(f"  {'name':<11} {'channels':<32} {'NaN':>8} {'Inf':>8}")
+    for name, tensor in buffers.items():
+        channels = ",".join(channel_names(name))
+        nan = int(torch.isnan(tensor).sum())
+        inf = int(torch.isinf(tensor).sum())
+        print(f"  {name:<11} {channels:<32} {nan:>8} {inf:>8}")
+    print(f"metadata: {json.dumps(buffers.metadata, indent=2, sort_keys=True)}")
+    return 0
+
+
+def _method_name(name: str) -> str:
+    """``--method``'s value: a reconstruction method's current name (a deprecated one warns)."""
+    return METHODS.resolve(name)
+
+
+# ---------------------------------------------------------------------------------- reconstruct
+def _add_reconstruct_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "file", type=Path, help="an EXR file of buffers (gdpt render): what --method reads"
+    )
+    parser.add_argument(
+        "--method",
+        type=_method_name,
+        choices=list(METHODS),
+        default="l1",
+        help="reconstruction, as gdpt.reconstruct_image (default: l1)",
+    )
+    parser.add_argument(
+        "--alpha", type=float, default=0.2, help="weight of the primal term (default: 0.2)"
+    )
+    parser.add_argument(
+        "-o", "--output", type=Path, required=True, help="output RGB EXR (R, G, B channels)"
+    )
+    parser.add_argument(
+        "--png", action="store_true", help="also write a tone-mapped PNG next to the output"
+    )
+    parser.add_argument(
+        "--model", type=Path, help="trained checkpoint for a network method (oidn-grad, ...)"
+    )
+    parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
+
+
+def _run_reconstruct(args: argparse.Namespace) -> int:
+    from gdpt.denoise import reconstruct_image
+    from gdpt.io.exr import check_writable, load_buffers, save_image
+    from gdpt.io.images import preview_path, save_png
+
+    if args.output.suffix.lower() != ".exr":
+        raise UsageError(f"output must be an .exr file, got '{args.output}'")
+    if not (math.isfinite(args.alpha) and args.alpha > 0):
+        raise UsageError(f"--alpha must be a finite number > 0, got {args.alpha}")
+    outputs = [args.output, *([preview_path(args.output)] if args.png else [])]
+    for path in outputs:  # fail before the (possibly slow) reconstruction
+        check_writable(path, force=args.force)
+
+    buffers = load_buffers(args.file)
+    options = {"model": args.model} if args.model is not None else {}
+    image = reconstruct_image(buffers, method=args.method, alpha=args.alpha, **options)
+    metadata = {
+        "source": str(args.file),
+        "method": args.method,
+        "alpha": args.alpha,
+        "spp": buffers.spp,
+        "render": buffers.metadata,
+    }
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    save_image(args.output, image, metadata=metadata, force=args.force)
+    print(f"wrote {args.output}")
+    if args.png:
+        png = save_png(preview_path(args.output), image, force=args.force)
+        print(f"wrote {png}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------- render
+def _add_scene_arguments(parser: argparse.ArgumentParser) -> None:
+    """The scene and sampling options shared by ``render`` and ``render-and-denoise``."""
+    parser.add_argument(
+        "scene",
+        help="Mitsuba XML file, builtin:NAME or random:SEED[:VIEW] (see gdpt.scenes.loading)",
+    )
+    parser.add_argument("--spp", type=int, default=64, help="samples per pixel (default: 64)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    parser.add_argument("--integrator", choices=["gdpt", "gdpt_rr"], default="gdpt")
+    parser.add_argument(
+        "--max-depth",
+        type=int,
+        help="longest path, -1: unbounded (default: the scene's integrator max_depth, else "
+        f"{DEFAULT_MAX_DEPTH})",
+    )
+    parser.add_argument(
+        "--box-filter",
+        action="store_true",
+        help="XML scenes: replace the film's pixel filter (Mitsuba's default is Gaussian) by "
+        "the box filter gradient-domain rendering needs",
+    )
+    parser.add_argument(
+        "--long-side",
+        type=int,
+        help="rescale the film to this many pixels on its long side (XML: aspect ratio kept; "
+        "builtin:/random: square)",
+    )
+
+
+def _load_scene(args: argparse.Namespace) -> tuple[object, int]:
+    """The scene of ``args`` (:func:`gdpt.scenes.loading.read_scene` with ``--box-filter`` and
+    ``--long-side``) and the max depth to render with; prints what loading changed and where
+    the depth comes from.
+
+    Raises:
+        UsageError: a bad option value, or a film without a box filter and no ``--box-filter``.
+    """
+    from gdpt.scenes.loading import BOX_FILTER, choose_max_depth, read_scene
+
+    if args.spp < 1:
+        raise UsageError(f"--spp must be >= 1, got {args.spp}")
+    if args.long_side is not None and args.long_side < 1:
+        raise UsageError(f"--long-side must be >= 1, got {args.long_side}")
+    if args.max_depth is not None and args.max_depth < -1:
+        raise UsageError(f"--max-depth must be -1 (unbounded) or >= 0, got {args.max_depth}")
+    loaded = read_scene(args.scene, box_filter=args.box_filter, long_side=args.long_side)
+    if loaded.original_filter != BOX_FILTER and not args.box_filter:
+        raise UsageError(
+            f"{args.scene}: the film's pixel filter is '{loaded.original_filter}', "
+            "gradient-domain rendering needs a box filter: add --box-filter to replace it"
+        )
+    depth, note = choose_max_depth(args.max_depth, loaded.max_depth, option="--max-depth")
+    for line in [*loaded.notes, note]:
+        print(f"{args.scene}: {line}")
+    return loaded.scene, depth
+
+
+def _add_render_arguments(parser: argparse.ArgumentParser) -> None:
+    _add_scene_arguments(parser)
+    parser.add_argument("-o", "--output", type=Path, required=True, help="output buffers EXR")
+    parser.add_argument("--no-gradients", action="store_true", help="plain path tracing")
+    parser.add_argument(
+        "--primal-spp",
+        type=int,
+        default=0,
+        help="also render this many plain path samples per pixel and pool them into the primal "
+        "(the input of a pooled network such as oidn-grad: its card's primal_spp_factor x "
+        "--spp)",
+    )
+    parser.add_argument("--variance", action="store_true", help="also store variance buffers")
+    parser.add_argument(
+        "--halves",
+        action="store_true",
+        help="also store the primal and features of two independent halves of the samples "
+        "(read by nfor and fuse)",
+    )
+    parser.add_argument("--half", action="store_true", help="store half floats")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing output")
+
+
+def _run_render(args: argparse.Namespace) -> int:
+    from gdpt.io.exr import check_writable, save_buffers
+    from gdpt.io.images import preview_path, save_png
+    from gdpt.rendering import render
+
+    if args.output.suffix.lower() != ".exr":
+        raise UsageError(f"output must be an .exr file, got '{args.output}'")
+    check_writable(args.output, force=args.force)
+    scene, max_depth = _load_scene(args)
+    buffers = render(
+        scene,
+        spp=args.spp,
+        seed=args.seed,
+        integrator=args.integrator,
+        progress=True,
+        max_depth=max_depth,
+        gradients=not args.no_gradients,
+        variance=args.variance,
+        halves=args.halves,
+        primal_spp=args.primal_spp,
+    )
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    save_buffers(args.output, buffers, half=args.half, force=args.force)
+    save_png(preview_path(args.output), buffers.primal, force=True)
+    print(f"wrote {args.output} ({buffers.metadata['render_seconds']:.2f} s)")
+    return 0
+
+
+# -------------------------------------------------------------------------- render-and-denoise
+def _add_render_and_denoise_arguments(parser: argparse.ArgumentParser) -> None:
+    _add_scene_arguments(parser)
+    parser.add_argument(
+        "--method",
+        type=_method_name,
+        choices=["auto", *METHODS],
+        default="auto",
+        help="reconstruction (default: auto: --spp plain samples + the primal-only denoiser, "
+        "or from 360 spp on a pilot render chooses between that and fuse on gradient-domain "
+        "samples of the same cost); the render has the buffers it reads",
+    )
+    parser.add_argument(
+        "--alpha", type=float, default=0.2, help="weight of the primal term (default: 0.2)"
+    )
+    parser.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        required=True,
+        help="output RGB EXR (R, G, B channels); a PNG preview is written next to it",
+    )
+    parser.add_argument(
+        "--save-buffers", type=Path, metavar="PATH", help="also write the render's buffers (EXR)"
+    )
+    parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
+
+
+def _run_render_and_denoise(args: argparse.Namespace) -> int:
+    from gdpt.io.exr import check_writable, save_buffers, save_image
+    from gdpt.io.images import preview_path, save_png
+    from gdpt.rendering import render_and_denoise
+
+    if not (math.isfinite(args.alpha) and args.alpha > 0):
+        raise UsageError(f"--alpha must be a finite number > 0, got {args.alpha}")
+    if args.method != "auto" and (reason := METHODS[args.method].check()):
+        raise UsageError(f"--method {args.method} cannot run here: {reason}")
+    outputs = {"--output": args.output, "--save-buffers": args.save_buffers}
+    for option, path in outputs.items():
+        if path is not None and path.suffix.lower() != ".exr":
+            raise UsageError(f"{option} must be an .exr file, got '{path}'")
+        if path is not None and not path.parent.is_dir():
+            raise UsageError(f"{option} {path}: the folder {path.parent} does not exist")
+    if args.save_buffers is not None and args.save_buffers.resolve() == args.output.resolve():
+        raise UsageError(f"--save-buffers and --output are the same file: {args.output}")
+    for path in (args.output, preview_path(args.output), args.save_buffers):
+        if path is not None:  # fail before the render
+            check_writable(path, force=args.force)
+    scene, max_depth = _load_scene(args)
+
+    result = render_and_denoise(
+        scene,
+        spp=args.spp,
+        method=args.method,
+        seed=args.seed,
+        alpha=args.alpha,
+        progress=True,
+        integrator=args.integrator,
+        max_depth=max_depth,
+    )
+    metadata = {
+        "scene": args.scene,
+        "method": args.method,
+        "alpha": args.alpha,
+        "spp": args.spp,
+        "timings": result.timings,
+        "render": result.buffers.metadata,
+    }
+    if result.route is not None:
+        metadata["route"] = result.route.to_json()
+        print(f"auto: {result.route.route} route ({result.route.method}): {result.route.reason}")
+    save_image(args.output, result.image, metadata=metadata, force=args.force)
+    print(f"wrote {args.output}")
+    print(f"wrote {save_png(preview_path(args.output), result.image, force=args.force)}")
+    if args.save_buffers is not None:
+        save_buffers(args.save_buffers, result.buffers, force=args.force)
+        print(f"wrote {args.save_buffers}")
+    times = ", ".join(f"{k} {v:.2f} s" for k, v in result.timings.items())
+    print(f"timings: {times} (render includes kernel compilation)")
+    return 0
+
+
+#: The render commands, in the order ``gdpt --help`` lists them.
+COMMANDS: tuple[Command, ...] = (
+    Command("info", "describe a gdpt EXR file", _add_info_arguments, _run_info),
+    Command(
+        "reconstruct",
+        "reconstruct an image from primal + gradient buffers",
+        _add_reconstruct_arguments,
+        _run_reconstruct,
+    ),
+    Command("render", "render gradient-domain buffers to EXR", _add_render_arguments, _run_render),
+    Command(
+        "render-and-denoise",
+        "render and reconstruct in one go: image EXR + PNG preview (gdpt.render_and_denoise)",
+        _add_render_and_denoise_arguments,
+        _run_render_and_denoise,
+    ),
+)
