@@ -12,13 +12,15 @@ use; submodules keep their own names (no function shadows a module)::
     image = gdpt.reconstruct_image(buffers, method="oidn")   # reconstruct existing buffers
     image = gdpt.render_differentiable(scene, params, spp=4)  # mi.TensorXf in the AD graph
 
-:func:`reconstruct_image` is the one reconstruction call (methods: :data:`gdpt.denoise.METHODS`);
+:func:`reconstruct_image` is the one reconstruction call (methods: :data:`gdpt.methods.METHODS`);
 ``gdpt.reconstruct`` is the subpackage of reconstruction algorithms (Poisson solvers, networks,
 losses).
 
 The pipeline, one module per stage: :mod:`gdpt.scene_io` (load a scene) ->
 :mod:`gdpt.rendering` (integrator -> :class:`~gdpt.buffers.GradientBuffers`) ->
-:mod:`gdpt.denoise` (reconstruction methods) -> :mod:`gdpt.study` (equal-time evaluation);
+:mod:`gdpt.methods` (reconstruction methods) -> :mod:`gdpt.study` (equal-time evaluation);
+:mod:`gdpt.pipeline` renders and reconstructs in one call (``method="auto"``:
+:mod:`gdpt.auto_route`);
 :mod:`gdpt.differentiable` renders and reconstructs inside Mitsuba's AD graph;
 :mod:`gdpt.training` trains the networks, :mod:`gdpt.io` reads and writes files.
 """
@@ -38,9 +40,9 @@ _LAZY: dict[str, str] = {
     "load_scene": "gdpt.scene_io",
     "set_variant": "gdpt.backend",
     "render": "gdpt.rendering",
-    "render_and_denoise": "gdpt.rendering",
+    "render_and_denoise": "gdpt.pipeline",
     "render_differentiable": "gdpt.differentiable",
-    "reconstruct_image": "gdpt.denoise",
+    "reconstruct_image": "gdpt.methods",
 }
 
 __all__ = [
@@ -59,10 +61,11 @@ __all__ = [
 if TYPE_CHECKING:
     from gdpt.backend import set_variant
     from gdpt.buffers import GradientBuffers
-    from gdpt.denoise import reconstruct_image
     from gdpt.differentiable import render_differentiable
     from gdpt.io.exr import load_buffers, save_buffers
-    from gdpt.rendering import render, render_and_denoise
+    from gdpt.methods import reconstruct_image
+    from gdpt.pipeline import render_and_denoise
+    from gdpt.rendering import render
     from gdpt.scene_io import load_scene
 
 

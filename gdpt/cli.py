@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from gdpt.cli_config import add_config_arguments, config_from_args
-from gdpt.denoise import METHODS
+from gdpt.methods import METHODS
 from gdpt.scene_io import DEFAULT_MAX_DEPTH
 from gdpt.study.config import PROTOCOLS
 from gdpt.version import __version__
@@ -132,9 +132,9 @@ def _add_reconstruct_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_reconstruct(args: argparse.Namespace) -> int:
-    from gdpt.denoise import reconstruct_image
     from gdpt.io.exr import check_writable, load_buffers, save_image
     from gdpt.io.images import preview_path, save_png
+    from gdpt.methods import reconstruct_image
 
     if args.output.suffix.lower() != ".exr":
         raise UsageError(f"output must be an .exr file, got '{args.output}'")
@@ -302,7 +302,7 @@ def _add_render_and_denoise_arguments(parser: argparse.ArgumentParser) -> None:
 def _run_render_and_denoise(args: argparse.Namespace) -> int:
     from gdpt.io.exr import check_writable, save_buffers, save_image
     from gdpt.io.images import preview_path, save_png
-    from gdpt.rendering import render_and_denoise
+    from gdpt.pipeline import render_and_denoise
 
     if not (math.isfinite(args.alpha) and args.alpha > 0):
         raise UsageError(f"--alpha must be a finite number > 0, got {args.alpha}")
@@ -470,7 +470,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     import dataclasses
     import shlex
 
-    from gdpt.denoise import register_checkpoint
+    from gdpt.methods import register_checkpoint
     from gdpt.metrics import METRICS
     from gdpt.study.config import PRESETS
     from gdpt.study.evaluate import StudyFailure, evaluate, failures, render_references

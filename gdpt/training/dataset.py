@@ -277,8 +277,8 @@ def render_crop(
     from gdpt.backend import set_variant
 
     set_variant(variant)
-    from gdpt.denoise import reconstruct_image
     from gdpt.io.exr import save_buffers
+    from gdpt.methods import reconstruct_image
     from gdpt.rendering import render
     from gdpt.scene_io import load_scene
     from gdpt.scenes import random_scene
