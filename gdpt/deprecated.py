@@ -5,10 +5,10 @@
   aliases of :data:`gdpt.methods.METHODS`);
 * the environment variable ``GDPT_NGPT_MODEL`` (:data:`MODEL_ENV_DEPRECATED`, read by
   :func:`gdpt.checkpoints.model_path`);
-* the module ``gdpt.denoise`` and its function ``gdpt.denoise.reconstruct`` (the module
-  re-exports the names of :mod:`gdpt.methods`, :mod:`gdpt.checkpoints` and
-  :mod:`gdpt.reconstruct.oidn`; it imports the modules above this one, so it lives in its own
-  file).
+* the module ``gdpt.denoise`` (re-exports of :mod:`gdpt.methods`, :mod:`gdpt.checkpoints`,
+  :mod:`gdpt.adapters` and :mod:`gdpt.reconstruct.oidn`) and its function
+  ``gdpt.denoise.reconstruct``, the former name of :func:`gdpt.reconstruct_image`; they stay in
+  ``gdpt/denoise.py``, which imports :mod:`gdpt.methods` (this module is imported by it).
 
 This module imports nothing from :mod:`gdpt`, so every layer may use it.
 """
