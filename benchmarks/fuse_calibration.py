@@ -9,7 +9,7 @@ path-traced reference, denoises with the primal-only network, and prints
 * relative MSE of ``fuse`` over ``D`` (the same input, so < 1 means the gradients helped),
   with the estimated error and with the true error (an oracle bound);
 * the per-pixel predicted gain (:func:`gdpt.reconstruct.fuse.predicted_gain`), which
-  :data:`gdpt.route.PREDICTION_BIAS` corrects.
+  :data:`gdpt.auto_route.PREDICTION_BIAS` corrects.
 
 No timing (run it on a busy machine). Usage::
 
@@ -25,8 +25,8 @@ import torch
 from gdpt.reconstruct import fuse as F
 
 import gdpt
+from gdpt.adapters import plain_denoiser
 from gdpt.metrics import relmse
-from gdpt.route import plain_denoiser
 from gdpt.study.scenes import load_eval_scene, resolve_scenes
 
 

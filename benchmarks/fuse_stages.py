@@ -23,7 +23,7 @@ import torch
 from gdpt.reconstruct import fuse as F
 
 import gdpt
-from gdpt.route import plain_denoiser
+from gdpt.adapters import plain_denoiser
 from gdpt.scenes import builtin_scene
 
 

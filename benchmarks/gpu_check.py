@@ -2,7 +2,7 @@
 
 Runs on the active variant: ``cuda_ad_rgb`` where Dr.Jit sees a CUDA device, else
 ``llvm_ad_rgb`` (``GDPT_VARIANT`` overrides; :func:`gdpt.set_variant`). For every method of
-:data:`gdpt.denoise.METHODS` that can run here it renders what the method reads and reconstructs
+:data:`gdpt.methods.METHODS` that can run here it renders what the method reads and reconstructs
 it (:func:`method_cost.measure`). **Kernel compilation is excluded**: every render and every
 reconstruction runs once untimed first (Dr.Jit kernel compilation, frozen-pass recording, weight
 loading, torch's first-call set-up), then ``--repeats`` times; medians are printed, each call
@@ -28,7 +28,7 @@ import torch
 from method_cost import PLAIN, measure, median_seconds, parse_size
 
 import gdpt
-from gdpt.denoise import METHODS
+from gdpt.methods import METHODS
 
 
 def oidn_on_cuda(size: tuple[int, int], spp: int, repeats: int) -> dict[str, float | str]:

@@ -1,8 +1,8 @@
 """What each reconstruction method costs: render seconds per sample and reconstruction seconds,
 at 128x128 and at 1280x720, on the built-in ``cbox-demo`` scene.
 
-For every method of :data:`gdpt.denoise.METHODS` that can run here (its ``check()``), the script
-renders what the method reads (:meth:`gdpt.denoise.Method.sampling`: gradients and features as
+For every method of :data:`gdpt.methods.METHODS` that can run here (its ``check()``), the script
+renders what the method reads (:meth:`gdpt.methods.Method.sampling`: gradients and features as
 needed, pooled plain path samples for a pooled network) with ``gdpt`` at ``--spp`` samples per
 pixel, then times the reconstruction of those buffers. Every render and every reconstruction
 runs once untimed first (kernel compilation, frozen-pass recording, weight loading and torch's
@@ -42,7 +42,7 @@ from pathlib import Path
 import torch
 
 import gdpt
-from gdpt.denoise import METHODS, register_checkpoint
+from gdpt.methods import METHODS, register_checkpoint
 from gdpt.scenes.loading import generated_scene
 
 PLAIN = "(path tracing, no reconstruction)"

@@ -13,13 +13,15 @@ use; submodules keep their own names (no function shadows a module)::
     image = gdpt.render_differentiable(scene, params, spp=4)  # mi.TensorXf in the AD graph
     buffers = gdpt.buffers_from_aovs(mi.render(scene), scene.integrator())  # gdpt plugin in XML
 
-:func:`reconstruct_image` is the one reconstruction call (methods: :data:`gdpt.denoise.METHODS`);
+:func:`reconstruct_image` is the one reconstruction call (methods: :data:`gdpt.methods.METHODS`);
 ``gdpt.reconstruct`` is the subpackage of reconstruction algorithms (Poisson solvers, networks,
 losses).
 
 The pipeline, one module per stage: :mod:`gdpt.scenes.loading` (load a scene) ->
 :mod:`gdpt.rendering` (integrator -> :class:`~gdpt.buffers.GradientBuffers`) ->
-:mod:`gdpt.denoise` (reconstruction methods) -> :mod:`gdpt.study` (equal-time evaluation);
+:mod:`gdpt.methods` (reconstruction methods) -> :mod:`gdpt.study` (equal-time evaluation);
+:mod:`gdpt.pipeline` renders and reconstructs in one call (``method="auto"``:
+:mod:`gdpt.auto_route`);
 :mod:`gdpt.differentiable` renders and reconstructs inside Mitsuba's AD graph;
 :mod:`gdpt.training` trains the networks, :mod:`gdpt.io` reads and writes files.
 """
@@ -40,9 +42,9 @@ _LAZY: dict[str, str] = {
     "load_scene": "gdpt.scenes.loading",
     "set_variant": "gdpt.backend",
     "render": "gdpt.rendering",
-    "render_and_denoise": "gdpt.rendering",
+    "render_and_denoise": "gdpt.pipeline",
     "render_differentiable": "gdpt.differentiable",
-    "reconstruct_image": "gdpt.denoise",
+    "reconstruct_image": "gdpt.methods",
 }
 
 __all__ = [
@@ -63,10 +65,11 @@ if TYPE_CHECKING:
     from gdpt.aovs import buffers_from_aovs
     from gdpt.backend import set_variant
     from gdpt.buffers import GradientBuffers
-    from gdpt.denoise import reconstruct_image
     from gdpt.differentiable import render_differentiable
     from gdpt.io.exr import load_buffers, save_buffers
-    from gdpt.rendering import render, render_and_denoise
+    from gdpt.methods import reconstruct_image
+    from gdpt.pipeline import render_and_denoise
+    from gdpt.rendering import render
     from gdpt.scenes.loading import load_scene
 
 

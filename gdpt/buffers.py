@@ -19,29 +19,7 @@ from typing import Any
 
 import torch
 
-#: Buffer name -> number of channels. Order is the on-disk and network-input order.
-CHANNELS: dict[str, int] = {
-    "primal": 3,
-    "dx": 3,
-    "dy": 3,
-    "albedo": 3,
-    "normal": 3,
-    "depth": 1,
-    "var_primal": 1,
-    "var_dx": 1,
-    "var_dy": 1,
-    "primal_a": 3,
-    "primal_b": 3,
-    "albedo_a": 3,
-    "albedo_b": 3,
-    "normal_a": 3,
-    "normal_b": 3,
-    "depth_a": 1,
-    "depth_b": 1,
-}
-
-#: Buffers that have half-buffers (``<name>_a``, ``<name>_b``).
-HALVED = ("primal", "albedo", "normal", "depth")
+from gdpt.reconstruct.channels import CHANNELS, HALVED
 
 #: Buffers every GradientBuffers has; the rest are optional.
 REQUIRED = ("primal",)
@@ -227,7 +205,7 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
     ``var_primal`` (variance of the mean) pools as ``(n_g^2 v_g + n_p^2 v_p) / (n_g + n_p)^2``.
     This is the input of a reconstruction that spends part of its sampling time on plain path
     samples (about 1x a ``path`` sample) and part on gradient samples (2-3x), see
-    ``primal_spp_factor`` in :mod:`gdpt.denoise`.
+    ``primal_spp_factor`` in :mod:`gdpt.methods`.
 
     Args:
         gradient: a render with ``dx``/``dy`` (``spp`` >= 1).

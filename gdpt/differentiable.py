@@ -82,7 +82,7 @@ def render_differentiable(
             (``dr.enable_grad``), as for :func:`mitsuba.render`; ``None``: none.
         spp (int): samples per pixel of the primal (and of the features).
         method (str | None): a differentiable reconstruction method that reads no gradients
-            (:data:`gdpt.denoise.METHODS`; ``"oidn-tuned"``, the OIDN U-Net fine-tuned here),
+            (:data:`gdpt.methods.METHODS`; ``"oidn-tuned"``, the OIDN U-Net fine-tuned here),
             or ``None`` for the integrator's image itself.
         seed (int): seed of the primal render; the features use ``seed ^ FEATURE_SEED_SALT``.
         seed_grad (int | None): seed of the integrator's adjoint pass: ``seed`` (nonzero)
@@ -207,7 +207,7 @@ def _check_method(method: str | None) -> str | None:
     gradients; ``None`` for ``None``."""
     if method is None:
         return None
-    from gdpt.denoise import METHODS
+    from gdpt.methods import METHODS
 
     name = METHODS.resolve(method, stacklevel=4)
     METHODS.check([name])
@@ -245,7 +245,7 @@ def _reconstruction(name: str, features: Any, alpha: float, options: dict[str, A
     """``f(primal) -> image`` on torch ``(H, W, 3)`` float32 tensors: ``method`` on ``primal``
     and the ``features`` render's albedo, normal and depth; a backward pass through it warns
     about the non-finite entries of the gradient that reaches ``primal``."""
-    from gdpt.denoise import reconstruct_image
+    from gdpt.methods import reconstruct_image
 
     def reconstruct(primal):
         if primal.requires_grad:

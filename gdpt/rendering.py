@@ -1,44 +1,21 @@
-"""Rendering gradient-domain buffers in-process: scene -> :class:`GradientBuffers` -> image.
+"""Rendering gradient-domain buffers in-process: scene -> :class:`GradientBuffers`.
 
-:func:`render` samples a scene (loaded by :func:`gdpt.scenes.loading.load_scene`) with ``gdpt`` or
-``gdpt_rr``; :func:`render_and_denoise` also reconstructs (:func:`gdpt.reconstruct_image`).
+:func:`render` samples a scene (loaded by :func:`gdpt.scenes.loading.load_scene`) with ``gdpt``
+or ``gdpt_rr`` (:func:`gdpt.pipeline.render_and_denoise` also reconstructs).
 
-Sampling (Dr.Jit) and reconstruction (torch) run in the same process. The integrator's output
-tensor is handed to torch through DLPack without a copy (on a CUDA variant it stays on the GPU);
-the buffers are channel slices (views) of that one tensor.
+The integrator's output tensor is handed to torch through DLPack without a copy (on a CUDA
+variant it stays on the GPU); the buffers are channel slices (views) of that one tensor.
 """
 
 from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
 from typing import Any
-
-import torch
 
 from gdpt.buffers import GradientBuffers, pool_primal
 from gdpt.integrators import PLUGINS
 from gdpt.scenes.loading import load_scene
-
-
-@dataclass
-class RenderResult:
-    """What :func:`render_and_denoise` returns.
-
-    Attributes:
-        image: ``(H, W, 3)`` float32 reconstruction on the buffers' device.
-        buffers: the render.
-        timings: wall-clock seconds: ``render`` (sampling, kernel compilation included),
-            ``reconstruct``, ``total`` (and ``pilot`` for ``method="auto"``).
-        route: for ``method="auto"``, the :class:`gdpt.route.RouteChoice` (also in
-            ``buffers.metadata["route"]``); else ``None``.
-    """
-
-    image: torch.Tensor
-    buffers: GradientBuffers
-    timings: dict[str, float] = field(default_factory=dict)
-    route: Any = None
 
 
 def make_integrator(name: str = "gdpt", **props: Any):
@@ -53,15 +30,11 @@ def make_integrator(name: str = "gdpt", **props: Any):
 def shared_integrator(scene: Any, name: str = "gdpt", **props: Any):
     """The integrator :func:`render` uses for ``scene`` (an ``mi.Scene``), ``name`` and
     ``props``: one instance per variant, scene object, plugin and properties (the 8 most
-    recently used are kept, with their scenes).
-
-    Reusing the instance reuses its frozen passes (``dr.freeze``): a render of the same scene
-    with settings, film size and spp per pass seen before replays the recorded kernels instead
-    of tracing the path loop in Python again (on a scene with 49 BSDFs, 0.39 s -> 0.03 s for a
-    128 px, 1 spp ``gdpt`` render). The scene object is part of the key: a recording replayed
-    on another ``mi.Scene`` of the same layout (the same XML loaded again) gave other images
-    than tracing in some runs (Mitsuba 3.9, Dr.Jit 1.5), never on the scene it was recorded
-    for. Properties must be hashable (numbers, booleans, strings).
+    recently used are kept, with their scenes), so a repeated render replays its frozen passes
+    (``dr.freeze``; ``docs/performance.md``). The scene object is part of the key: a recording
+    replayed on another ``mi.Scene`` of the same layout is not guaranteed to give the same
+    images (``docs/architecture.md``). Properties must be hashable (numbers, booleans,
+    strings).
     """
     import mitsuba as mi
 
@@ -79,9 +52,6 @@ def shared_integrator(scene: Any, name: str = "gdpt", **props: Any):
 _SHARED: OrderedDict[tuple, tuple[Any, Any]] = OrderedDict()
 _SHARED_SIZE = 8
 
-
-#: Mixed into the seed of the pilot render of ``method="auto"`` (independent of the main render).
-PILOT_SEED_SALT = 0x2C1B3C6D
 
 #: Mixed into the seed of the primal-only render that ``render(..., primal_spp=N)`` pools in, so
 #: that its samples are independent of the gradient render's (the integrators derive every pass
@@ -220,73 +190,3 @@ def _render_one(integrator, scene, spp: int, seed: int, bar, start: int = 0) -> 
     if integrator.halves:
         metadata["half_spp"] = list(integrator.half_spp)
     return GradientBuffers(**views, spp=int(spp), metadata=metadata)
-
-
-def render_and_denoise(
-    scene: Any,
-    *,
-    spp: int,
-    method: str = "auto",
-    seed: int = 0,
-    alpha: float = 0.2,
-    progress: bool = False,
-    **props: Any,
-) -> RenderResult:
-    """Render with ``gdpt`` and reconstruct, in one process (no host round trip on a GPU).
-
-    Args:
-        scene: as in :func:`render`.
-        spp (int): samples per pixel (for ``"auto"``: plain path samples; the gradient
-            route renders gradient samples of the same cost, :func:`gdpt.route.route_sampling`).
-        method (str): ``"auto"`` (the primal-only denoiser on plain samples, or from
-            :func:`gdpt.route.pilot_threshold` spp on, a pilot render chooses between that and
-            ``fuse`` on gradient-domain samples, :mod:`gdpt.route`), or a key of
-            :data:`gdpt.denoise.METHODS` (a deprecated name runs its new one, with a
-            ``DeprecationWarning``).
-        seed (int): random seed.
-        alpha (float): screened-Poisson data weight.
-        progress (bool): progress bar while rendering.
-        **props: integrator properties, as in :func:`render`. ``gradients`` and ``features``
-            default to what ``method`` reads (:meth:`gdpt.denoise.Method.sampling`): the
-            Poisson methods skip the features, ``oidn-tuned`` the offset paths, and a network
-            trained on pooled inputs gets its plain path samples (``primal_spp``).
-
-    Returns:
-        RenderResult: the image ``(H, W, 3)``, the buffers and the timings.
-
-    Raises:
-        ValueError: unknown ``method``, or ``props`` turn off a buffer the method needs.
-    """
-    from gdpt.denoise import METHODS, reconstruct_image
-
-    method = METHODS.resolve(method, stacklevel=2)  # a deprecated name warns once, here
-    if method != "auto":
-        METHODS.check([method])
-    if spp < 1:
-        raise ValueError(f"spp must be >= 1, got {spp}")
-    choice, timings = None, {}
-    if method == "auto":
-        from gdpt.route import choose_route, route_sampling
-
-        scene = load_scene(scene)
-        seed_pilot = (int(seed) ^ PILOT_SEED_SALT) & 0xFFFFFFFF
-        choice = choose_route(scene, spp=spp, seed=seed_pilot, **props)
-        timings["pilot"] = choice.pilot_seconds
-        sampling, method = route_sampling(choice, spp), choice.method
-        spp = sampling.pop("spp")
-    else:
-        sampling = METHODS[method].sampling(spp)
-    props = {**sampling, **props}
-    start = time.perf_counter()
-    buffers = render(scene, spp=spp, seed=seed, progress=progress, **props)
-    t_render = time.perf_counter() - start
-    if choice is not None:
-        buffers.metadata["route"] = choice.to_json()
-    t0 = time.perf_counter()
-    image = reconstruct_image(buffers, method=method, alpha=alpha)
-    if image.is_cuda:
-        torch.cuda.synchronize(image.device)
-    t_rec = time.perf_counter() - t0
-    timings.update(render=t_render, reconstruct=t_rec)
-    timings["total"] = sum(timings.values())
-    return RenderResult(image=image, buffers=buffers, timings=timings, route=choice)

@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 
+from .channels import CHANNELS, HALVED
+
 #: Pixel shifts of the four offset paths, in film pixels (x right, y down).
 SHIFTS = ((1, 0), (0, 1), (-1, 0), (0, -1))
 RIGHT, DOWN, LEFT, UP = range(4)
@@ -44,8 +46,8 @@ DEFAULT_SHIFT_THRESHOLD = 0.001
 #: Default number of path samples traced per kernel launch (bounds memory and kernel size).
 DEFAULT_SAMPLES_PER_PASS = 1 << 20
 
-#: Feature buffers and their channel counts, in output order.
-_FEATURE_CHANNELS = (("albedo", 3), ("normal", 3), ("depth", 1))
+#: Feature buffers and their channel counts, in output order (the halved buffers but the primal).
+_FEATURE_CHANNELS = tuple((name, CHANNELS[name]) for name in HALVED if name != "primal")
 
 
 @dataclass

@@ -28,6 +28,7 @@ errors ``(H, W, 1)``. Only ``torch`` is imported (layering rule of ``gdpt.recons
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -37,34 +38,42 @@ from .poisson import solve_weighted_cg
 
 __all__ = [
     "FuseInfo",
+    "FusionStatistics",
+    "average_finite",
     "box_mean",
     "cross_half_error",
     "edge_aware_mean",
     "fuse",
     "fuse_halves",
+    "fuse_statistics",
+    "fusion_statistics",
     "fusion_weights",
     "log_luminance",
     "predicted_gain",
 ]
 
-#: Defaults of :func:`fuse_halves`, chosen on procedural scenes (``random:5`` and the built-in
-#: ``cbox-demo``, 8 and 32 gradient spp, against 4096-spp references): a full-render denoise
-#: has 0.47-0.87x the error of a half-render denoise (``ERROR_SCALE``); the cross-half
-#: estimate needs a wide window (log-correlation with the true error 0.88-0.95), the variances
-#: a narrow one (radius 2 instead of 1 turned a 0.87x gain into a 1.11x loss on cbox-demo).
+#: Error of a whole-render denoise over a half-render one (0.47-0.87 measured on ``random:5`` and
+#: ``cbox-demo``, 128 px, 8 and 32 gradient spp, against 4096-spp references).
 ERROR_SCALE = 0.5
+
+#: Window radius of the cross-half error's average (log-correlation with the true error
+#: 0.88-0.95 on the scenes of :data:`ERROR_SCALE`).
 ERROR_RADIUS = 4
+
+#: Window radius of the gradient variances' average (radius 2 turned cbox-demo's 0.87x relMSE
+#: into 1.11x).
 VARIANCE_RADIUS = 1
+
+#: Width, in log-luminance, of the edge-aware weights of :func:`edge_aware_mean`.
 GUIDE_SIGMA = 0.3
+
+#: Default ``trust_ratio`` of the statistics-driven fusion (:func:`fuse_statistics`).
 TRUST_RATIO = 4.0
 
-#: The fusion moves a pixel of ``D`` by at most this many estimated standard errors
-#: ``sqrt(e)`` (a trust region: where the statistics are wrong, at 1-2 spp, the solve can
-#: otherwise carry a light's error far into its surroundings).
+#: Largest change of a pixel of ``D``, in estimated standard errors ``sqrt(e)`` (a trust region).
 CORRECTION_BOUND = 3.0
 
-#: Largest ratio of a gradient weight to the data weight of its pixels (keeps CG conditioned;
-#: a ratio of 1e3 already makes the solution follow the gradients over ~30 pixels).
+#: Largest ratio of a gradient weight to the data weight of its pixels (keeps CG conditioned).
 MAX_WEIGHT_RATIO = 1e3
 
 
@@ -324,6 +333,101 @@ def predicted_gain(
     return float((weight * fused).sum() / (weight * e).sum())
 
 
+@dataclass
+class FusionStatistics:
+    """The inputs of :func:`fuse` taken from one render and its half-buffers
+    (:func:`fusion_statistics`).
+
+    Attributes:
+        denoised: ``(H, W, C)`` the primal-only denoise ``D`` of the whole render.
+        error: ``(H, W, 1)`` estimated squared error of ``D`` (not floored; may be <= 0).
+        error_floor: smallest error :func:`fuse` uses (``1e-4`` of the mean squared luminance
+            of ``D``, at least ``1e-12``).
+        var_dx, var_dy: ``(H, W, 1)`` locally averaged gradient variances; ``inf`` where the
+            render's variance is not finite (no information: the gradient gets zero weight).
+    """
+
+    denoised: torch.Tensor
+    error: torch.Tensor
+    error_floor: float
+    var_dx: torch.Tensor
+    var_dy: torch.Tensor
+
+    def floored_error(self) -> torch.Tensor:
+        """:attr:`error` raised to :attr:`error_floor`."""
+        return self.error.clamp_min(self.error_floor)
+
+
+def average_finite(
+    variance: torch.Tensor, guide: torch.Tensor, radius: int, sigma: float
+) -> torch.Tensor:
+    """:func:`edge_aware_mean` of ``variance`` ``(H, W, 1)`` over its finite values only; ``inf``
+    where ``variance`` is not finite (NaN or inf: no information, zero weight in :func:`fuse`
+    and :func:`predicted_gain`, counted there as ``variance_nonfinite``)."""
+    finite = torch.isfinite(variance)
+    if bool(finite.all()):
+        return edge_aware_mean(variance, guide, radius, sigma)
+    total = edge_aware_mean(torch.where(finite, variance, 0.0), guide, radius, sigma)
+    share = edge_aware_mean(finite.to(variance.dtype), guide, radius, sigma)
+    return torch.where(finite, total / share.clamp_min(torch.finfo(share.dtype).tiny), torch.inf)
+
+
+def fusion_statistics(
+    denoise: Callable[[str], torch.Tensor],
+    primal_a: torch.Tensor,
+    primal_b: torch.Tensor,
+    var_dx: torch.Tensor,
+    var_dy: torch.Tensor,
+    *,
+    error_scale: float = ERROR_SCALE,
+) -> FusionStatistics:
+    """The three primal-only denoises of a render and the statistics :func:`fuse` weighs them by.
+
+    The error of ``D`` is ``error_scale`` times the :func:`cross_half_error` of the half
+    denoises; it and the gradient variances (:func:`average_finite`) are averaged by
+    :func:`edge_aware_mean` guided by the :func:`log_luminance` of ``D``.
+
+    Args:
+        denoise: ``denoise(part) -> (H, W, C)`` the primal-only denoise of the whole render
+            (``part == "full"``, gradients left out) or of its half ``"a"`` or ``"b"``.
+        primal_a, primal_b: ``(H, W, C)`` the noisy half primals.
+        var_dx, var_dy: ``(H, W, 1)`` variances of the gradients' means.
+        error_scale: error of the whole render's denoise over that of a half's.
+
+    Returns:
+        The :class:`FusionStatistics` (tensors on the device of the denoises).
+    """
+    denoised, denoised_a, denoised_b = (denoise(part) for part in ("full", "a", "b"))
+    guide = log_luminance(denoised)
+    raw = cross_half_error(denoised_a, denoised_b, primal_a, primal_b, radius=0)
+    error = error_scale * edge_aware_mean(raw, guide, ERROR_RADIUS, GUIDE_SIGMA)
+    v_x, v_y = (average_finite(v, guide, VARIANCE_RADIUS, GUIDE_SIGMA) for v in (var_dx, var_dy))
+    floor = max(1e-4 * float(denoised.mean(-1).square().mean()), 1e-12)
+    return FusionStatistics(denoised, error, floor, v_x, v_y)
+
+
+def fuse_statistics(
+    statistics: FusionStatistics,
+    dx: torch.Tensor,
+    dy: torch.Tensor,
+    *,
+    trust_ratio: float = TRUST_RATIO,
+) -> tuple[torch.Tensor, FuseInfo]:
+    """:func:`fuse` of ``dx``, ``dy`` ``(H, W, C)`` with the denoise and weights of
+    ``statistics``; returns as :func:`fuse`."""
+    s = statistics
+    return fuse(
+        s.denoised,
+        dx,
+        dy,
+        s.var_dx,
+        s.var_dy,
+        s.error,
+        trust_ratio=trust_ratio,
+        error_floor=s.error_floor,
+    )
+
+
 def fuse_halves(
     denoised: torch.Tensor,
     denoised_a: torch.Tensor,
@@ -338,32 +442,21 @@ def fuse_halves(
     trust_ratio: float = TRUST_RATIO,
     error_scale: float = ERROR_SCALE,
 ) -> tuple[torch.Tensor, FuseInfo]:
-    """:func:`fuse` with every statistic taken from one render and its half-buffers.
-
-    The error of ``D`` is ``error_scale`` times the :func:`cross_half_error` of the half
-    denoises; it and the gradient variances are averaged by :func:`edge_aware_mean` guided by
-    the :func:`log_luminance` of ``D`` (raw per-pixel variances of a few samples are zero or
-    tiny in many pixels, and a plain box mixes a light's error into its dark surroundings).
-    The error floor is ``1e-4`` of the mean squared luminance of ``D``.
+    """:func:`fuse` with every statistic taken from denoises already computed
+    (:func:`fusion_statistics` with ``denoise`` returning them).
 
     Args:
         denoised, denoised_a, denoised_b: ``(H, W, C)`` denoiser outputs on the full render and
             on its halves ``a`` and ``b``.
         primal_a, primal_b: ``(H, W, C)`` the noisy half primals.
         dx, dy: ``(H, W, C)`` gradients; var_dx, var_dy: ``(H, W, 1)`` their variances.
-        trust_ratio, error_scale: see :func:`fusion_weights` and above.
+        trust_ratio, error_scale: see :func:`fusion_weights` and :func:`fusion_statistics`.
 
     Returns:
         As :func:`fuse`.
     """
-    guide = log_luminance(denoised)
-    raw = cross_half_error(denoised_a, denoised_b, primal_a, primal_b, radius=0)
-    error = error_scale * edge_aware_mean(raw, guide, ERROR_RADIUS, GUIDE_SIGMA)
-    v_x, v_y = (
-        edge_aware_mean(
-            torch.where(torch.isfinite(v), v, 0.0), guide, VARIANCE_RADIUS, GUIDE_SIGMA
-        ).where(torch.isfinite(v), float("inf"))  # still unusable: counted by fusion_weights
-        for v in (var_dx, var_dy)
+    parts = {"full": denoised, "a": denoised_a, "b": denoised_b}
+    statistics = fusion_statistics(
+        parts.__getitem__, primal_a, primal_b, var_dx, var_dy, error_scale=error_scale
     )
-    floor = max(1e-4 * float(denoised.mean(-1).square().mean()), 1e-12)
-    return fuse(denoised, dx, dy, v_x, v_y, error, trust_ratio=trust_ratio, error_floor=floor)
+    return fuse_statistics(statistics, dx, dy, trust_ratio=trust_ratio)

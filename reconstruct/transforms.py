@@ -42,14 +42,12 @@ from dataclasses import dataclass
 
 import torch
 
-#: Buffer name -> channel count of the NGPT input features, in network-input order.
+from .channels import CHANNELS
+
+#: Buffer name -> channel count of the network input features, in network-input order (the
+#: first six rows of :data:`.channels.CHANNELS`).
 FEATURE_CHANNELS: dict[str, int] = {
-    "primal": 3,
-    "dx": 3,
-    "dy": 3,
-    "albedo": 3,
-    "normal": 3,
-    "depth": 1,
+    name: CHANNELS[name] for name in ("primal", "dx", "dy", "albedo", "normal", "depth")
 }
 #: Feature sets of the registered models (16 and 10 input channels).
 FEATURES_WITH_GRADIENTS: tuple[str, ...] = ("primal", "dx", "dy", "albedo", "normal", "depth")

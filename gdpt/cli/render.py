@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 
 from gdpt.cli.command import Command, UsageError
-from gdpt.denoise import METHODS
+from gdpt.methods import METHODS
 from gdpt.scenes.loading import DEFAULT_MAX_DEPTH
 
 
@@ -72,9 +72,9 @@ def _add_reconstruct_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_reconstruct(args: argparse.Namespace) -> int:
-    from gdpt.denoise import reconstruct_image
     from gdpt.io.exr import check_writable, load_buffers, save_image
     from gdpt.io.images import preview_path, save_png
+    from gdpt.methods import reconstruct_image
 
     if args.output.suffix.lower() != ".exr":
         raise UsageError(f"output must be an .exr file, got '{args.output}'")
@@ -243,7 +243,7 @@ def _add_render_and_denoise_arguments(parser: argparse.ArgumentParser) -> None:
 def _run_render_and_denoise(args: argparse.Namespace) -> int:
     from gdpt.io.exr import check_writable, save_buffers, save_image
     from gdpt.io.images import preview_path, save_png
-    from gdpt.rendering import render_and_denoise
+    from gdpt.pipeline import render_and_denoise
 
     if not (math.isfinite(args.alpha) and args.alpha > 0):
         raise UsageError(f"--alpha must be a finite number > 0, got {args.alpha}")

@@ -115,7 +115,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     import dataclasses
     import shlex
 
-    from gdpt.denoise import register_checkpoint
+    from gdpt.methods import register_checkpoint
     from gdpt.metrics import METRICS
     from gdpt.study.config import PRESETS
     from gdpt.study.evaluate import StudyFailure, evaluate, failures, render_references

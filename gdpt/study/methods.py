@@ -9,7 +9,7 @@ it took (sampling + reconstruction)::
 Registered methods:
 
 * ``pt``: path tracing, primal only (``gdpt`` with ``gradients=False, features=False``).
-* ``pt+oidn``: path tracing + Intel Open Image Denoise (:data:`gdpt.denoise.METHODS`
+* ``pt+oidn``: path tracing + Intel Open Image Denoise (:data:`gdpt.methods.METHODS`
   ``oidn``: ``pyoidn`` on the CPU, OIDN's U-Net in torch on CUDA; albedo + normal, HDR, quality
   ``high``).
 * ``gdpt+l2`` / ``gdpt+l1`` / ``gdpt+l1-fast``: gradient-domain path tracing + screened
@@ -20,12 +20,12 @@ Registered methods:
   gradients (shipped; the ablation).
 * ``gdpt+fuse``: pooled gradient-domain samples + variance-weighted fusion of the gradients
   around the primal-only network (:mod:`gdpt.reconstruct.fuse`).
-* ``auto``: ``render_and_denoise``'s default (:mod:`gdpt.route`: plain path tracing + the
+* ``auto``: ``render_and_denoise``'s default (:mod:`gdpt.auto_route`: plain path tracing + the
   primal-only denoiser, or from 360 spp on a pilot render's choice); all of it timed.
 
 A method that cannot run here (package not installed, no shipped model) says so through its
 ``check`` function and is skipped with that note. A reconstruction registered in
-:data:`gdpt.denoise.METHODS` appears here on its own (as ``gdpt+NAME``, or ``pt+NAME`` when it
+:data:`gdpt.methods.METHODS` appears here on its own (as ``gdpt+NAME``, or ``pt+NAME`` when it
 reads no gradients; a deprecated alias of a reconstruction, such as ``ngpt``, gives the
 deprecated alias ``gdpt+ngpt`` of ``gdpt+oidn-grad``); another method (a different sampler) is
 ``EVAL_METHODS.register(name, EvalMethod(name, description, f))`` with
@@ -47,8 +47,8 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from gdpt.denoise import METHODS as DENOISERS
-from gdpt.denoise import Method, reconstruct_image
+from gdpt.methods import METHODS as DENOISERS
+from gdpt.methods import Method, reconstruct_image
 from gdpt.reconstruct.registry import Registry
 
 if TYPE_CHECKING:
@@ -78,7 +78,7 @@ class MethodResult:
         reconstruct_seconds: part of ``seconds`` spent reconstructing (denoising).
         compile_seconds: Dr.Jit kernel compilation observed during the call (not in
             ``seconds``).
-        route: for ``auto``, the route it chose (:class:`gdpt.route.RouteChoice` as a dict).
+        route: for ``auto``, the route it chose (:class:`gdpt.auto_route.RouteChoice` as a dict).
     """
 
     image: torch.Tensor
@@ -180,7 +180,7 @@ EVAL_METHODS.register(
 def register_denoiser(name: str, method: Method) -> str:
     """Register ``gdpt+NAME`` (or ``pt+NAME`` for a method without gradients): the buffers
     ``method`` reads, reconstructed by :func:`gdpt.reconstruct_image` with ``NAME`` (which
-    must be in :data:`gdpt.denoise.METHODS`); returns the study method's name."""
+    must be in :data:`gdpt.methods.METHODS`); returns the study method's name."""
     sampler = "gdpt" if method.gradients else "pt"
 
     def run(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
@@ -196,7 +196,7 @@ def register_denoiser(name: str, method: Method) -> str:
     if method.gradients and (factor := method.primal_spp_factor()):
         label += f" (+ {factor:g} plain path samples per sample, pooled into the primal)"
     run.__name__ = run.__qualname__ = f"{sampler}_{name}".replace("-", "_")
-    run.__doc__ = f"{label} buffers reconstructed with :data:`gdpt.denoise.METHODS` ``{name}``."
+    run.__doc__ = f"{label} buffers reconstructed with :data:`gdpt.methods.METHODS` ``{name}``."
     EVAL_METHODS.register(
         f"{sampler}+{name}",
         EvalMethod(
@@ -217,7 +217,7 @@ def auto_route(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     """``render_and_denoise(method="auto")``: the pilot, the route's render and its
     reconstruction, all timed (kernel compilation excluded as for every method); ``spp`` are
     plain samples, the gradient route renders gradient samples of the same cost."""
-    from gdpt.rendering import render_and_denoise
+    from gdpt.pipeline import render_and_denoise
 
     if reason := DENOISERS["oidn"].check() and DENOISERS["oidn-tuned"].check():
         raise MethodUnavailable(reason)
@@ -243,7 +243,7 @@ EVAL_METHODS.register(
     EvalMethod(
         "auto",
         "path tracing + the primal-only network, or from 360 spp a pilot render's choice "
-        "between that and gradient-domain path tracing + fuse (gdpt.route)",
+        "between that and gradient-domain path tracing + fuse (gdpt.auto_route)",
         auto_route,
         lambda: DENOISERS["oidn"].check() and DENOISERS["oidn-tuned"].check(),
     ),

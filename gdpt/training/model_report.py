@@ -151,8 +151,9 @@ def compare_models(
     """
     from tqdm.auto import tqdm
 
-    from gdpt.denoise import load_reconstructor, oidn_check, oidn_denoise
+    from gdpt.checkpoints import load_reconstructor
     from gdpt.metrics import flip_ldr, relmse
+    from gdpt.reconstruct.oidn import oidn_check, oidn_denoise
     from gdpt.reconstruct.poisson import solve as poisson
 
     held = lambda s: s % holdout_every == holdout_every - 1  # noqa: E731
@@ -370,7 +371,7 @@ def ship_model(
         FileNotFoundError: the run has no final model.
         ValueError: the final model is of no known network family, or too large.
     """
-    from gdpt.denoise import MODEL_DIR
+    from gdpt.checkpoints import MODEL_DIR
     from gdpt.reconstruct.families import family_of
     from gdpt.training.checkpoint import write_checkpoint
 

@@ -51,9 +51,9 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from gdpt.backend import set_variant
-from gdpt.denoise import reconstruct_image
 from gdpt.io.atomic import atomic_write
 from gdpt.io.exr import save_buffers
+from gdpt.methods import reconstruct_image
 from gdpt.rendering import render
 from gdpt.scenes.loading import load_scene
 from gdpt.training.config import require_positive

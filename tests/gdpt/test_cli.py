@@ -12,7 +12,7 @@ import OpenEXR
 import pytest
 import torch
 
-from gdpt import denoise
+from gdpt import methods
 from gdpt.cli import COMMANDS, build_parser, main
 from gdpt.cli.config_options import config_from_args
 from gdpt.io.exr import load_image, save_buffers
@@ -30,9 +30,9 @@ def render(tmp_path, random_buffers):
 def fake_l2(monkeypatch):
     """Make ``--method l2`` a cheap stand-in (primal * 2) so CLI plumbing is tested alone."""
     monkeypatch.setitem(
-        denoise.METHODS,
+        methods.METHODS,
         "l2",
-        denoise.Method(lambda buffers, *, alpha, **_: buffers.primal * 2, True, False, "x2"),
+        methods.Method(lambda buffers, *, alpha, **_: buffers.primal * 2, True, False, "x2"),
     )
 
 
@@ -117,8 +117,8 @@ def test_reconstruct_refuses_to_overwrite(render, tmp_path, fake_l2, capsys):
 def test_deprecated_method_name_runs_the_new_method(render, tmp_path, monkeypatch, capsys):
     """``--method ngpt`` (the former name of ``oidn-grad``) runs ``oidn-grad``, warns, and the
     output's metadata names ``oidn-grad``; ``--help`` lists only current names."""
-    network = denoise.Method(lambda buffers, *, alpha, **_: buffers.primal * 3, True, True, "x3")
-    monkeypatch.setitem(denoise.METHODS, "oidn-grad", network)
+    network = methods.Method(lambda buffers, *, alpha, **_: buffers.primal * 3, True, True, "x3")
+    monkeypatch.setitem(methods.METHODS, "oidn-grad", network)
     out = tmp_path / "o.exr"
     with pytest.warns(DeprecationWarning, match="'ngpt' is deprecated; use 'oidn-grad'"):
         assert main(["reconstruct", str(render), "--method", "ngpt", "-o", str(out)]) == 0

@@ -8,7 +8,7 @@ import re
 import pytest
 import torch
 
-from gdpt import denoise
+from gdpt import methods
 from gdpt.cli import main
 from gdpt.io.exr import load_buffers, load_image
 
@@ -58,7 +58,7 @@ def test_writes_image_preview_buffers_and_timings(tmp_path, capsys):
     assert image.shape == (32, 32, 3) and torch.isfinite(image).all()
     assert buffers.spp == 2 and buffers.has_gradients and buffers.albedo is None  # what l2 reads
     assert buffers.metadata["max_depth"] == 6
-    torch.testing.assert_close(image, denoise.reconstruct_image(buffers, "l2"))
+    torch.testing.assert_close(image, methods.reconstruct_image(buffers, "l2"))
 
 
 @pytest.mark.parametrize(
@@ -79,12 +79,12 @@ def test_writes_image_preview_buffers_and_timings(tmp_path, capsys):
     ],
 )
 def test_bad_options_fail_before_rendering(tmp_path, capsys, monkeypatch, change, match):
-    import gdpt.rendering
+    import gdpt.pipeline
 
     def forbidden(*args, **kwargs):
         raise AssertionError("rendered despite a bad option")
 
-    monkeypatch.setattr(gdpt.rendering, "render_and_denoise", forbidden)
+    monkeypatch.setattr(gdpt.pipeline, "render_and_denoise", forbidden)
     options = {"scene": "builtin:cbox-demo", "-o": "{tmp}/out.exr", "--spp": "1", **change}
     if existing := options.pop("existing", None):
         (tmp_path / existing).write_text("keep me")
@@ -100,8 +100,8 @@ def test_bad_options_fail_before_rendering(tmp_path, capsys, monkeypatch, change
 
 
 def test_a_method_that_cannot_run_here_fails_before_rendering(tmp_path, capsys, monkeypatch):
-    unavailable = denoise.Method(lambda b, **_: b.primal, True, False, "x", lambda: "no package")
-    monkeypatch.setitem(denoise.METHODS, "l2", unavailable)
+    unavailable = methods.Method(lambda b, **_: b.primal, True, False, "x", lambda: "no package")
+    monkeypatch.setitem(methods.METHODS, "l2", unavailable)
     argv = ["render-and-denoise", "builtin:nope", "--method", "l2", "-o", str(tmp_path / "a.exr")]
     assert main(argv) == 2  # the method is checked before the scene is even loaded
     assert "--method l2 cannot run here: no package" in one_line_error(capsys.readouterr().err)

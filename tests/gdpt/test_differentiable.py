@@ -16,8 +16,8 @@ import pytest
 import torch
 
 import gdpt
-from gdpt.denoise import METHODS
 from gdpt.differentiable import NonFiniteGradientWarning
+from gdpt.methods import METHODS
 
 pytestmark = pytest.mark.usefixtures("variant", "single_thread")
 

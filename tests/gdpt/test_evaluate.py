@@ -12,8 +12,8 @@ import pytest
 import torch
 from shared_scenes import SHARED_SCENES
 
-from gdpt import denoise
 from gdpt.cli import main
+from gdpt.methods import METHODS
 from gdpt.study.calibration import WARM_UP_SEED_OFFSET, TimeModel, calibrate, run_at_budget
 from gdpt.study.config import EvaluateConfig
 from gdpt.study.evaluate import StudyFailure, evaluate, render_references
@@ -166,7 +166,7 @@ def test_bad_input_is_reported_and_resume_skips_done_cells(variant, tmp_path, mo
     broken.parent.mkdir()
     broken.write_text(GAUSSIAN_XML.format(bsdf="no_such_bsdf"))
     monkeypatch.setitem(sys.modules, "pyoidn", None)  # "not installed"
-    monkeypatch.delitem(denoise.METHODS, "oidn-grad", raising=False)
+    monkeypatch.delitem(METHODS, "oidn-grad", raising=False)
     scenes = ["builtin:cbox-demo", str(tmp_path / "missing.xml"), str(broken.parent)]
     cfg = _tiny_cfg(methods=("pt", "pt+oidn", "gdpt+oidn-grad"), keep_going=True)
     out = tmp_path / "report"
@@ -420,9 +420,9 @@ def test_time_model_fit_and_noise_guard():
 @pytest.fixture
 def registries_restored():
     """Methods registered during the test are removed afterwards."""
-    before = {id(r): set(r) for r in (denoise.METHODS, EVAL_METHODS)}
+    before = {id(r): set(r) for r in (METHODS, EVAL_METHODS)}
     yield
-    for registry in (denoise.METHODS, EVAL_METHODS):
+    for registry in (METHODS, EVAL_METHODS):
         for name in set(registry) - before[id(registry)]:
             del registry[name]
 

@@ -1,6 +1,6 @@
 """GPU readiness in one go (``make test-gpu``, ``pytest -m gpu``): on ``cuda_ad_rgb``, the
 zero-copy hand-off from Dr.Jit to torch, a render, every reconstruction method of
-:data:`gdpt.denoise.METHODS` and a training run.
+:data:`gdpt.methods.METHODS` and a training run.
 
 Each check runs once per variant: ``cuda`` (marked ``gpu``; skipped, with the reason, where
 Dr.Jit or torch sees no CUDA device) and its ``llvm`` twin on the CPU (marked ``slow``: the
@@ -18,7 +18,7 @@ import pytest
 import torch
 
 import gdpt
-from gdpt.denoise import METHODS
+from gdpt.methods import METHODS
 
 SCENE = "builtin:cbox-demo"
 SIZE = 32  # pixels on each side of the test renders
@@ -145,18 +145,18 @@ def test_differentiable_render_and_reconstruction(device, monkeypatch):
     import drjit as dr
     import mitsuba as mi
 
-    from gdpt import denoise
+    from gdpt import methods
 
     if reason := METHODS["oidn-tuned"].check():
         pytest.skip(f"oidn-tuned: {reason}")
     seen = []
-    reconstruct_image = denoise.reconstruct_image
+    reconstruct_image = methods.reconstruct_image
 
     def spy(buffers, *args, **kwargs):
         seen.append(buffers.primal.device)
         return reconstruct_image(buffers, *args, **kwargs)
 
-    monkeypatch.setattr(denoise, "reconstruct_image", spy)
+    monkeypatch.setattr(methods, "reconstruct_image", spy)
     scene = _scene()
     params = mi.traverse(scene)
     key = "light.emitter.radiance.value"

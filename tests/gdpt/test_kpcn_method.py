@@ -9,8 +9,8 @@ import torch
 from gdpt.reconstruct.kpcn import KPCN_DESIGNS, KPCNNet, encode_kpcn
 
 from gdpt.cli import main
-from gdpt.denoise import METHODS, reconstruct_image, register_checkpoint
 from gdpt.io.exr import load_image, save_buffers
+from gdpt.methods import METHODS, reconstruct_image, register_checkpoint
 from gdpt.training.checkpoint import write_checkpoint
 
 pytestmark = pytest.mark.usefixtures("single_thread")

@@ -110,10 +110,10 @@ def test_cli_bad_run_argument(runs, tmp_path, capsys, run, message):
 
 
 def test_cli_ships_only_the_named_runs(runs, tmp_path, monkeypatch, capsys):
-    import gdpt.denoise
+    import gdpt.checkpoints
 
     data, run_dirs = runs
-    monkeypatch.setattr(gdpt.denoise, "MODEL_DIR", tmp_path / "models")
+    monkeypatch.setattr(gdpt.checkpoints, "MODEL_DIR", tmp_path / "models")
     args = ["model-report", "--data", str(data), "--holdout-every", "1", "--out", str(tmp_path)]
     args += [f"--run={k}={v}" for k, v in run_dirs.items()]
     assert main([*args, "--ship", "dense-nograd"]) == 0

@@ -12,7 +12,7 @@ import torch.nn.functional as F
 
 import gdpt
 from gdpt.cli import main
-from gdpt.denoise import METHODS
+from gdpt.methods import METHODS
 from gdpt.study.config import EvaluateConfig
 from gdpt.study.evaluate import evaluate
 

@@ -1,5 +1,5 @@
 """Pooling plain path samples into a gradient render: gdpt.buffers.pool_primal,
-gdpt.render(..., primal_spp=N) and the methods that ask for it (gdpt.denoise.Method.sampling)."""
+gdpt.render(..., primal_spp=N) and the methods that ask for it (gdpt.methods.Method.sampling)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import torch
 from safetensors.torch import save_file
 
 from gdpt.buffers import pool_primal
-from gdpt.denoise import METHODS
+from gdpt.methods import METHODS
 
 GRADIENT = ("primal", "dx", "dy", "albedo", "normal", "depth", "var_primal")
 PRIMAL_ONLY = ("primal", "albedo", "normal", "depth", "var_primal")
@@ -128,18 +128,18 @@ def test_methods_ask_for_the_primal_samples_of_their_card(tmp_path):
 
 
 def test_pooled_model_on_unpooled_buffers_warns(tmp_path, monkeypatch, random_buffers):
-    import gdpt.denoise as denoise
+    from gdpt import checkpoints, methods
 
     card = {"format": "gdpt-oidn-delta/1", "sampling": {"primal_spp_factor": 2.5}}
     (tmp_path / "pooled.json").write_text(json.dumps(card))
     save_file({}, tmp_path / "pooled.safetensors")  # a readable, empty checkpoint
-    monkeypatch.setattr(denoise, "_oidn_weights_missing", lambda name, path: None)
-    monkeypatch.setattr(denoise, "load_reconstructor", lambda path: lambda b: b.primal)
+    monkeypatch.setattr(checkpoints, "oidn_weights_missing", lambda name, path: None)
+    monkeypatch.setattr(checkpoints, "load_reconstructor", lambda path: lambda b: b.primal)
     model = str(tmp_path / "pooled.safetensors")
     buffers = random_buffers(names=("primal", "dx", "dy"))
     with pytest.warns(UserWarning, match=r"pooled.safetensors .* primal_spp=2.5 x spp"):
-        denoise.reconstruct_image(buffers, "oidn-grad", model=model)
+        methods.reconstruct_image(buffers, "oidn-grad", model=model)
     pooled = buffers.replace(metadata={"primal_spp": 40})
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        denoise.reconstruct_image(pooled, "oidn-grad", model=model)
+        methods.reconstruct_image(pooled, "oidn-grad", model=model)

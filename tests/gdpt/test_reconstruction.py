@@ -1,4 +1,4 @@
-"""gdpt.denoise: the method dispatcher (the solvers are tested in tests/reconstruct)."""
+"""gdpt.methods: the method dispatcher (the solvers are tested in tests/reconstruct)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import gdpt.reconstruct
 import pytest
 import torch
 
-from gdpt.denoise import METHODS, reconstruct_image
+from gdpt.methods import METHODS, reconstruct_image
 
 
 @pytest.fixture

@@ -7,7 +7,8 @@ import pytest
 import torch
 from gdpt.reconstruct.transforms import FEATURES_WITH_GRADIENTS, FEATURES_WITHOUT_GRADIENTS
 
-from gdpt.denoise import model_path, reconstruct_image
+from gdpt.checkpoints import model_path
+from gdpt.methods import reconstruct_image
 
 
 @pytest.fixture

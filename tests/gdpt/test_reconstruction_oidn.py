@@ -9,8 +9,8 @@ import torch
 import gdpt
 from gdpt import denoise
 from gdpt.cli import main
-from gdpt.denoise import METHODS, reconstruct_image
 from gdpt.io.exr import load_image, save_buffers
+from gdpt.methods import METHODS, reconstruct_image
 
 try:
     import pyoidn
@@ -122,7 +122,7 @@ def test_deprecated_reconstruct_warns_and_returns_the_same(random_buffers):
 @needs_pyoidn  # the study checks that the real method could run before it renders
 def test_pt_oidn_runs_the_registered_method(variant, monkeypatch):
     """The study's ``pt+oidn`` renders features without gradients and reconstructs through
-    :data:`gdpt.denoise.METHODS` ``oidn`` (replaced here by a stand-in that records its input)."""
+    :data:`gdpt.methods.METHODS` ``oidn`` (replaced here by a stand-in that records its input)."""
     from gdpt.study.methods import EVAL_METHODS
     from gdpt.study.scenes import SceneSpec, load_eval_scene
 

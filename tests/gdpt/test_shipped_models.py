@@ -13,7 +13,8 @@ import pytest
 import torch
 
 import gdpt
-from gdpt.denoise import METHODS, MODEL_DIR, reconstruct_image
+from gdpt.checkpoints import MODEL_DIR
+from gdpt.methods import METHODS, reconstruct_image
 from gdpt.metrics import relmse
 from gdpt.scenes import builtin_scene
 from gdpt.training.model_report import MAX_SHIPPED_MIB

@@ -171,7 +171,7 @@ def test_checkpoint_mismatch_errors(tmp_path):
 def test_corrupt_weights_are_a_value_error_naming_the_file(tmp_path, damage, problem):
     """A checkpoint whose ``.safetensors`` is corrupt (its card intact) is refused when its card
     is read, by every reader (and ``gdpt evaluate --model`` before any rendering)."""
-    from gdpt.denoise import METHODS, register_checkpoint
+    from gdpt.methods import METHODS, register_checkpoint
 
     weights, card_path = save_checkpoint(_model(TINY), tmp_path / "m")
     weights.write_bytes(damage(weights.read_bytes()))

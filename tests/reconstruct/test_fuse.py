@@ -174,3 +174,22 @@ def test_wrong_statistics_move_no_pixel_beyond_the_trust_region():
     out, info = F.fuse(img, dx, dy, tiny, tiny, error)
     assert float((out - img).abs().max()) <= F.CORRECTION_BOUND * 1e-2 + 1e-6
     assert info.guards["correction_bound"] > 0
+
+
+@pytest.mark.parametrize("bad", [float("inf"), float("nan")])
+def test_nonfinite_variance_is_no_information(bad):
+    """A non-finite gradient variance gives that gradient zero weight (it stays ``inf`` through
+    the local average, which also leaves it out of its neighbours' averages) and is counted."""
+    img = smooth_image()
+    dx, dy = forward(img)
+    var = torch.full(img.shape[:2] + (1,), 1e-4)
+    var[5, 7] = bad
+    parts = {"full": img, "a": img + 0.01, "b": img - 0.01}
+    stats = F.fusion_statistics(parts.__getitem__, img + 0.01, img - 0.01, var, var.clone())
+    assert torch.isinf(stats.var_dx[5, 7]).all() and torch.isinf(stats.var_dy[5, 7]).all()
+    finite = torch.isfinite(stats.var_dx)
+    assert int((~finite).sum()) == 1
+    # its neighbours average only finite variances: the constant, not something smaller
+    torch.testing.assert_close(stats.var_dx[finite], torch.full_like(stats.var_dx[finite], 1e-4))
+    _, info = F.fuse_statistics(stats, dx, dy)
+    assert info.guards["variance_nonfinite"] == 2

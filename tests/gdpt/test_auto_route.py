@@ -1,5 +1,5 @@
-"""``method="auto"`` (gdpt.route): the decision rule, the pilot on scenes whose answer is known,
-and the replicate statistics of the study that measures it."""
+"""``method="auto"`` (gdpt.auto_route): the decision rule, the pilot on scenes whose answer is
+known, and the replicate statistics of the study that measures it."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import scipy.stats
 import torch
 
 import gdpt
-from gdpt import route
+from gdpt import auto_route as route
 from gdpt.scenes import builtin_scene
 from gdpt.statistics import mean_interval
 from gdpt.study.results import replicate_seed
@@ -93,7 +93,7 @@ def test_both_routes_spend_the_samples_of_spp_plain_ones(cost_ratio):
 def test_pilot_statistics_on_the_centre_window(monkeypatch):
     """The pilot's denoises see the centre ``PILOT_WINDOW`` square (each side at most that),
     cut from the pilot render's buffers; an image that fits is passed whole."""
-    from gdpt import denoise
+    from gdpt import methods
 
     shapes = []
 
@@ -102,10 +102,36 @@ def test_pilot_statistics_on_the_centre_window(monkeypatch):
         return buffers.primal
 
     monkeypatch.setattr(route, "PILOT_WINDOW", 8)
-    monkeypatch.setattr(denoise, "reconstruct_image", denoiser)
+    monkeypatch.setattr(methods, "reconstruct_image", denoiser)
     film = builtin_scene("cbox-demo", resolution=(20, 6))
     route.choose_route(gdpt.load_scene(film), spp=1000, seed=3)
     assert shapes == [(6, 8)] * 3
+
+
+def test_pilot_with_infinite_gradient_variances_predicts_no_gain(monkeypatch):
+    """An infinite gradient variance means no information: a pilot whose gradients all have one
+    predicts no gain from them and takes the plain route (read as zero variance, it would
+    predict a large gain)."""
+    from gdpt import methods
+    from gdpt.buffers import GradientBuffers
+
+    gen = torch.Generator().manual_seed(5)
+    image = 0.5 + 0.1 * torch.rand(12, 12, 3, generator=gen)
+    inf = torch.full((12, 12, 1), float("inf"))
+
+    def pilot(*args, **kwargs):
+        noisy = [image + 0.05 * torch.randn(image.shape, generator=gen) for _ in range(2)]
+        metadata = {"render_seconds": 3.0, "primal_only": {"render_seconds": 1.0}}
+        return GradientBuffers(
+            primal=image, dx=torch.zeros_like(image), dy=torch.zeros_like(image), var_dx=inf,
+            var_dy=inf, primal_a=noisy[0], primal_b=noisy[1], spp=4,
+            metadata={**metadata, "half_spp": [2, 2]},
+        )  # fmt: skip
+
+    monkeypatch.setattr(gdpt.rendering, "render", pilot)
+    monkeypatch.setattr(methods, "reconstruct_image", lambda buffers, method: buffers.primal)
+    choice = route.choose_route(object(), spp=route.pilot_threshold())
+    assert choice.gain == 1.0 and choice.route == "plain"
 
 
 def _no_render(*args, **kwargs):

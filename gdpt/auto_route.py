@@ -1,29 +1,21 @@
-"""Gradients only where they pay: a short pilot render chooses the route of ``method="auto"``.
+"""The route of ``method="auto"``: a short pilot render chooses gradients or not.
 
 Two routes fill the same render time; ``spp`` counts the plain route's samples:
 
-* ``gradient``: gradient-domain samples with ``FUSE_PRIMAL_SPP_FACTOR`` plain path samples
-  pooled into the primal per gradient sample, reconstructed by ``fuse``
-  (:func:`gdpt.reconstruct.fuse.fuse_halves`);
+* ``gradient``: gradient-domain samples with :data:`~gdpt.adapters.FUSE_PRIMAL_SPP_FACTOR`
+  plain path samples pooled into the primal per gradient sample, reconstructed by ``fuse``;
 * ``plain``: plain path samples (features on), reconstructed by the primal-only denoiser
-  (``oidn-tuned``, else ``oidn``).
+  (:func:`gdpt.adapters.plain_denoiser`).
 
 The pilot renders the gradient route's input at ``pilot_spp`` (with variances and halves),
-measures the cost of a gradient sample relative to a plain one (from its two passes), and
-predicts the fusion's gain on that input (:func:`gdpt.reconstruct.fuse.predicted_gain`, times
-:data:`PREDICTION_BIAS`). At equal time the gradient route's primal has ``sample_ratio =
-(1 + f) / (c + f)`` of the plain route's samples (``c`` the cost ratio, ``f`` the pooling
-factor), so its denoise has about ``1 / sample_ratio`` the error; the gradient route is taken
-when ``gain < sample_ratio``. Kettunen et al. 2019, Fig. 5: where gradients are noisy relative
-to the primal, they hurt; the pilot states that switch instead of learning it.
-
-The statistics are computed on the centre ``PILOT_WINDOW`` pixels square of the pilot.
-The pilot is not wasted only if it is small next to the render it decides: below
-:func:`pilot_threshold` plain samples per pixel (the pilot's samples, counted with
-:data:`DEFAULT_COST_RATIO`, over :data:`PILOT_SHARE`) there is no pilot and the plain route is
-taken. At the gradient sample counts this leaves out the fusion did not gain on the
-calibration scenes either (8 spp: 1.04x and 1.11x the error of the plain denoise of the same
-input).
+measures the cost ratio ``c`` of a gradient sample to a plain one from its two passes, and
+predicts the fusion's relative error ``gain`` on its centre :data:`PILOT_WINDOW` square
+(:func:`gdpt.reconstruct.fuse.fusion_statistics`, :func:`gdpt.reconstruct.fuse.predicted_gain`
+times :data:`PREDICTION_BIAS`). At equal time the gradient route's primal has ``sample_ratio =
+(1 + f) / (c + f)`` of the plain route's samples (``f`` the pooling factor); the gradient route
+is taken when ``gain < sample_ratio`` (Kettunen et al. 2019, Fig. 5: noisy gradients hurt).
+Below :func:`pilot_threshold` plain samples per pixel there is no pilot and the route is plain.
+Calibration: ``docs/gradients.md``.
 """
 
 from __future__ import annotations
@@ -33,30 +25,29 @@ import time
 from dataclasses import asdict, dataclass
 from typing import Any
 
-#: Measured fusion gain over the per-pixel prediction on the calibration scenes (procedural
-#: ``random:5`` and the built-in ``cbox-demo``, 128 px, 8 and 32 gradient spp): 10.6-26.3.
-#: The per-pixel model treats the denoiser's errors as independent between pixels; they are
-#: spatially correlated, and gradients correct only their differences. 20 keeps both
-#: calibration scenes on the plain route at the pilot's 4 spp (raw predictions 0.04-0.09),
-#: where the measured fusion gain (0.88-1.12) does not repay the gradient samples' cost.
+from gdpt import methods, rendering
+from gdpt.adapters import FUSE_PRIMAL_SPP_FACTOR, fusion_statistics_of, plain_denoiser
+from gdpt.reconstruct.fuse import predicted_gain
+
+#: Measured fusion gain over the per-pixel prediction, 10.6-26.3 (``random:5``, ``cbox-demo``,
+#: 128 px, 8 and 32 gradient spp; ``benchmarks/fuse_calibration.py``).
 PREDICTION_BIAS = 20.0
 
-#: Range of the measured gradient/plain sample cost ratio (2-3 on warm renders; a first render
-#: also records its frozen passes, which inflates the ratio up to ~13).
+#: Clamp of the measured gradient/plain sample cost ratio (2-3 on warm renders, up to ~13 on a
+#: first render that records its frozen passes).
 COST_RATIO_RANGE = (1.0, 4.0)
 
 #: Gradient spp of the pilot render (plus its pooled plain samples).
 PILOT_SPP = 4
 
-#: Side of the centre crop the pilot's statistics are computed on (three denoises of the whole
-#: image would cost ~3x the final reconstruction, seconds at 720p on a CPU).
+#: Side of the centre crop the pilot's statistics are computed on (pixels).
 PILOT_WINDOW = 256
 
 #: Largest share of the main render's samples a pilot may take (:func:`pilot_threshold`).
 PILOT_SHARE = 0.05
 
-#: Gradient/plain sample cost ratio assumed before a pilot measured it (2-3 measured on warm
-#: renders, ``benchmarks/method_cost.py``).
+#: Gradient/plain sample cost ratio assumed before a pilot measured it (2-3 on warm renders,
+#: ``benchmarks/method_cost.py``).
 DEFAULT_COST_RATIO = 2.0
 
 
@@ -88,14 +79,6 @@ class RouteChoice:
         return asdict(self)
 
 
-def plain_denoiser() -> str:
-    """The primal-only denoiser of the plain route: ``oidn-tuned`` where its model and
-    weights are found, else ``oidn``."""
-    from gdpt.denoise import METHODS
-
-    return "oidn-tuned" if METHODS["oidn-tuned"].check() is None else "oidn"
-
-
 def decide(gain: float, cost_ratio: float, factor: float) -> tuple[str, float]:
     """``(route, sample_ratio)`` for a predicted (bias-corrected) ``gain``, a gradient/plain
     ``cost_ratio`` and the pooling ``factor`` (see the module docstring)."""
@@ -107,15 +90,13 @@ def pilot_threshold(pilot_spp: int = PILOT_SPP) -> int:
     """Fewest plain samples per pixel of the main render for which a pilot of ``pilot_spp``
     gradient samples (and its pooled plain ones) is at most :data:`PILOT_SHARE` of the samples:
     360 for the default pilot."""
-    from gdpt.denoise import FUSE_PRIMAL_SPP_FACTOR
-
     return math.ceil(pilot_spp * (DEFAULT_COST_RATIO + FUSE_PRIMAL_SPP_FACTOR) / PILOT_SHARE)
 
 
 def choose_route(
     scene: Any, *, spp: int, seed: int = 0, pilot_spp: int = PILOT_SPP, **props: Any
 ) -> RouteChoice:
-    """Render the pilot of ``scene`` and choose the route (module docstring).
+    """Render the pilot of ``scene`` and choose the route (see the module docstring).
 
     Args:
         scene: an ``mi.Scene`` (or anything :func:`gdpt.render` accepts).
@@ -133,19 +114,6 @@ def choose_route(
     Raises:
         ValueError: ``pilot_spp < 2``.
     """
-    from gdpt.denoise import FUSE_PRIMAL_SPP_FACTOR, reconstruct_image
-    from gdpt.reconstruct.fuse import (
-        ERROR_RADIUS,
-        ERROR_SCALE,
-        GUIDE_SIGMA,
-        VARIANCE_RADIUS,
-        cross_half_error,
-        edge_aware_mean,
-        log_luminance,
-        predicted_gain,
-    )
-    from gdpt.rendering import render
-
     if pilot_spp < 2:
         raise ValueError(f"pilot_spp must be >= 2 (the pilot needs halves), got {pilot_spp}")
     factor = FUSE_PRIMAL_SPP_FACTOR
@@ -158,7 +126,7 @@ def choose_route(
         return RouteChoice("plain", plain_denoiser(), 1.0, ratio, DEFAULT_COST_RATIO, 0.0, reason)
     start = time.perf_counter()
     plain_spp = max(1, round(factor * pilot_spp))
-    pilot = render(
+    pilot = rendering.render(
         scene,
         spp=pilot_spp,
         seed=seed,
@@ -171,26 +139,17 @@ def choose_route(
     t_plain = pilot.metadata["primal_only"]["render_seconds"]
     cost_ratio = (t_gradient / pilot_spp) / max(t_plain / plain_spp, 1e-9)
     cost_ratio = min(max(cost_ratio, COST_RATIO_RANGE[0]), COST_RATIO_RANGE[1])
-    denoiser = plain_denoiser()
     if float(pilot.primal.abs().max()) == 0.0:
         seconds = time.perf_counter() - start
         _, ratio = decide(1.0, cost_ratio, factor)
         reason = "the pilot rendered black (no light reaches the film): nothing to fuse"
-        return RouteChoice("plain", denoiser, 1.0, ratio, cost_ratio, seconds, reason)
-    pilot = pilot.centre_crop(PILOT_WINDOW)
-    plain = pilot.replace(dx=None, dy=None)
-    d, d_a, d_b = (
-        reconstruct_image(b, denoiser) for b in (plain, pilot.half("a"), pilot.half("b"))
+        return RouteChoice("plain", plain_denoiser(), 1.0, ratio, cost_ratio, seconds, reason)
+    denoiser, denoise = methods.primal_only()
+    statistics = fusion_statistics_of(pilot.centre_crop(PILOT_WINDOW), denoise)
+    gain = predicted_gain(
+        statistics.denoised, statistics.floored_error(), statistics.var_dx, statistics.var_dy
     )
-    guide = log_luminance(d)
-    raw = cross_half_error(d_a, d_b, pilot.primal_a, pilot.primal_b, radius=0)
-    floor = max(1e-4 * float(d.mean(-1).square().mean()), 1e-12)
-    error = (ERROR_SCALE * edge_aware_mean(raw, guide, ERROR_RADIUS, GUIDE_SIGMA)).clamp_min(floor)
-    v_x, v_y = (
-        edge_aware_mean(v.nan_to_num(posinf=0.0), guide, VARIANCE_RADIUS, GUIDE_SIGMA)
-        for v in (pilot.var_dx, pilot.var_dy)
-    )
-    gain = min(1.0, PREDICTION_BIAS * predicted_gain(d, error, v_x, v_y))
+    gain = min(1.0, PREDICTION_BIAS * gain)
     route, ratio = decide(gain, cost_ratio, factor)
     seconds = time.perf_counter() - start
     verdict = "<" if route == "gradient" else ">="
@@ -207,9 +166,7 @@ def route_sampling(choice: RouteChoice, spp: int) -> dict[str, Any]:
     of ``spp`` plain samples per pixel: the plain route's ``spp`` samples, or the gradient
     route's pooled input of the same cost (``spp / (cost_ratio + f)`` gradient samples, at
     least 1)."""
-    from gdpt.denoise import FUSE_PRIMAL_SPP_FACTOR, METHODS
-
     if choice.route == "plain":
-        return {"spp": spp, **METHODS[choice.method].sampling(spp)}
+        return {"spp": spp, **methods.METHODS[choice.method].sampling(spp)}
     gradient_spp = max(1, round(spp / (choice.cost_ratio + FUSE_PRIMAL_SPP_FACTOR)))
-    return {"spp": gradient_spp, **METHODS["fuse"].sampling(gradient_spp)}
+    return {"spp": gradient_spp, **methods.METHODS["fuse"].sampling(gradient_spp)}

@@ -1,0 +1,111 @@
+"""Render and reconstruct in one process: :func:`render_and_denoise` (``gdpt.render_and_denoise``).
+
+Sampling (Dr.Jit, :func:`gdpt.rendering.render`) and reconstruction (torch,
+:func:`gdpt.methods.reconstruct_image`) run in the same process; on a CUDA variant the buffers
+stay on the GPU. ``method="auto"`` lets a pilot render choose the route
+(:mod:`gdpt.auto_route`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from gdpt import auto_route
+from gdpt.buffers import GradientBuffers
+from gdpt.methods import METHODS, reconstruct_image
+from gdpt.rendering import render
+from gdpt.scenes.loading import load_scene
+
+
+@dataclass
+class RenderResult:
+    """What :func:`render_and_denoise` returns.
+
+    Attributes:
+        image: ``(H, W, 3)`` float32 reconstruction on the buffers' device.
+        buffers: the render.
+        timings: wall-clock seconds: ``render`` (sampling, kernel compilation included),
+            ``reconstruct``, ``total`` (and ``pilot`` for ``method="auto"``).
+        route: for ``method="auto"``, the :class:`gdpt.auto_route.RouteChoice` (also in
+            ``buffers.metadata["route"]``); else ``None``.
+    """
+
+    image: torch.Tensor
+    buffers: GradientBuffers
+    timings: dict[str, float] = field(default_factory=dict)
+    route: auto_route.RouteChoice | None = None
+
+
+#: Mixed into the seed of the pilot render of ``method="auto"`` (independent of the main render).
+PILOT_SEED_SALT = 0x2C1B3C6D
+
+
+def render_and_denoise(
+    scene: Any,
+    *,
+    spp: int,
+    method: str = "auto",
+    seed: int = 0,
+    alpha: float = 0.2,
+    progress: bool = False,
+    **props: Any,
+) -> RenderResult:
+    """Render with ``gdpt`` and reconstruct, in one process (no host round trip on a GPU).
+
+    Args:
+        scene: as in :func:`render`.
+        spp (int): samples per pixel (for ``"auto"``: plain path samples; the gradient
+            route renders gradient samples of the same cost,
+            :func:`gdpt.auto_route.route_sampling`).
+        method (str): ``"auto"`` (the primal-only denoiser on plain samples, or from
+            :func:`gdpt.auto_route.pilot_threshold` spp on, a pilot render chooses between that
+            and ``fuse`` on gradient-domain samples, :mod:`gdpt.auto_route`), or a key of
+            :data:`gdpt.methods.METHODS` (a deprecated name runs its new one, with a
+            ``DeprecationWarning``).
+        seed (int): random seed.
+        alpha (float): screened-Poisson data weight.
+        progress (bool): progress bar while rendering.
+        **props: integrator properties, as in :func:`render`. ``gradients`` and ``features``
+            default to what ``method`` reads (:meth:`gdpt.methods.Method.sampling`): the
+            Poisson methods skip the features, ``oidn-tuned`` the offset paths, and a network
+            trained on pooled inputs gets its plain path samples (``primal_spp``).
+
+    Returns:
+        RenderResult: the image ``(H, W, 3)``, the buffers and the timings.
+
+    Raises:
+        ValueError: unknown ``method``, or ``props`` turn off a buffer the method needs.
+    """
+    method = METHODS.resolve(method, stacklevel=2)  # a deprecated name warns once, here
+    if method != "auto":
+        METHODS.check([method])
+    if spp < 1:
+        raise ValueError(f"spp must be >= 1, got {spp}")
+    choice, timings = None, {}
+    if method == "auto":
+        scene = load_scene(scene)
+        seed_pilot = (int(seed) ^ PILOT_SEED_SALT) & 0xFFFFFFFF
+        choice = auto_route.choose_route(scene, spp=spp, seed=seed_pilot, **props)
+        timings["pilot"] = choice.pilot_seconds
+        sampling, method = auto_route.route_sampling(choice, spp), choice.method
+        spp = sampling.pop("spp")
+    else:
+        sampling = METHODS[method].sampling(spp)
+    props = {**sampling, **props}
+    start = time.perf_counter()
+    buffers = render(scene, spp=spp, seed=seed, progress=progress, **props)
+    t_render = time.perf_counter() - start
+    if choice is not None:
+        buffers.metadata["route"] = choice.to_json()
+    t0 = time.perf_counter()
+    image = reconstruct_image(buffers, method=method, alpha=alpha)
+    if image.is_cuda:
+        torch.cuda.synchronize(image.device)
+    t_rec = time.perf_counter() - t0
+    timings.update(render=t_render, reconstruct=t_rec)
+    timings["total"] = sum(timings.values())
+    return RenderResult(image=image, buffers=buffers, timings=timings, route=choice)

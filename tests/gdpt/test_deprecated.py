@@ -1,0 +1,42 @@
+"""The deprecated module ``gdpt.denoise``: it warns on import, names its removal release, and
+re-exports the moved names unchanged."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from gdpt.reconstruct import oidn
+
+from gdpt import checkpoints, deprecated, methods
+
+
+def test_importing_gdpt_denoise_warns_with_its_removal_release():
+    code = (
+        "import warnings\n"
+        "with warnings.catch_warnings(record=True) as caught:\n"
+        "    warnings.simplefilter('always')\n"
+        "    import gdpt.denoise\n"
+        "print([str(w.message) for w in caught if w.category is DeprecationWarning])"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], check=True, capture_output=True, text=True
+    )
+    assert "gdpt.denoise is deprecated" in result.stdout
+    assert f"removed in {deprecated.REMOVED_IN}" in result.stdout
+
+
+def test_gdpt_denoise_reexports_the_moved_names():
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        from gdpt import denoise
+    assert denoise.METHODS is methods.METHODS and denoise.Method is methods.Method
+    assert denoise.reconstruct_image is methods.reconstruct_image
+    assert denoise.register_checkpoint is methods.register_checkpoint
+    assert denoise.model_path is checkpoints.model_path
+    assert denoise.load_reconstructor is checkpoints.load_reconstructor
+    assert denoise.MODEL_DIR == checkpoints.MODEL_DIR
+    assert denoise.oidn_denoise is oidn.oidn_denoise and denoise.oidn_check is oidn.oidn_check
+    assert set(deprecated.METHOD_ALIASES) <= set(methods.METHODS.aliases)
