@@ -50,7 +50,7 @@ warn("gdpt.denoise", "import gdpt.methods, gdpt.checkpoints or gdpt.reconstruct.
 
 
 def reconstruct(
-    buffers: GradientBuffers, method: str = "l1", *, alpha: float = 0.2, **options: Any
+    buffers: GradientBuffers, method: str = "l1-fast", *, alpha: float = 0.2, **options: Any
 ) -> torch.Tensor:
     """Deprecated name of :func:`gdpt.reconstruct_image` (same arguments and result); warns.
 

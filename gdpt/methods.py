@@ -41,6 +41,7 @@ from gdpt.adapters import (
 )
 from gdpt.checkpoints import network_check, oidn_weights_missing, primal_spp_factor
 from gdpt.deprecated import METHOD_ALIASES
+from gdpt.io.mitsuba_aov import SOURCE as MITSUBA_AOV_SOURCE
 from gdpt.reconstruct.oidn import oidn_check
 from gdpt.reconstruct.registry import Registry
 
@@ -111,14 +112,14 @@ DIFFERENTIABLE_FAMILIES = ("dense-unet", "oidn-finetune")
 
 
 def reconstruct_image(
-    buffers: GradientBuffers, method: str = "l1", *, alpha: float = 0.2, **options: Any
+    buffers: GradientBuffers, method: str = "l1-fast", *, alpha: float = 0.2, **options: Any
 ) -> torch.Tensor:
     """Reconstruct the final image from a render (``gdpt.reconstruct_image``).
 
     Args:
         buffers (GradientBuffers): the render; the Poisson methods need ``dx`` and ``dy``,
             ``oidn`` and the networks the features.
-        method (str): a key of :data:`METHODS` (``'l1'``, ``'l2'``, ``'oidn'``, ...); a
+        method (str): a key of :data:`METHODS` (``'l1-fast'``, ``'l2'``, ``'oidn'``, ...); a
             deprecated name (``'ngpt'``) runs its new one (``'oidn-grad'``) with a
             ``DeprecationWarning``.
         alpha (float): weight of the primal term relative to the gradient terms (screened
@@ -140,6 +141,12 @@ def reconstruct_image(
 
     method = METHODS.resolve(method, stacklevel=2)
     METHODS.check([method])
+    if METHODS[method].gradients and buffers.metadata.get("source") == MITSUBA_AOV_SOURCE:
+        raise ValueError(
+            f"method {method!r} reads the gradients dx/dy, which only a gdpt render makes "
+            "(gdpt.render, 'gdpt render' or <integrator type=\"gdpt\">); these buffers come "
+            "from a Mitsuba AOV EXR: use a method without gradients (oidn, oidn-tuned)"
+        )
     if not METHODS[method].differentiable and records(t for _, t in buffers.items()):
         usable = ", ".join(n for n, m in METHODS.items() if m.differentiable)
         raise ValueError(

@@ -13,6 +13,7 @@ import time
 from collections import OrderedDict
 from typing import Any
 
+from gdpt.aovs import buffers_from_aovs
 from gdpt.buffers import GradientBuffers, pool_primal
 from gdpt.integrators import PLUGINS
 from gdpt.scenes.loading import load_scene
@@ -161,7 +162,6 @@ def _render_one(integrator, scene, spp: int, seed: int, bar, start: int = 0) -> 
     """One ``integrator.render`` as zero-copy :class:`GradientBuffers` (``bar``: an optional
     tqdm bar advanced from ``start``)."""
     import drjit as dr
-    import mitsuba as mi
 
     if bar is not None:
         integrator.pass_callback = lambda done, total: bar.update(start + done - bar.n)
@@ -174,19 +174,6 @@ def _render_one(integrator, scene, spp: int, seed: int, bar, start: int = 0) -> 
     finally:
         integrator.pass_callback = None
 
-    tensor = out.torch()  # zero-copy (DLPack) view of the Dr.Jit tensor
-    views, offset = {}, 0
-    for name, channels in integrator.channels():
-        views[name] = tensor[..., offset : offset + channels]
-        offset += channels
-    metadata = {
-        "integrator": integrator.plugin_name,
-        "seed": int(seed),
-        "max_depth": int(min(integrator.max_depth, 2**31 - 1)),
-        "variant": mi.variant(),
-        "render_seconds": seconds,
-        "guard_counts": dict(integrator.guard_counts),
-    }
-    if integrator.halves:
-        metadata["half_spp"] = list(integrator.half_spp)
-    return GradientBuffers(**views, spp=int(spp), metadata=metadata)
+    buffers = buffers_from_aovs(out, integrator, seed=seed, spp=spp)
+    buffers.metadata["render_seconds"] = seconds
+    return buffers

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 
@@ -18,24 +17,9 @@ def _add_info_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_info(args: argparse.Namespace) -> int:
-    import torch
+    from gdpt.io.exr import describe_exr
 
-    from gdpt.io.exr import channel_names, load_buffers
-
-    buffers = load_buffers(args.file)
-    mode = "gradient-domain (dx, dy)" if buffers.has_gradients else "primal-only"
-    print(f"file:     {args.file}")
-    print(f"size:     {buffers.width} x {buffers.height} (W x H)")
-    print(f"spp:      {buffers.spp}")
-    print(f"mode:     {mode}")
-    print("buffers:")
-    print(f"  {'name':<11} {'channels':<32} {'NaN':>8} {'Inf':>8}")
-    for name, tensor in buffers.items():
-        channels = ",".join(channel_names(name))
-        nan = int(torch.isnan(tensor).sum())
-        inf = int(torch.isinf(tensor).sum())
-        print(f"  {name:<11} {channels:<32} {nan:>8} {inf:>8}")
-    print(f"metadata: {json.dumps(buffers.metadata, indent=2, sort_keys=True)}")
+    print(describe_exr(args.file))
     return 0
 
 
@@ -47,14 +31,23 @@ def _method_name(name: str) -> str:
 # ---------------------------------------------------------------------------------- reconstruct
 def _add_reconstruct_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "file", type=Path, help="an EXR file of buffers (gdpt render): what --method reads"
+        "file",
+        type=Path,
+        help="an EXR of buffers (gdpt render) or of Mitsuba's aov integrator: what --method reads",
     )
     parser.add_argument(
         "--method",
         type=_method_name,
         choices=list(METHODS),
-        default="l1",
-        help="reconstruction, as gdpt.reconstruct_image (default: l1)",
+        default="l1-fast",
+        help="reconstruction, as gdpt.reconstruct_image (default: l1-fast)",
+    )
+    parser.add_argument(
+        "--aov",
+        action="append",
+        metavar="KIND=LAYER",
+        help="for a Mitsuba AOV EXR: the layer of a kind (primal, albedo, normal, depth) where "
+        "it is ambiguous, e.g. --aov normal=nn (repeatable)",
     )
     parser.add_argument(
         "--alpha", type=float, default=0.2, help="weight of the primal term (default: 0.2)"
@@ -84,7 +77,9 @@ def _run_reconstruct(args: argparse.Namespace) -> int:
     for path in outputs:  # fail before the (possibly slow) reconstruction
         check_writable(path, force=args.force)
 
-    buffers = load_buffers(args.file)
+    from gdpt.io.mitsuba_aov import parse_aov_kinds
+
+    buffers = load_buffers(args.file, aov_kinds=parse_aov_kinds(args.aov))
     options = {"model": args.model} if args.model is not None else {}
     image = reconstruct_image(buffers, method=args.method, alpha=args.alpha, **options)
     metadata = {
@@ -253,8 +248,8 @@ def _run_render_and_denoise(args: argparse.Namespace) -> int:
     for option, path in outputs.items():
         if path is not None and path.suffix.lower() != ".exr":
             raise UsageError(f"{option} must be an .exr file, got '{path}'")
-        if path is not None and not path.parent.is_dir():
-            raise UsageError(f"{option} {path}: the folder {path.parent} does not exist")
+        if path is not None and any(p.exists() and not p.is_dir() for p in path.parents):
+            raise UsageError(f"{option} {path}: a parent of it is a file, not a folder")
     if args.save_buffers is not None and args.save_buffers.resolve() == args.output.resolve():
         raise UsageError(f"--save-buffers and --output are the same file: {args.output}")
     for path in (args.output, preview_path(args.output), args.save_buffers):
@@ -283,10 +278,12 @@ def _run_render_and_denoise(args: argparse.Namespace) -> int:
     if result.route is not None:
         metadata["route"] = result.route.to_json()
         print(f"auto: {result.route.route} route ({result.route.method}): {result.route.reason}")
+    args.output.parent.mkdir(parents=True, exist_ok=True)
     save_image(args.output, result.image, metadata=metadata, force=args.force)
     print(f"wrote {args.output}")
     print(f"wrote {save_png(preview_path(args.output), result.image, force=args.force)}")
     if args.save_buffers is not None:
+        args.save_buffers.parent.mkdir(parents=True, exist_ok=True)
         save_buffers(args.save_buffers, result.buffers, force=args.force)
         print(f"wrote {args.save_buffers}")
     times = ", ".join(f"{k} {v:.2f} s" for k, v in result.timings.items())

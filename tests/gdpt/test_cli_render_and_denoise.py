@@ -61,12 +61,19 @@ def test_writes_image_preview_buffers_and_timings(tmp_path, capsys):
     torch.testing.assert_close(image, methods.reconstruct_image(buffers, "l2"))
 
 
+def test_creates_the_output_folders_like_render(tmp_path, capsys):
+    out, saved = tmp_path / "new" / "l2.exr", tmp_path / "other" / "deep" / "buffers.exr"
+    args = ["builtin:cbox-demo", "--long-side", "16", "--spp", "1", "--method", "l2"]
+    assert main(["render-and-denoise", *args, "-o", str(out), "--save-buffers", str(saved)]) == 0
+    assert out.is_file() and out.with_suffix(".png").is_file() and saved.is_file()
+
+
 @pytest.mark.parametrize(
     ("change", "match"),
     [
-        ({"-o": "{tmp}/missing/out.exr"}, "--output .*: the folder .*missing does not exist"),
+        ({"-o": "{tmp}/afile/out.exr"}, "--output .*afile/out.exr: a parent of it is a file"),
         ({"-o": "{tmp}/out.png"}, "--output must be an .exr file"),
-        ({"--save-buffers": "{tmp}/nowhere/b.exr"}, "--save-buffers .*nowhere does not exist"),
+        ({"--save-buffers": "{tmp}/afile/b.exr"}, "--save-buffers .*: a parent of it is a file"),
         ({"--save-buffers": "{tmp}/out.exr"}, "--save-buffers and --output are the same file"),
         ({"--spp": "0"}, "--spp must be >= 1, got 0"),
         ({"--alpha": "0"}, "--alpha must be a finite number > 0"),
@@ -86,6 +93,7 @@ def test_bad_options_fail_before_rendering(tmp_path, capsys, monkeypatch, change
 
     monkeypatch.setattr(gdpt.pipeline, "render_and_denoise", forbidden)
     options = {"scene": "builtin:cbox-demo", "-o": "{tmp}/out.exr", "--spp": "1", **change}
+    (tmp_path / "afile").write_text("a file")
     if existing := options.pop("existing", None):
         (tmp_path / existing).write_text("keep me")
     argv = ["render-and-denoise", options.pop("scene").format(tmp=tmp_path), "--long-side", "16"]

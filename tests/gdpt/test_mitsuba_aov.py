@@ -103,9 +103,9 @@ def test_gdpt_reconstruct_denoises_an_aov_exr(mitsuba_aov_exr, tmp_path):
     assert image.shape == (16, 24, 3) and bool(torch.isfinite(image).all())
 
 
-@pytest.mark.parametrize("method", ["l1", "l1-fast", "l2", "fuse"])
+@pytest.mark.parametrize("method", ["l1", "l1-fast", "l2", "fuse", "oidn-grad"])
 def test_gradient_method_on_aov_exr_names_the_gradients(mitsuba_aov_exr, method):
-    with pytest.raises(ValueError, match=r"dx"):
+    with pytest.raises(ValueError, match=r"reads the gradients dx/dy, which only a gdpt render"):
         gdpt.reconstruct_image(load_buffers(mitsuba_aov_exr[0]), method=method)
 
 
