@@ -9,9 +9,10 @@ those. Registered:
   IRLS L1 preset and the accelerated L1 solver (same or lower L1 energy, fewer CG iterations).
 * ``'oidn-grad'`` / ``'oidn-tuned'``: the shipped networks, Intel Open Image Denoise's U-Net
   fine-tuned here (:mod:`gdpt.reconstruct.oidn_finetune`, a delta to Intel's weights read from
-  ``pyoidn``; ``gdpt/models/README.md``): ``oidn-grad`` reads the gradients (pooled primal,
+  ``mitsuba-oidn``; ``gdpt/models/README.md``): ``oidn-grad`` reads the gradients (pooled primal,
   gated refinement), ``oidn-tuned`` is the same network fine-tuned on the same data without
-  them. ``model=PATH`` (or ``$GDPT_OIDN_GRAD_MODEL`` for ``oidn-grad``) runs another trained
+  them (run by OIDN's own kernels, :func:`gdpt.oidn_native.reconstruct`, unless autograd
+  records an input). ``model=PATH`` (or ``$GDPT_OIDN_GRAD_MODEL`` for ``oidn-grad``) runs another trained
   checkpoint instead, e.g. a dense U-Net (:mod:`gdpt.reconstruct.dense_unet_reconstructor`).
   Their former names ``'ngpt'`` / ``'ngpt-nograd'`` (and ``$GDPT_NGPT_MODEL``) still work, with a
   ``DeprecationWarning``.
@@ -21,8 +22,8 @@ those. Registered:
 * ``'nfor'``: NFOR (Bitterli et al. 2016, :mod:`gdpt.reconstruct.nfor`) on the primal's and the
   features' two half-buffers and the primal's variance (no gradients).
 * ``'oidn'``: Intel Open Image Denoise on the primal with albedo and normal (no gradients),
-  :func:`oidn_denoise`: ``pyoidn`` on CPU tensors, OIDN's U-Net in torch
-  (:mod:`gdpt.reconstruct.oidn_unet`, Intel's weights) on CUDA tensors.
+  :func:`oidn_denoise`: OIDN itself through ``mitsuba-oidn`` (:mod:`gdpt.oidn_native`) on CPU
+  and CUDA tensors, or OIDN's U-Net in torch (:mod:`gdpt.reconstruct.oidn_unet`).
 
 Reconstruct with :func:`reconstruct_image` (``gdpt.reconstruct_image``; :func:`reconstruct` is
 its deprecated old name). To add a method, write ``f(buffers, *, alpha, **options) -> (H, W, 3)
@@ -187,12 +188,14 @@ def _network(
 
     Raises:
         KeyError: the buffers lack one the model reads (named).
-        RuntimeError: the model builds on OIDN's weights and ``pyoidn`` (whose library holds
-            them) is not installed or its weights are not recognised.
+        RuntimeError: the model builds on OIDN's weights and ``mitsuba-oidn`` (whose library
+            holds them) is not installed or its weights are not recognised.
     """
     path = model_path(name, model).resolve()
     if reason := _oidn_weights_missing(name, path):
         raise RuntimeError(reason)
+    from gdpt import oidn_native
+
     factor = _network_primal_spp_factor(name, model)
     metadata = getattr(buffers, "metadata", None)
     unpooled = metadata is not None and "primal_spp" not in metadata and buffers.has_gradients
@@ -203,7 +206,9 @@ def _network(
             f"primal_spp={factor:g} x spp, or 'gdpt render --primal-spp')",
             stacklevel=3,
         )
-    return load_reconstructor(path)(buffers)
+    reconstructor = load_reconstructor(path)
+    image = oidn_native.reconstruct(reconstructor, buffers)
+    return reconstructor(buffers) if image is None else image
 
 
 def _oidn_weights_missing(name: str, path: Path) -> str | None:
@@ -218,10 +223,10 @@ def _oidn_weights_missing(name: str, path: Path) -> str | None:
 
     if not family_of(path).oidn_weights:
         return None
-    if importlib.util.find_spec("pyoidn") is None:
+    if importlib.util.find_spec("mitsuba_oidn") is None:
         return (
             f"method {name!r} fine-tunes Intel Open Image Denoise, whose weights are read from "
-            "the 'pyoidn' package at run time: pip install pyoidn"
+            "the 'mitsuba-oidn' package at run time: pip install mitsuba-oidn"
         )
     from gdpt.reconstruct.tza import OIDNWeightsError, builtin_weights
 
@@ -254,15 +259,17 @@ def _network_check(name: str) -> str | None:
 
 
 #: Backends of :func:`oidn_denoise`.
-OIDN_BACKENDS = ("auto", "pyoidn", "torch")
+OIDN_BACKENDS = ("auto", "native", "torch")
+#: Former backend names of :func:`oidn_denoise` -> current ones (they warn).
+OIDN_BACKEND_ALIASES = {"pyoidn": "native"}
 
 
 def oidn_check() -> str | None:
-    """``None`` when Intel Open Image Denoise (``pyoidn``, which also holds the weights of the
-    torch port) can run here, else why not."""
-    if importlib.util.find_spec("pyoidn") is None:
-        return "pyoidn is not installed (pip install pyoidn)"
-    return None
+    """``None`` when Intel Open Image Denoise (``mitsuba-oidn``, which also holds the weights of
+    the torch port) can run here, else why not."""
+    from gdpt.oidn_native import check
+
+    return check()
 
 
 def oidn_denoise(
@@ -282,48 +289,56 @@ def oidn_denoise(
         primal: ``(H, W, 3)`` float32 linear radiance, on the CPU or a CUDA device.
         albedo: ``(H, W, 3)`` float32 albedo, same device.
         normal: ``(H, W, 3)`` float32 normals in [-1, 1], same device.
-        backend: ``"pyoidn"``: ``pyoidn.denoise`` on the tensors' device (its CPU device, or
-            its own CUDA device for CUDA tensors); ``"torch"``: OIDN's U-Net re-implemented in
-            torch (:func:`gdpt.reconstruct.oidn_unet.denoise`, Intel's weights, agrees with
-            pyoidn to 1e-4 relative), run on the tensors' device without a host round trip;
-            ``"auto"``: ``pyoidn`` on the CPU, ``torch`` on CUDA (and wherever ``weights``
-            is given).
+        backend: ``"native"``: OIDN itself through ``mitsuba-oidn``
+            (:func:`gdpt.oidn_native.denoise`) on the tensors' device (CPU, or CUDA), reading
+            them in place (copied first only where a pixel's channels are not adjacent) and
+            clamping as above;
+            ``"torch"``: OIDN's U-Net re-implemented in torch
+            (:func:`gdpt.reconstruct.oidn_unet.denoise`, Intel's weights, agrees with OIDN to
+            1e-4 relative); ``"auto"``: ``native``, or ``torch`` where ``weights`` is given.
+            ``"pyoidn"``, the former name of ``native``, still works with a
+            ``DeprecationWarning``.
         weights: the torch port only: a ``.tza`` file of Intel's ``rt_hdr_alb_nrm`` weights
-            (from https://github.com/RenderKit/oidn-weights), for machines without ``pyoidn``
-            (which otherwise supplies them).
+            (from https://github.com/RenderKit/oidn-weights), for machines without
+            ``mitsuba-oidn`` (which otherwise supplies them).
 
     Returns:
         ``(H, W, 3)`` float32 on the device of ``primal``, no gradients.
 
     Raises:
-        ValueError: unknown ``backend``, or ``weights`` with ``backend="pyoidn"``.
-        RuntimeError: ``pyoidn`` is needed (its package or weights) and not installed.
+        ValueError: unknown ``backend``, ``weights`` with ``backend="native"``, or an image
+            OIDN cannot read (named with its shape: not ``(H, W, 3)`` float32 like the primal).
+        RuntimeError: ``mitsuba-oidn`` is needed (its package or weights) and not installed.
     """
+    if backend in OIDN_BACKEND_ALIASES:
+        warnings.warn(
+            f"oidn backend {backend!r} is deprecated; use {OIDN_BACKEND_ALIASES[backend]!r}",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        backend = OIDN_BACKEND_ALIASES[backend]
     if backend not in OIDN_BACKENDS:
         raise ValueError(f"oidn backend must be one of {', '.join(OIDN_BACKENDS)}, got {backend!r}")
-    if backend == "pyoidn" and weights is not None:
-        raise ValueError("oidn: weights= is an option of the torch backend, not of pyoidn")
+    if backend == "native" and weights is not None:
+        raise ValueError("oidn: weights= is an option of the torch backend, not of native OIDN")
     import torch
 
     if backend == "auto":
-        backend = "pyoidn" if primal.device.type == "cpu" and weights is None else "torch"
+        backend = "native" if weights is None else "torch"
     if backend == "torch":
         from gdpt.reconstruct.oidn_unet import denoise
 
         with torch.no_grad():  # (not inference mode: callers may change the image in place)
             return denoise(primal, albedo, normal, weights=weights, hdr=True, quality="high")
-    if reason := oidn_check():
-        raise RuntimeError(reason)
-    import pyoidn  # noqa: PLC0415 (optional dependency)
+    from gdpt import oidn_native
 
-    out = pyoidn.denoise(
-        primal.clamp_min(0.0).contiguous(),
-        albedo.clamp(0.0, 1.0).contiguous(),
-        normal.clamp(-1.0, 1.0).contiguous(),
-        hdr=True,
-        quality="high",
+    images = (primal, albedo, normal)
+    return oidn_native.denoise(
+        *(
+            t.contiguous() if isinstance(t, torch.Tensor) and t.stride(-1) != 1 else t
+            for t in images
+        )
     )
-    return torch.as_tensor(out, device=primal.device)
 
 
 def _oidn(buffers: GradientBuffers, *, alpha: float, **options: Any) -> torch.Tensor:
@@ -408,7 +423,7 @@ METHODS.register(
         _oidn,
         False,
         True,
-        "Intel Open Image Denoise (pyoidn; albedo + normal, HDR, quality high)",
+        "Intel Open Image Denoise (mitsuba-oidn; albedo + normal, HDR, quality high)",
         oidn_check,
     ),
 )
@@ -487,7 +502,7 @@ METHODS.register(
         lambda: (
             None
             if oidn_check() is None or _network_check("oidn-tuned") is None
-            else ("fuse needs a primal-only denoiser: oidn-tuned or pyoidn")
+            else ("fuse needs a primal-only denoiser: oidn-tuned or mitsuba-oidn")
         ),
         lambda **_: FUSE_PRIMAL_SPP_FACTOR,
         statistics=True,
