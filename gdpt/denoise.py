@@ -12,10 +12,10 @@ those. Registered:
   ``mitsuba-oidn``; ``gdpt/models/README.md``): ``oidn-grad`` reads the gradients (pooled primal,
   gated refinement), ``oidn-tuned`` is the same network fine-tuned on the same data without
   them (run by OIDN's own kernels, :func:`gdpt.oidn_native.reconstruct`, unless autograd
-  records an input). ``model=PATH`` (or ``$GDPT_OIDN_GRAD_MODEL`` for ``oidn-grad``) runs another trained
-  checkpoint instead, e.g. a dense U-Net (:mod:`gdpt.reconstruct.dense_unet_reconstructor`).
-  Their former names ``'ngpt'`` / ``'ngpt-nograd'`` (and ``$GDPT_NGPT_MODEL``) still work, with a
-  ``DeprecationWarning``.
+  records an input). ``model=PATH`` (or ``$GDPT_OIDN_GRAD_MODEL`` for ``oidn-grad``) runs
+  another trained checkpoint instead, e.g. a dense U-Net
+  (:mod:`gdpt.reconstruct.dense_unet_reconstructor`). Their former names ``'ngpt'`` /
+  ``'ngpt-nograd'`` (and ``$GDPT_NGPT_MODEL``) still work, with a ``DeprecationWarning``.
 * ``'kpcn'``: KPCN (Bako et al. 2017, :mod:`gdpt.reconstruct.kpcn`), shipped: per-pixel
   kernels over the path-traced primal, read with albedo, normal, depth and the primal's
   variance (no gradients; ``model=PATH`` runs another KPCN checkpoint).
