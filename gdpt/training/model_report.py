@@ -5,9 +5,9 @@
 * :func:`compare_models`: every held-out crop and input level of a dataset reconstructed by each
   network (16-channel networks read the G-PT input ``in<k>``, 10-channel ones the path-traced
   input ``pt<k>`` rendered with 2.5x the samples), by L1 screened Poisson on ``in<k>`` and, when
-  ``pyoidn`` is installed, by OIDN on ``pt<k>``; mean relMSE and LDR-FLIP per input level, with
-  the measured render times of both inputs from the dataset manifest (so the equal-time claim of
-  the 2.5x rule can be checked) and the measured reconstruction times.
+  ``mitsuba-oidn`` is installed, by OIDN on ``pt<k>``; mean relMSE and LDR-FLIP per input level,
+  with the measured render times of both inputs from the dataset manifest (so the equal-time
+  claim of the 2.5x rule can be checked) and the measured reconstruction times.
 * :func:`ship_model`: copy a run's final network into ``gdpt/models/<name>`` with a model card
   (data, steps, wall time, the comparison numbers).
 
