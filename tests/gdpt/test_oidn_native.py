@@ -262,7 +262,7 @@ def test_cuda_tensors_are_denoised_on_the_gpu_without_a_copy():
     reference = oidn_native.denoise(*cpu)
     assert _spread(image.cpu(), reference)[0] <= 1e-3  # GPU and CPU kernels differ slightly
     buffers = GradientBuffers(primal=cuda[0], albedo=cuda[1], normal=cuda[2], spp=4)
-    assert torch.equal(reconstruct_image(buffers, "oidn"), oidn_native.denoise(*cuda))
+    assert _spread(reconstruct_image(buffers, "oidn"), oidn_native.denoise(*cuda))[0] <= 1e-6
     tuned = load_reconstructor(model_path("oidn-tuned").resolve())
     native = oidn_native.reconstruct(tuned, buffers)
     assert native is not None and native.device == cuda[0].device
