@@ -57,15 +57,18 @@ def check() -> str | None:
 
 def check_weights(blob: bytes) -> None:
     """Refuse a weights blob that is not a network OIDN's ``RT`` filter can run on colour +
-    albedo + normal: every tensor of :data:`OIDN_WEIGHTS`, same names and shapes, nothing else.
+    albedo + normal: every tensor of :data:`OIDN_WEIGHTS`, same names and shapes, float16 (OIDN's
+    devices read no other weight type), nothing else.
 
     Raises:
         gdpt.reconstruct.tza.TZAError: the blob is not a TZA blob.
-        ValueError: a tensor is missing, extra or of another shape (named).
+        ValueError: a tensor is missing, extra, of another shape or not float16 (named).
     """
+    import numpy as np
+
     from gdpt.reconstruct.tza import builtin_weights, parse_tza
 
-    tensors = parse_tza(blob)
+    tensors = parse_tza(blob, stored_dtype=True)
     expected = {k: tuple(v.shape) for k, v in builtin_weights()[OIDN_WEIGHTS].tensors.items()}
     for name, shape in expected.items():
         if name not in tensors:
@@ -77,6 +80,9 @@ def check_weights(blob: bytes) -> None:
             )
     if extra := sorted(set(tensors) - set(expected)):
         raise ValueError(f"weights: tensor {extra[0]!r} is not in OIDN's {OIDN_WEIGHTS} network")
+    for name, value in tensors.items():
+        if value.dtype != np.float16:
+            raise ValueError(f"weights: tensor {name!r} is {value.dtype}; OIDN reads float16")
 
 
 def _validate(images: dict[str, torch.Tensor]) -> None:

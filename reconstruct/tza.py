@@ -196,21 +196,28 @@ def _float32(tensors: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {k: v.astype(np.float32) for k, v in tensors.items()}
 
 
-def parse_tza(data: bytes | bytearray | memoryview) -> dict[str, np.ndarray]:
+def parse_tza(
+    data: bytes | bytearray | memoryview, *, stored_dtype: bool = False
+) -> dict[str, np.ndarray]:
     """Parse one TZA blob (OIDN ``core/tza.cpp`` format, version 2.x).
 
     Args:
         data: the blob's bytes (trailing bytes after the table are allowed).
+        stored_dtype: keep each tensor's stored dtype (float16 or float32) instead of
+            converting to float32.
 
     Returns:
-        ``{name: array}``, float32 numpy arrays (copies; float16 tensors converted), conv weights
+        ``{name: array}``, numpy arrays (copies; float32, or as stored), conv weights
         ``(O, I, 3, 3)`` (``oihw``), biases ``(O,)`` (``x``).
 
     Raises:
         TZAError: malformed blob.
     """
     buf = memoryview(data).cast("B")
-    return _float32(_parse(buf, 0, len(buf))[0])
+    tensors = _parse(buf, 0, len(buf))[0]
+    if stored_dtype:
+        return {k: v.astype(v.dtype.newbyteorder("=")) for k, v in tensors.items()}
+    return _float32(tensors)
 
 
 def write_tza(tensors: dict[str, np.ndarray]) -> bytes:

@@ -177,11 +177,13 @@ def test_weights_that_do_not_fit_oidn_are_refused_before_filtering(random_buffer
     wider = dict(tensors, **{"enc_conv0.weight": tensors["enc_conv0.weight"].repeat(2, 1)})
     fewer = {k: v for k, v in tensors.items() if k != "dec_conv0.bias"}
     more = dict(tensors, **{"extra.bias": tensors["dec_conv0.bias"]})
+    single = dict(tensors, **{"enc_conv1.bias": tensors["enc_conv1.bias"].astype("float32")})
     monkeypatch.setattr(oidn_native, "_filter", lambda *a: pytest.fail("filtered"))
     for weights, match in (
         (wider, r"tensor 'enc_conv0.weight' has shape \(32, 18, 3, 3\), OIDN's rt_hdr_alb_nrm"),
         (fewer, r"tensor 'dec_conv0.bias' of OIDN's rt_hdr_alb_nrm is missing"),
         (more, r"tensor 'extra.bias' is not in OIDN's rt_hdr_alb_nrm network"),
+        (single, r"tensor 'enc_conv1.bias' is float32; OIDN reads float16"),
     ):
         with pytest.raises(ValueError, match=match):
             oidn_native.denoise(*inputs, weights=tza.write_tza(weights))

@@ -237,6 +237,9 @@ def test_tza_write_then_read_is_exact():
         assert back[name].dtype == np.float32 and back[name].shape == value.shape
         assert np.array_equal(back[name], value.astype(np.float32)), name
     assert struct.unpack_from("<HBBQ", blob)[:2] == (tza.TZA_MAGIC, 2)
+    stored = tza.parse_tza(blob, stored_dtype=True)
+    for name, value in tensors.items():
+        assert stored[name].dtype == value.dtype and np.array_equal(stored[name], value), name
     with pytest.raises(tza.TZAError, match="tensor 'x': 2-d float32 cannot be written"):
         tza.write_tza({"x": np.zeros((2, 2), np.float32)})
     with pytest.raises(tza.TZAError, match="tensor 'x': 1-d float64 cannot be written"):
