@@ -196,7 +196,7 @@ def denoise(
         raise RuntimeError(reason)
     images = {"color": color, "albedo": albedo, "normal": normal}
     _validate(images if output is None else {**images, "output": output})
-    images, nonfinite = _finite(images)
+    images, nonfinite = _finite({k: t.detach() for k, t in images.items()})
     if nonfinite:
         warnings.warn(
             f"oidn: {nonfinite} non-finite input values were replaced by 0",
@@ -205,16 +205,20 @@ def denoise(
         )
     height, width, _ = color.shape
     if output is None:
-        output = torch.empty_like(images["color"])
+        output = torch.empty((height, width, 3), dtype=torch.float32, device=color.device)
+    bound = (*images.items(), ("output", output))
     with _lock:
         if weights is not None and not any(w is weights for _, w in _filters.values()):
             check_weights(weights)
-        device = _device(color)
-        flt = _filter(device, height, width, weights)
-        for name, image in (*images.items(), ("output", output)):
-            flt.set_image(name, image)
-        flt.input_scale = input_scale
-        flt.execute()
+        flt = _filter(_device(color), height, width, weights)
+        try:
+            for name, image in bound:
+                flt.set_image(name, image)
+            flt.input_scale = input_scale
+            flt.execute()
+        finally:  # the cached filter must not keep the render's buffers alive
+            for name, _ in bound:
+                flt.unset_image(name)
     return output
 
 
