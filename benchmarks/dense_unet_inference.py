@@ -4,7 +4,8 @@ Measures, in one process and one run:
 
 * the fp32 3x3-convolution throughput of this machine (128 -> 128 channels, 256x512,
   channels-last, ``torch.inference_mode``) as the practical peak in GFLOP/s;
-* ``pyoidn.denoise(color, albedo=..., normal=..., hdr=True, quality="high")`` at the image size;
+* ``mitsuba_oidn.denoise(color, albedo, normal, hdr=True, quality=High)`` at the image size
+  (OIDN's CPU device, on Dr.Jit's thread pool: ``drjit.set_thread_count`` sets its threads);
 * :class:`gdpt.reconstruct.dense_unet_reconstructor.DenseUNetReconstructor` end to end
   (transforms, padding, network, ``exp(y) - 1``, crop) for each config with freshly initialised
   weights.
@@ -32,7 +33,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from gdpt.reconstruct.dense_unet import CONFIGS, build_model, parameter_count
@@ -86,13 +86,15 @@ def synthetic_buffers(height: int, width: int) -> dict[str, torch.Tensor]:
 
 
 def oidn_task(buffers: dict[str, torch.Tensor]) -> Callable[[], object]:
-    """``pyoidn.denoise`` (HDR, albedo + normal, quality high) on the synthetic buffers."""
-    import pyoidn
+    """``mitsuba_oidn.denoise`` (HDR, albedo + normal, quality high) on the synthetic buffers
+    (read in place)."""
+    import mitsuba_oidn
 
     color, albedo, normal = (
-        buffers[k].numpy().astype(np.float32) for k in ("primal", "albedo", "normal")
+        buffers[k].float().contiguous() for k in ("primal", "albedo", "normal")
     )
-    return lambda: pyoidn.denoise(color, albedo=albedo, normal=normal, hdr=True, quality="high")
+    high = mitsuba_oidn.Quality.High
+    return lambda: mitsuba_oidn.denoise(color, albedo, normal, hdr=True, quality=high)
 
 
 def _git_commit() -> str:
@@ -206,7 +208,7 @@ def main() -> None:
             f"| {100 * r['fraction_of_peak']:.0f} | {ratio} |"
         )
     if oidn is not None:
-        print(f"| OIDN 'high' (pyoidn) | - | - | - | {oidn:.2f} | - | - | 1.00 |")
+        print(f"| OIDN 'high' (mitsuba-oidn) | - | - | - | {oidn:.2f} | - | - | 1.00 |")
 
     if args.json:
         result = {

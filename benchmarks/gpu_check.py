@@ -9,9 +9,9 @@ loading, torch's first-call set-up), then ``--repeats`` times; medians are print
 waited for on the device.
 
 On CUDA it also prints the three ways to run ``oidn`` on CUDA buffers: OIDN's U-Net in torch on
-the GPU (``backend="torch"``, what ``oidn`` does there), pyoidn's own CUDA device
-(``backend="pyoidn"``), and a round trip through the CPU (buffers to the host, pyoidn on the
-CPU, image back), and the peak memory torch allocated. Usage::
+the GPU (``backend="torch"``), OIDN's own CUDA device through mitsuba-oidn on the CUDA tensors
+in place (``backend="native"``, what ``oidn`` does there), and a round trip through the CPU
+(buffers to the host, OIDN on the CPU, image back), and the peak memory torch allocated. Usage::
 
     .venv/bin/python benchmarks/gpu_check.py                      # 1280x720, 4 spp
     .venv/bin/python benchmarks/gpu_check.py --size 320x180 --spp 2 --json gpu.json
@@ -41,12 +41,12 @@ def oidn_on_cuda(size: tuple[int, int], spp: int, repeats: int) -> dict[str, flo
     scene_dict["sensor"]["film"]["width"], scene_dict["sensor"]["film"]["height"] = size
     buffers = gdpt.render(mi.load_dict(scene_dict), spp=spp, **METHODS["oidn"].sampling(spp))
     ways = {
-        "torch port on the GPU (oidn's choice)": lambda: gdpt.reconstruct_image(
-            buffers, "oidn", backend="torch"
+        "torch port on the GPU": lambda: gdpt.reconstruct_image(buffers, "oidn", backend="torch"),
+        "OIDN's CUDA device, in place (oidn's choice)": lambda: gdpt.reconstruct_image(
+            buffers, "oidn", backend="native"
         ),
-        "pyoidn's CUDA device": lambda: gdpt.reconstruct_image(buffers, "oidn", backend="pyoidn"),
-        "pyoidn on the CPU, round trip": lambda: gdpt.reconstruct_image(
-            buffers.to("cpu"), "oidn", backend="pyoidn"
+        "OIDN on the CPU, round trip": lambda: gdpt.reconstruct_image(
+            buffers.to("cpu"), "oidn", backend="native"
         ).to(buffers.device),
     }
     out: dict[str, float | str] = {}

@@ -4,7 +4,7 @@ Stages, with NFOR's default parameters (:class:`gdpt.reconstruct.nfor.NforConfig
 prefilter (one NL-means filter per feature group and half: 6 calls), one first-pass regression
 (one half, both bandwidths; the pass runs two), one error-smoothing NL-means (the pass runs
 four: two error maps, two selection maps), the second-pass regression, and the whole
-:func:`~gdpt.reconstruct.nfor.nfor` call; next to ``pyoidn.denoise`` (HDR, albedo + normal,
+:func:`~gdpt.reconstruct.nfor.nfor` call; next to ``mitsuba_oidn.denoise`` (HDR, albedo + normal,
 quality high) on the same buffers as the anchor, measured in the same run. Timings do not
 depend on the image content (fixed windows, no early exits), so synthetic buffers are used.
 Every task is run once untimed (``--no-warmup`` skips it: at 1280x720 the one-off allocations
@@ -17,7 +17,7 @@ public NFOR implementation at about two minutes per 1280x720 image on an Intel i
     .venv/bin/python benchmarks/nfor_stages.py                        # 128x128 and 1280x720
     .venv/bin/python benchmarks/nfor_stages.py --sizes 128x128 --repeats 3 --json out.json
     .venv/bin/python benchmarks/nfor_stages.py --sizes 1280x720 --repeats 1 --no-warmup \
-        --stages "nfor total" "pyoidn (anchor)"
+        --stages "nfor total" "oidn (anchor)"
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ def tasks(height: int, width: int) -> dict[str, Callable[[], object]]:
             a, feats, a, var, radius=cfg.radius, patch=cfg.patch, ks=(cfg.final_k,)
         ),
         "nfor total": lambda: nfor(a, b, var, groups, groups, cfg),
-        "pyoidn (anchor)": oidn_task(buffers),
+        "oidn (anchor)": oidn_task(buffers),
     }
 
 
@@ -73,8 +73,8 @@ def main() -> None:
     known = list(tasks(1, 1))
     if args.stages and (unknown := sorted(set(args.stages) - set(known))):
         parser.error(f"unknown --stages {unknown}; known: {known}")
-    if args.stages and "pyoidn (anchor)" not in args.stages:
-        parser.error("--stages must include 'pyoidn (anchor)': timings are reported against it")
+    if args.stages and "oidn (anchor)" not in args.stages:
+        parser.error("--stages must include 'oidn (anchor)': timings are reported against it")
     print(f"torch threads {torch.get_num_threads()}, load average {os.getloadavg()}")
     results = {}
     for size in args.sizes:
@@ -86,8 +86,8 @@ def main() -> None:
             if args.warmup:
                 fn()  # untimed: allocations, thread pools
             timings[stage] = statistics.median(_time(fn) for _ in range(args.repeats))
-        anchor = timings["pyoidn (anchor)"]
-        print(f"\n{size}: stage, seconds, x pyoidn")
+        anchor = timings["oidn (anchor)"]
+        print(f"\n{size}: stage, seconds, x oidn")
         for stage, seconds in timings.items():
             print(f"  {stage:28s} {seconds:9.3f} {seconds / anchor:9.1f}")
         results[size] = timings

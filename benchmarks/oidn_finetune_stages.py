@@ -6,7 +6,7 @@ Per design (``oidn-grad``, ``oidn-grad-l1``, ``oidn-nograd``) and size: input as
 solve is timed as its own stage), the U-Net, the output decoding, and the end-to-end
 ``OIDNReconstructor`` call (for gradient designs also with the shipped ``oidn-grad``'s gated Poisson
 refinement, :mod:`gdpt.reconstruct.refine`: its L1 solve and gate as stages); next to
-``pyoidn.denoise`` (HDR, albedo + normal, quality high) and the torch port of OIDN
+``mitsuba_oidn.denoise`` (HDR, albedo + normal, quality high) and the torch port of OIDN
 (:func:`gdpt.reconstruct.oidn_unet.denoise`). Timings do not depend on
 the weights' values, so Intel's weights with zero extra-channel weights are used. Every task is
 warmed up once, then timed in ``--repeats`` interleaved rounds; medians are reported, with the
@@ -80,7 +80,7 @@ def main() -> None:
     for size in args.sizes:
         w, h = (int(v) for v in size.split("x"))
         buffers = synthetic_buffers(h, w)
-        tasks: dict[str, Callable] = {"pyoidn": oidn_task(buffers)}
+        tasks: dict[str, Callable] = {"oidn": oidn_task(buffers)}
         b = buffers
         tasks["oidn (torch)"] = lambda b=b: torch.inference_mode()(torch_oidn)(
             b["primal"], b["albedo"], b["normal"]
@@ -94,9 +94,9 @@ def main() -> None:
         med = {k: statistics.median(r[k] for r in rounds) for k in tasks}
         results["sizes"][size] = med
         print(f"\n{size}, {torch.get_num_threads()} threads, median of {args.repeats} rounds\n")
-        print("| task | time [s] | / pyoidn |\n|---|---:|---:|")
+        print("| task | time [s] | / oidn |\n|---|---:|---:|")
         for k, v in med.items():
-            print(f"| {k} | {v:.4f} | {v / med['pyoidn']:.2f} |")
+            print(f"| {k} | {v:.4f} | {v / med['oidn']:.2f} |")
     results["load_after"] = os.getloadavg()
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -13,8 +13,8 @@ import warnings
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from gdpt import checkpoints
-from gdpt.reconstruct.oidn import oidn_denoise
+from gdpt import checkpoints, oidn_native
+from gdpt.oidn import oidn_denoise
 
 if TYPE_CHECKING:
     import torch
@@ -70,8 +70,8 @@ def network_method(
     Raises:
         MissingBuffersError: the buffers lack one the model's card lists (named, with the
             render option that makes it), before the model is loaded.
-        RuntimeError: the model builds on OIDN's weights and ``pyoidn`` (whose library holds
-            them) is not installed or its weights are not recognised.
+        RuntimeError: the model builds on OIDN's weights and ``mitsuba-oidn`` (whose library
+            holds them) is not installed or its weights are not recognised.
     """
     from gdpt.reconstruct.cards import read_card
 
@@ -95,11 +95,13 @@ def network_method(
             f"primal_spp={factor:g} x spp, or 'gdpt render --primal-spp')",
             stacklevel=3,
         )
-    return checkpoints.load_reconstructor(path)(buffers)
+    reconstructor = checkpoints.load_reconstructor(path)
+    image = oidn_native.reconstruct(reconstructor, buffers)  # OIDN's kernels where they apply
+    return reconstructor(buffers) if image is None else image
 
 
 def oidn_method(buffers: GradientBuffers, *, alpha: float, **options: Any) -> torch.Tensor:
-    """:func:`gdpt.reconstruct.oidn.oidn_denoise` of a render's primal, albedo and normal
+    """:func:`gdpt.oidn.oidn_denoise` of a render's primal, albedo and normal
     (``alpha`` does not apply; ``options``: ``backend``, ``weights``).
 
     Raises:

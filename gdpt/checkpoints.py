@@ -77,10 +77,10 @@ def oidn_weights_missing(name: str, path: Path) -> str | None:
 
     if not family_of(path).oidn_weights:
         return None
-    if importlib.util.find_spec("pyoidn") is None:
+    if importlib.util.find_spec("mitsuba_oidn") is None:
         return (
             f"method {name!r} fine-tunes Intel Open Image Denoise, whose weights are read from "
-            "the 'pyoidn' package at run time: pip install pyoidn"
+            "the 'mitsuba-oidn' package at run time: pip install mitsuba-oidn"
         )
     from gdpt.reconstruct.tza import OIDNWeightsError, builtin_weights
 

@@ -1,7 +1,7 @@
 """Deprecated module (removed in :data:`gdpt.deprecated.REMOVED_IN`): its names moved to
 :mod:`gdpt.methods` (``Method``, ``METHODS``, ``reconstruct_image``, ``register_checkpoint``),
 :mod:`gdpt.checkpoints` (``MODEL_DIR``, ``MODEL_ENV``, ``model_path``, ``load_reconstructor``),
-:mod:`gdpt.adapters` (``FUSE_PRIMAL_SPP_FACTOR``) and :mod:`gdpt.reconstruct.oidn`
+:mod:`gdpt.adapters` (``FUSE_PRIMAL_SPP_FACTOR``) and :mod:`gdpt.oidn`
 (``oidn_check``, ``oidn_denoise``); importing it warns. :func:`reconstruct` is the deprecated
 name of :func:`gdpt.reconstruct_image`.
 """
@@ -20,8 +20,8 @@ from gdpt.methods import (
     reconstruct_image,
     register_checkpoint,
 )
-from gdpt.reconstruct.oidn import OIDN_IMPLEMENTATIONS as OIDN_BACKENDS
-from gdpt.reconstruct.oidn import oidn_check, oidn_denoise
+from gdpt.oidn import OIDN_IMPLEMENTATIONS as OIDN_BACKENDS
+from gdpt.oidn import oidn_check, oidn_denoise
 
 if TYPE_CHECKING:
     import torch
@@ -46,7 +46,7 @@ __all__ = [
     "register_checkpoint",
 ]
 
-warn("gdpt.denoise", "import gdpt.methods, gdpt.checkpoints or gdpt.reconstruct.oidn")
+warn("gdpt.denoise", "import gdpt.methods, gdpt.checkpoints or gdpt.oidn")
 
 
 def reconstruct(

@@ -5,8 +5,10 @@
   aliases of :data:`gdpt.methods.METHODS`);
 * the environment variable ``GDPT_NGPT_MODEL`` (:data:`MODEL_ENV_DEPRECATED`, read by
   :func:`gdpt.checkpoints.model_path`);
+* the ``oidn`` method's ``backend="pyoidn"``, now ``"native"``
+  (:data:`OIDN_IMPLEMENTATION_ALIASES`, read by :func:`gdpt.oidn.oidn_denoise`);
 * the module ``gdpt.denoise`` (re-exports of :mod:`gdpt.methods`, :mod:`gdpt.checkpoints`,
-  :mod:`gdpt.adapters` and :mod:`gdpt.reconstruct.oidn`) and its function
+  :mod:`gdpt.adapters` and :mod:`gdpt.oidn`) and its function
   ``gdpt.denoise.reconstruct``, the former name of :func:`gdpt.reconstruct_image`; they stay in
   ``gdpt/denoise.py``, which imports :mod:`gdpt.methods` (this module is imported by it).
 
@@ -26,6 +28,9 @@ METHOD_ALIASES = {"ngpt": "oidn-grad", "ngpt-nograd": "oidn-tuned"}
 #: Deprecated name of the environment variable ``GDPT_OIDN_GRAD_MODEL``
 #: (:data:`gdpt.checkpoints.MODEL_ENV`).
 MODEL_ENV_DEPRECATED = "GDPT_NGPT_MODEL"
+
+#: Deprecated implementation name of the ``oidn`` method (``backend=``) -> its current name.
+OIDN_IMPLEMENTATION_ALIASES = {"pyoidn": "native"}
 
 
 def warn(old: str, instead: str, *, stacklevel: int = 3) -> None:

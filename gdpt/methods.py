@@ -12,7 +12,7 @@ Registered:
   another checkpoint (:mod:`gdpt.checkpoints`).
 * ``'kpcn'``: KPCN (Bako et al. 2017, :mod:`gdpt.reconstruct.kpcn`), shipped.
 * ``'nfor'``: NFOR (Bitterli et al. 2016, :mod:`gdpt.reconstruct.nfor`).
-* ``'oidn'``: Intel Open Image Denoise (:func:`gdpt.reconstruct.oidn.oidn_denoise`).
+* ``'oidn'``: Intel Open Image Denoise (:func:`gdpt.oidn.oidn_denoise`).
 * ``'fuse'``: a primal-only denoise fused with the gradients (:mod:`gdpt.reconstruct.fuse`).
 
 Deprecated names (``'ngpt'``, ``'ngpt-nograd'``) resolve with a ``DeprecationWarning``
@@ -42,7 +42,7 @@ from gdpt.adapters import (
 from gdpt.checkpoints import network_check, oidn_weights_missing, primal_spp_factor
 from gdpt.deprecated import METHOD_ALIASES
 from gdpt.io.mitsuba_aov import SOURCE as MITSUBA_AOV_SOURCE
-from gdpt.reconstruct.oidn import oidn_check
+from gdpt.oidn import oidn_check
 from gdpt.reconstruct.registry import Registry
 
 if TYPE_CHECKING:
@@ -274,7 +274,7 @@ METHODS.register(
         oidn_method,
         False,
         True,
-        "Intel Open Image Denoise (pyoidn; albedo + normal, HDR, quality high)",
+        "Intel Open Image Denoise (mitsuba-oidn; albedo + normal, HDR, quality high)",
         oidn_check,
     ),
 )
@@ -289,7 +289,7 @@ METHODS.register(
         lambda: (
             None
             if oidn_check() is None or network_check("oidn-tuned") is None
-            else ("fuse needs a primal-only denoiser: oidn-tuned or pyoidn")
+            else ("fuse needs a primal-only denoiser: oidn-tuned or mitsuba-oidn")
         ),
         lambda **_: FUSE_PRIMAL_SPP_FACTOR,
         statistics=True,

@@ -70,7 +70,7 @@ class Family:
         reconstructor: ``path -> f``, ``f(buffers) -> (H, W, 3)`` float32 radiance on the
             buffers' device, with ``f.features`` (buffer names read) and ``f.card``.
         card_keys: card keys that :attr:`encode` writes itself.
-        oidn_weights: its networks add to Intel's OIDN weights, read from ``pyoidn`` at load
+        oidn_weights: its networks add to Intel's OIDN weights, read from ``mitsuba-oidn`` at load
             time.
         base: ``(card_path, card) -> path`` of the checkpoint its network builds on, named by
             the card's ``"base_model"`` (a file stem next to the card), or ``None``.

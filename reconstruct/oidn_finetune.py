@@ -25,7 +25,7 @@ primal of nearly the path tracer's sample count and gradients besides. The facto
 :func:`assemble` builds the network input, :func:`predict` runs it and maps the output back
 to radiance (OIDN's output stage); both run on the device of the buffers.
 
-Checkpoint (delta) format: Intel's weights are read at run time from pyoidn's library (or a
+Checkpoint (delta) format: Intel's weights are read at run time from mitsuba-oidn's library (or a
 ``.tza`` given by the user) and never stored; a fine-tuned model is two files::
 
     model.safetensors   per tensor: fine-tuned minus OIDN (the extra channels' OIDN weights
@@ -308,7 +308,7 @@ def load_model(
 
     Args:
         path: the ``.safetensors`` or ``.json`` path.
-        weights: OIDN's base weights (default: the card's ``base_weights`` from pyoidn's
+        weights: OIDN's base weights (default: the card's ``base_weights`` from mitsuba-oidn's
             library; or a ``.tza`` path / state dict).
 
     Returns:
@@ -360,6 +360,11 @@ class OIDNReconstructor:
         self._net = net.eval()
         self._per_device: dict[torch.device, OIDNUNet] = {}
 
+    @property
+    def net(self) -> OIDNUNet:
+        """The network as given (eval mode; the per-device copies are made from it)."""
+        return self._net
+
     @classmethod
     def from_checkpoint(cls, path: str | Path) -> OIDNReconstructor:
         """Load with :func:`load_model`."""
@@ -370,9 +375,10 @@ class OIDNReconstructor:
         if device not in self._per_device:
             import copy  # noqa: PLC0415
 
-            net = copy.deepcopy(self._net).to(device).requires_grad_(False)
-            # channels-last: about 1.6x faster convolutions on CPU (oneDNN), same results
-            self._per_device[device] = net.to(memory_format=torch.channels_last)
+            with torch.inference_mode(False):  # usable later with autograd too
+                net = copy.deepcopy(self._net).to(device).requires_grad_(False)
+                # channels-last: about 1.6x faster convolutions on CPU (oneDNN), same results
+                self._per_device[device] = net.to(memory_format=torch.channels_last)
         return self._per_device[device]
 
     def __call__(self, buffers: Mapping[str, torch.Tensor] | Any) -> torch.Tensor:

@@ -7,7 +7,7 @@ quality), ``core/rt_filter.cpp`` (weights per input combination, transfer functi
 ``core/color.h``/``.cpp`` (PU and sRGB transfer functions), ``devices/cpu/cpu_autoexposure.cpp``,
 ``devices/cpu/cpu_input_process.isph`` and ``cpu_output_process.isph``. This is a
 re-implementation from reading that code; the weights are read at run time from the
-OpenImageDenoise library that ``pyoidn`` installs (or a user's ``.tza``, see
+OpenImageDenoise library that ``mitsuba-oidn`` installs (or a user's ``.tza``, see
 :mod:`reconstruct.tza`) and never stored here.
 
 Network (``OIDNUNet``; 3x3 convs with zero padding, ReLU after every conv but the last, 2x2 max
@@ -181,7 +181,8 @@ class OIDNUNet(nn.Module):
             weights: built-in blob name (e.g. ``"rt_hdr_alb_nrm"``), ``.tza`` path or a state
                 dict (see :func:`reconstruct.tza.load_weights`).
             extra_channels: extra zero-weight input channels.
-            library: OpenImageDenoise library holding built-in weights (default: pyoidn's).
+            library: OpenImageDenoise library holding built-in weights (default:
+                mitsuba-oidn's).
             device: where to put the module (default CPU).
 
         Returns:
@@ -512,14 +513,15 @@ def denoise(
     input_scale: float | None = None,
     extra: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Denoise like ``pyoidn.denoise(color, albedo, normal, hdr=hdr, quality=quality)``.
+    """Denoise like OIDN's ``RT`` filter (``mitsuba_oidn.denoise(color, albedo, normal,
+    hdr=hdr, quality=quality)``).
 
     Args:
         color: ``(H, W, 3)`` float32 linear colour, any device (the computation runs there).
         albedo: ``(H, W, 3)`` albedo in [0, 1], or ``None``.
         normal: ``(H, W, 3)`` normals in [-1, 1], or ``None`` (requires ``albedo``).
         weights: ``None`` (OIDN's choice for the given inputs, ``hdr``, ``clean_aux`` and
-            ``quality`` from pyoidn's library), a built-in blob name, a ``.tza`` path, a state
+            ``quality`` from mitsuba-oidn's library), a built-in blob name, a ``.tza`` path, a state
             dict, or an :class:`OIDNUNet` (e.g. one with extra channels, being fine-tuned).
         hdr, quality, clean_aux: as in OIDN's RT filter.
         input_scale: OIDN's ``inputScale`` (``None``: autoexposure for HDR).

@@ -1,4 +1,5 @@
-"""Reader for Intel Open Image Denoise's TZA weight container, and the built-in OIDN weights.
+"""Reader and writer of Intel Open Image Denoise's TZA weight container, and the built-in OIDN
+weights.
 
 OIDN (https://github.com/RenderKit/oidn, Apache-2.0) stores the weights of its U-Nets in
 *Tensor Archive* (TZA) blobs. The format, as written by ``training/tza.py`` and parsed by
@@ -12,17 +13,20 @@ OIDN (https://github.com/RenderKit/oidn, Apache-2.0) stores the weights of its U
         | dtype: 1 char ("f" float32, "h" float16) | uint64 data_offset
 
 Names are PyTorch state-dict keys (``enc_conv0.weight``, ``enc_conv0.bias``, ...).
+:func:`write_tza` writes this format (tensors in the given order, float32 or float16), which
+OIDN's filters accept as user weights (``Filter.set_data("weights", blob)``).
 
-The ``pyoidn`` wheel ships ``libOpenImageDenoise_core``, into which OIDN's build embeds every
-built-in weight file verbatim as a byte array ``oidn::blobs::weights::<name>`` (e.g.
-``rt_hdr_alb_nrm``). :func:`builtin_weights` finds them without running OIDN:
+The ``mitsuba-oidn`` wheel ships ``libmitsuba_oidn_core``, OIDN's core library, into which
+OIDN's build embeds every built-in weight file verbatim as a byte array
+``oidn::blobs::weights::<name>`` (e.g. ``rt_hdr_alb_nrm``). :func:`builtin_weights` finds them
+without running OIDN:
 
 1. it scans the library for the TZA header (magic + version 2.x) and keeps the candidates whose
    tables parse, are in bounds and name the layers of one of OIDN's U-Nets;
 2. it names them from the library's ELF dynamic symbol table (the blobs are exported symbols;
    a symbol's address and size locate its blob exactly);
 3. without usable symbols (a stripped or non-ELF build) it falls back to the order in which
-   OIDN 2.x's build links the blobs (:data:`BUILTIN_ORDER`, checked on pyoidn 2.5.1) and accepts
+   OIDN 2.x's build links the blobs (:data:`BUILTIN_ORDER`, checked on OIDN 2.5.1) and accepts
    it only if every blob's structure (U-Net size, input channels) matches its name.
 
 Every named blob is checked against its name (input channels: 9 for ``*_alb_nrm`` /
@@ -54,12 +58,16 @@ __all__ = [
     "load_weights",
     "parse_tza",
     "read_tza",
+    "OIDN_PACKAGE",
     "unet_kind",
+    "write_tza",
 ]
 
 TZA_MAGIC = 0x41D7
 _HEADER = b"\xd7\x41\x02"  # magic (little-endian uint16) + major version 2
 _DTYPES = {"f": np.dtype("<f4"), "h": np.dtype("<f2")}
+_DTYPE_CHARS = {np.dtype("float32"): "f", np.dtype("float16"): "h"}
+_ALIGNMENT = 64
 _LAYOUTS = {1: "x", 4: "oihw"}
 
 _HINT = (
@@ -106,7 +114,7 @@ class OIDNWeightsError(RuntimeError):
 class WeightBlob:
     """One built-in weight blob: ``name`` (e.g. ``rt_hdr_alb_nrm``), byte ``offset`` and
     ``size`` in ``library``, and its ``tensors`` (name -> read-only numpy view of the library's
-    bytes, in the stored dtype: float16 in pyoidn 2.5.1; :func:`load_weights` gives float32)."""
+    bytes, in the stored dtype: float16 in OIDN 2.5.1; :func:`load_weights` gives float32)."""
 
     name: str
     library: Path
@@ -188,21 +196,68 @@ def _float32(tensors: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {k: v.astype(np.float32) for k, v in tensors.items()}
 
 
-def parse_tza(data: bytes | bytearray | memoryview) -> dict[str, np.ndarray]:
+def parse_tza(
+    data: bytes | bytearray | memoryview, *, stored_dtype: bool = False
+) -> dict[str, np.ndarray]:
     """Parse one TZA blob (OIDN ``core/tza.cpp`` format, version 2.x).
 
     Args:
         data: the blob's bytes (trailing bytes after the table are allowed).
+        stored_dtype: keep each tensor's stored dtype (float16 or float32) instead of
+            converting to float32.
 
     Returns:
-        ``{name: array}``, float32 numpy arrays (copies; float16 tensors converted), conv weights
+        ``{name: array}``, numpy arrays (copies; float32, or as stored), conv weights
         ``(O, I, 3, 3)`` (``oihw``), biases ``(O,)`` (``x``).
 
     Raises:
         TZAError: malformed blob.
     """
     buf = memoryview(data).cast("B")
-    return _float32(_parse(buf, 0, len(buf))[0])
+    tensors = _parse(buf, 0, len(buf))[0]
+    if stored_dtype:
+        return {k: v.astype(v.dtype.newbyteorder("=")) for k, v in tensors.items()}
+    return _float32(tensors)
+
+
+def write_tza(tensors: dict[str, np.ndarray]) -> bytes:
+    """One TZA blob (version 2.0) holding ``tensors``, readable by :func:`parse_tza` and by OIDN.
+
+    Args:
+        tensors: name -> float32 or float16 array, 4-d (written as ``oihw``) or 1-d (``x``),
+            in the order the table lists them; other arrays are converted with ``np.asarray``.
+
+    Returns:
+        The blob: header, each tensor's data and the table 64-byte aligned (zero padding), as
+        OIDN's ``training/tza.py`` lays it out.
+        Float32 and float16 tensors are stored as they are, so :func:`parse_tza` of the blob
+        returns them exactly.
+
+    Raises:
+        TZAError: a tensor of another rank or dtype, or an empty ``tensors``.
+    """
+    if not tensors:
+        raise TZAError("a TZA blob needs at least one tensor")
+    data = bytearray(struct.pack("<HBBQ", TZA_MAGIC, 2, 0, 0))
+    table = bytearray(struct.pack("<I", len(tensors)))
+    for name, value in tensors.items():
+        array = np.ascontiguousarray(_to_numpy(value))
+        if array.ndim not in _LAYOUTS or array.dtype not in _DTYPE_CHARS:
+            raise TZAError(
+                f"tensor {name!r}: {array.ndim}-d {array.dtype} cannot be written "
+                "(4-d oihw or 1-d, float32 or float16)"
+            )
+        data += bytes(-len(data) % _ALIGNMENT)
+        offset = len(data)
+        data += array.astype(array.dtype.newbyteorder("<"), copy=False).tobytes()
+        encoded = name.encode("utf-8")
+        table += struct.pack("<H", len(encoded)) + encoded
+        table += struct.pack(f"<B{array.ndim}I", array.ndim, *array.shape)
+        table += (_LAYOUTS[array.ndim] + _DTYPE_CHARS[array.dtype]).encode("ascii")
+        table += struct.pack("<Q", offset)
+    data += bytes(-len(data) % _ALIGNMENT)
+    struct.pack_into("<Q", data, 4, len(data))
+    return bytes(data + table)
 
 
 def read_tza(path: str | Path) -> dict[str, np.ndarray]:
@@ -247,27 +302,31 @@ def unet_kind(tensors: dict[str, np.ndarray]) -> tuple[str, int]:
 
 
 # ----------------------------------------------------------------------------------------------
-# Built-in weights in the OpenImageDenoise library installed by pyoidn
+# Built-in weights in the OpenImageDenoise library installed by mitsuba-oidn
 # ----------------------------------------------------------------------------------------------
+
+#: The package whose OpenImageDenoise core library holds OIDN's built-in weights.
+OIDN_PACKAGE = "mitsuba_oidn"
 
 
 def find_oidn_library() -> Path:
-    """Path of the OpenImageDenoise library (the ``_core`` part, which holds the weights) that
-    the ``pyoidn`` wheel installs; found with ``importlib.util.find_spec`` (no import).
+    """Path of the OpenImageDenoise core library (which holds the weights) that the
+    ``mitsuba-oidn`` wheel installs (``libmitsuba_oidn_core``); found with
+    ``importlib.util.find_spec`` (no import).
 
     Raises:
-        OIDNWeightsError: ``pyoidn`` is not installed or holds no OpenImageDenoise library.
+        OIDNWeightsError: ``mitsuba-oidn`` is not installed or holds no such library.
     """
-    spec = importlib.util.find_spec("pyoidn")
+    spec = importlib.util.find_spec(OIDN_PACKAGE)
     if spec is None or not spec.submodule_search_locations:
         raise OIDNWeightsError(
-            f"OIDN's built-in weights are read from the pyoidn package, which is not installed "
-            f"(pip install pyoidn), or {_HINT}"
+            "OIDN's built-in weights are read from the mitsuba-oidn package, which is not "
+            f"installed (pip install mitsuba-oidn), or {_HINT}"
         )
     roots = [Path(p) for p in spec.submodule_search_locations]
     found: list[Path] = []
     for root in roots:
-        for pattern in ("*OpenImageDenoise_core*", "*OpenImageDenoise*"):
+        for pattern in ("*oidn_core*", "*OpenImageDenoise_core*"):
             found += sorted(
                 p
                 for p in root.rglob(pattern)
@@ -279,7 +338,8 @@ def find_oidn_library() -> Path:
             break
     if not found:
         raise OIDNWeightsError(
-            f"no OpenImageDenoise library found in the pyoidn package ({roots[0]}); {_HINT}"
+            f"no OpenImageDenoise core library found in the mitsuba-oidn package ({roots[0]}); "
+            f"{_HINT}"
         )
     return max(found, key=lambda p: p.stat().st_size)  # versioned copies are identical
 
@@ -354,7 +414,7 @@ def builtin_weights(
     """All built-in weight blobs of an OpenImageDenoise library, by OIDN's name.
 
     Args:
-        library: the library file; default :func:`find_oidn_library` (the one pyoidn installs).
+        library: the library file; default :func:`find_oidn_library` (mitsuba-oidn's).
         use_symbols: name the blobs from the ELF symbol table (``False`` forces the
             :data:`BUILTIN_ORDER` fallback; for tests).
 
@@ -417,7 +477,7 @@ def load_weights(
             ``"rt_ldr"``, ... see :data:`BUILTIN_ORDER`), a path to a ``.tza`` file (any string
             ending in ``.tza`` or containing a path separator is taken as a path), or a state dict
             (returned as float32 arrays).
-        library: OpenImageDenoise library to read built-in blobs from (default: pyoidn's).
+        library: OpenImageDenoise library to read built-in blobs from (default: mitsuba-oidn's).
 
     Raises:
         FileNotFoundError: a ``.tza`` path that does not exist.

@@ -10,7 +10,7 @@ Registered methods:
 
 * ``pt``: path tracing, primal only (``gdpt`` with ``gradients=False, features=False``).
 * ``pt+oidn``: path tracing + Intel Open Image Denoise (:data:`gdpt.methods.METHODS`
-  ``oidn``: ``pyoidn`` on the CPU, OIDN's U-Net in torch on CUDA; albedo + normal, HDR, quality
+  ``oidn``: OIDN through ``mitsuba-oidn`` on the render's device; albedo + normal, HDR, quality
   ``high``).
 * ``gdpt+l2`` / ``gdpt+l1`` / ``gdpt+l1-fast``: gradient-domain path tracing + screened
   Poisson (L2; L1 with the reference IRLS schedule; L1 with the accelerated preset).

@@ -70,7 +70,7 @@ def machine_info() -> dict[str, Any]:
 def versions() -> dict[str, str | None]:
     """Versions of gdpt and the packages that influence the numbers."""
     out: dict[str, str | None] = {}
-    for dist in ("gdpt", "mitsuba", "drjit", "torch", "numpy", "pyoidn", "flip-evaluator"):
+    for dist in ("gdpt", "mitsuba", "drjit", "torch", "numpy", "mitsuba-oidn", "flip-evaluator"):
         try:
             out[dist] = importlib_metadata.version(dist)
         except importlib_metadata.PackageNotFoundError:

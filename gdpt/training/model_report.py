@@ -5,9 +5,9 @@
 * :func:`compare_models`: every held-out crop and input level of a dataset reconstructed by each
   network (16-channel networks read the G-PT input ``in<k>``, 10-channel ones the path-traced
   input ``pt<k>`` rendered with 2.5x the samples), by L1 screened Poisson on ``in<k>`` and, when
-  ``pyoidn`` is installed, by OIDN on ``pt<k>``; mean relMSE and LDR-FLIP per input level, with
-  the measured render times of both inputs from the dataset manifest (so the equal-time claim of
-  the 2.5x rule can be checked) and the measured reconstruction times.
+  ``mitsuba-oidn`` is installed, by OIDN on ``pt<k>``; mean relMSE and LDR-FLIP per input level,
+  with the measured render times of both inputs from the dataset manifest (so the equal-time
+  claim of the 2.5x rule can be checked) and the measured reconstruction times.
 * :func:`ship_model`: copy a run's final network into ``gdpt/models/<name>`` with a model card
   (data, steps, wall time, the comparison numbers).
 * :func:`write_report`: all of these into a report folder (``gdpt model-report --data DIR --run
@@ -36,7 +36,7 @@ MAX_SHIPPED_MIB = 20
 #: Scene selection of the held-out set: the same rule as ``gdpt train --holdout-every``.
 HOLDOUT_EVERY = 10
 #: Labels of the baselines :func:`compare_models` scores beside the networks (``pt+oidn`` when
-#: ``pyoidn`` is installed).
+#: ``mitsuba-oidn`` is installed).
 BASELINES = ("gdpt+l1", "pt+oidn", "pt")
 
 
@@ -153,7 +153,7 @@ def compare_models(
 
     from gdpt.checkpoints import load_reconstructor
     from gdpt.metrics import flip_ldr, relmse
-    from gdpt.reconstruct.oidn import oidn_check, oidn_denoise
+    from gdpt.oidn import oidn_check, oidn_denoise
     from gdpt.reconstruct.poisson import solve as poisson
 
     held = lambda s: s % holdout_every == holdout_every - 1  # noqa: E731

@@ -6,9 +6,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from gdpt.reconstruct import oidn
-
-from gdpt import checkpoints, deprecated, methods
+from gdpt import checkpoints, deprecated, methods, oidn
 
 
 def test_importing_gdpt_denoise_warns_with_its_removal_release():

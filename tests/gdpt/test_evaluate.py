@@ -165,7 +165,7 @@ def test_bad_input_is_reported_and_resume_skips_done_cells(variant, tmp_path, mo
     broken = tmp_path / "broken" / "scene.xml"
     broken.parent.mkdir()
     broken.write_text(GAUSSIAN_XML.format(bsdf="no_such_bsdf"))
-    monkeypatch.setitem(sys.modules, "pyoidn", None)  # "not installed"
+    monkeypatch.setitem(sys.modules, "mitsuba_oidn", None)  # "not installed"
     monkeypatch.delitem(METHODS, "oidn-grad", raising=False)
     scenes = ["builtin:cbox-demo", str(tmp_path / "missing.xml"), str(broken.parent)]
     cfg = _tiny_cfg(methods=("pt", "pt+oidn", "gdpt+oidn-grad"), keep_going=True)
@@ -177,7 +177,9 @@ def test_bad_input_is_reported_and_resume_skips_done_cells(variant, tmp_path, mo
     assert results["scenes"]["broken"]["status"] == "failed"
     assert "no_such_bsdf" in results["scenes"]["broken"]["error"]
     methods = results["scenes"]["cbox-demo"]["methods"]
-    assert methods["pt+oidn"]["status"] == "skipped" and "pyoidn" in methods["pt+oidn"]["note"]
+    assert (
+        methods["pt+oidn"]["status"] == "skipped" and "mitsuba-oidn" in methods["pt+oidn"]["note"]
+    )
     skipped = methods["gdpt+oidn-grad"]
     assert skipped["status"] == "skipped" and "oidn-grad" in skipped["note"]
     assert not results["methods"]["pt+oidn"]["available"]

@@ -15,13 +15,6 @@ import gdpt
 from gdpt.io import mitsuba_aov
 from gdpt.io.exr import describe_exr, load_buffers, load_image, save_buffers, save_image
 
-try:
-    import pyoidn
-except ImportError:
-    pyoidn = None
-
-needs_pyoidn = pytest.mark.skipif(pyoidn is None, reason="pyoidn is not installed")
-
 #: Mitsuba's documentation example of the aov integrator, with an albedo.
 AOVS = "dd.y:depth,nn:sh_normal,albedo:albedo"
 
@@ -78,7 +71,6 @@ def test_mitsuba_aov_exr_reads_as_buffers(mitsuba_aov_exr):
     assert buffers.depth.max() > 0 and (buffers.normal.norm(dim=-1).max() - 1).abs() < 1e-3
 
 
-@needs_pyoidn
 @pytest.mark.parametrize("method", ["oidn", "oidn-tuned"])
 def test_mitsuba_aov_exr_is_denoised(mitsuba_aov_exr, method):
     buffers = load_buffers(mitsuba_aov_exr[0])
@@ -87,7 +79,6 @@ def test_mitsuba_aov_exr_is_denoised(mitsuba_aov_exr, method):
     assert not torch.equal(image, buffers.primal)
 
 
-@needs_pyoidn
 def test_gdpt_reconstruct_denoises_an_aov_exr(mitsuba_aov_exr, tmp_path):
     out = tmp_path / "denoised.exr"
     command = ["reconstruct", str(mitsuba_aov_exr[0]), "--method", "oidn-tuned", "-o", str(out)]

@@ -20,7 +20,7 @@ from gdpt.scenes import builtin_scene
 from gdpt.training.model_report import MAX_SHIPPED_MIB
 
 SHIPPED = {"oidn-grad": True, "oidn-tuned": False, "kpcn": False}  # name -> reads gradients
-#: The shipped networks that build on Intel's OIDN weights (read from pyoidn).
+#: The shipped networks that build on Intel's OIDN weights (read from mitsuba-oidn).
 ON_OIDN = ("oidn-grad", "oidn-tuned")
 
 
@@ -109,16 +109,16 @@ def test_shipped_gradient_model_names_a_missing_buffer(cbox, monkeypatch):
 
 
 @pytest.mark.parametrize("name", ON_OIDN)
-def test_missing_pyoidn_is_named_with_the_method(name, cbox, monkeypatch):
+def test_missing_mitsuba_oidn_is_named_with_the_method(name, cbox, monkeypatch):
     import importlib.util
 
     monkeypatch.delenv("GDPT_OIDN_GRAD_MODEL", raising=False)
     find_spec = importlib.util.find_spec
     monkeypatch.setattr(
-        importlib.util, "find_spec", lambda n, *a: None if n == "pyoidn" else find_spec(n, *a)
+        importlib.util, "find_spec", lambda n, *a: None if n == "mitsuba_oidn" else find_spec(n, *a)
     )
     reason = METHODS[name].check()
-    assert reason is not None and "pyoidn" in reason and repr(name) in reason
+    assert reason is not None and "mitsuba-oidn" in reason and repr(name) in reason
     buffers = gdpt.render(cbox[0], spp=2, seed=1, gradients=SHIPPED[name])
-    with pytest.raises(RuntimeError, match="pyoidn"):
+    with pytest.raises(RuntimeError, match="mitsuba-oidn"):
         reconstruct_image(buffers, method=name)

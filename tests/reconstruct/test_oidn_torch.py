@@ -1,7 +1,8 @@
-"""OIDN's U-Net in torch (:mod:`gdpt.reconstruct.oidn_unet`) against ``pyoidn``, and the TZA reader.
+"""OIDN's U-Net in torch (:mod:`gdpt.reconstruct.oidn_unet`) against OIDN (``mitsuba-oidn``), and
+the TZA reader and writer.
 
 Agreement metric (stated once, used everywhere): for the torch output ``a`` and
-``b = pyoidn.denoise(color, albedo, normal, hdr=True, quality="high")`` (the call gdpt's
+``b = mitsuba_oidn.denoise(color, albedo, normal, hdr=True, quality=High)`` (the call gdpt's
 ``pt+oidn`` makes), ``err = max |a - b| / max |b|`` over all pixels and channels; also the
 per-pixel ``max |a - b| / (|b| + 1e-3 max |b|)``. Both must be <= 1e-4.
 
@@ -13,8 +14,8 @@ from __future__ import annotations
 
 import struct
 
+import mitsuba_oidn  # the reference and Intel's weights
 import numpy as np
-import pyoidn  # a test dependency: the reference and Intel's weights
 import pytest
 import torch
 from gdpt.reconstruct import oidn_unet, tza
@@ -40,12 +41,13 @@ def _errors(a: torch.Tensor, b: torch.Tensor) -> tuple[float, float]:
 
 
 def _reference(color, albedo=None, normal=None) -> torch.Tensor:
-    return torch.as_tensor(pyoidn.denoise(color, albedo, normal, hdr=True, quality="high"))
+    high = mitsuba_oidn.Quality.High
+    return mitsuba_oidn.denoise(color, albedo, normal, hdr=True, quality=high)
 
 
 @pytest.mark.parametrize("size", [(37, 53), (64, 48)])
 @pytest.mark.parametrize("features", ["albedo+normal", "colour only"])
-def test_matches_pyoidn(size, features):
+def test_matches_oidn(size, features):
     color, albedo, normal = _buffers(*size)
     aux = (albedo, normal) if features == "albedo+normal" else (None, None)
     with torch.no_grad():
@@ -193,7 +195,7 @@ def test_tza_roundtrip_and_corruption(tmp_path):
         tza.load_weights(tmp_path / "wrong.tza")
 
 
-def test_unrecognised_library_and_missing_pyoidn(tmp_path, monkeypatch):
+def test_unrecognised_library_and_missing_mitsuba_oidn(tmp_path, monkeypatch):
     # a "library" whose only TZA blob names the wrong layers, and one with a corrupted table
     wrong = _write_tza({"foo.weight": np.zeros((2, 2, 3, 3), np.float32)})
     corrupt = bytearray(_write_tza(_small_state()))
@@ -204,7 +206,7 @@ def test_unrecognised_library_and_missing_pyoidn(tmp_path, monkeypatch):
         with pytest.raises(tza.OIDNWeightsError, match=r"not recognised.*\.tza"):
             tza.builtin_weights(lib)
     monkeypatch.setattr(tza.importlib.util, "find_spec", lambda name: None)
-    with pytest.raises(tza.OIDNWeightsError, match=r"pyoidn.*\.tza"):
+    with pytest.raises(tza.OIDNWeightsError, match=r"mitsuba-oidn.*\.tza"):
         tza.load_weights("rt_hdr_alb_nrm")
 
 
@@ -218,3 +220,34 @@ def test_builtin_blobs_identified():
         assert {k: b.offset for k, b in by_order.items()} == {
             k: b.offset for k, b in by_symbol.items()
         }
+
+
+def test_tza_write_then_read_is_exact():
+    gen = np.random.default_rng(3)
+    tensors = {
+        "enc_conv0.weight": gen.standard_normal((4, 9, 3, 3)).astype(np.float32),
+        "enc_conv0.bias": gen.standard_normal(4).astype(np.float32),
+        "dec_conv0.weight": gen.standard_normal((3, 4, 3, 3)).astype(np.float16),
+        "dec_conv0.bias": np.array([np.inf, -0.0, 6.5e4], np.float16),
+    }
+    blob = tza.write_tza(tensors)
+    back = tza.parse_tza(blob)
+    assert list(back) == list(tensors)
+    for name, value in tensors.items():
+        assert back[name].dtype == np.float32 and back[name].shape == value.shape
+        assert np.array_equal(back[name], value.astype(np.float32)), name
+    assert struct.unpack_from("<HBBQ", blob)[:2] == (tza.TZA_MAGIC, 2)
+    stored = tza.parse_tza(blob, stored_dtype=True)
+    for name, value in tensors.items():
+        assert stored[name].dtype == value.dtype and np.array_equal(stored[name], value), name
+    with pytest.raises(tza.TZAError, match="tensor 'x': 2-d float32 cannot be written"):
+        tza.write_tza({"x": np.zeros((2, 2), np.float32)})
+    with pytest.raises(tza.TZAError, match="tensor 'x': 1-d float64 cannot be written"):
+        tza.write_tza({"x": np.zeros(2)})
+
+
+def test_tza_writer_reproduces_oidns_own_blob():
+    """Written back, OIDN's built-in ``rt_hdr_alb_nrm`` is its library bytes, byte for byte."""
+    blob = tza.builtin_weights()["rt_hdr_alb_nrm"]
+    stored = blob.library.read_bytes()[blob.offset : blob.offset + blob.size]
+    assert tza.write_tza(blob.tensors) == stored
