@@ -35,7 +35,7 @@ def test_poisson_methods_dispatch(fake_poisson, method, random_buffers):
 
 
 def test_primal_only_is_a_clear_error(fake_poisson, random_buffers):
-    with pytest.raises(ValueError, match=r"'l1' needs dx and dy.*primal-only"):
+    with pytest.raises(ValueError, match=r"'l1-fast' needs dx and dy.*primal-only"):
         reconstruct_image(random_buffers(names=("primal",)))
     assert fake_poisson == []
 
