@@ -14,15 +14,15 @@ import numpy as np
 
 from gdpt.scenes.elements import (
     SceneDict,
-    _area,
-    _check_resolution,
-    _envmap,
-    _rectangle,
-    _rgb,
-    _scene,
-    _sensor,
-    _sky_image,
-    _sphere,
+    area_emitter,
+    camera,
+    check_resolution,
+    envmap,
+    rectangle,
+    rgb,
+    scene,
+    sky_image,
+    sphere,
 )
 from gdpt.scenes.procedural_layout import (
     Layout,
@@ -82,7 +82,7 @@ class RandomSceneConfig:
             raise ValueError("num_objects must be a range (lo, hi) with 1 <= lo <= hi")
         if self.target_radiance <= 0:
             raise ValueError("target_radiance must be positive")
-        _check_resolution(self.env_shape)
+        check_resolution(self.env_shape)
 
 
 # -- Lights ----------------------------------------------------------------------------------
@@ -142,34 +142,36 @@ def _lights(b: SceneBuilder, cfg: RandomSceneConfig, layout: Layout, window: boo
                 elev = rng.uniform(0.15, 1.2)
                 az = rng.uniform(0, 2 * np.pi)
                 sun_dir = [np.cos(elev) * np.cos(az), np.sin(elev), np.cos(elev) * np.sin(az)]
-                image = _sky_image(
+                image = sky_image(
                     *cfg.env_shape,
                     sun_dir,
                     sun=rng.choice([0.0, 10.0, 30.0]),
                     overcast=rng.uniform(0, 1),
                     rng=rng,
                 )
-                b.add("env", _envmap(image, radiance))
+                b.add("env", envmap(image, radiance))
             else:
-                b.add("env", {"type": "constant", "radiance": _rgb(radiance * tint)})
+                b.add("env", {"type": "constant", "radiance": rgb(radiance * tint)})
         elif kind == "area_large":
             w, d = rng.uniform(0.3, 0.6) * 2 * hx, rng.uniform(0.3, 0.6) * 2 * hz
             radiance = p / (np.pi * w * d)
             if layout.room:
                 b.add(
                     "light",
-                    _rectangle(
+                    rectangle(
                         [rng.uniform(-0.3, 0.3) * hx, ceiling, rng.uniform(-0.3, 0.3) * hz],
                         [0, -1, 0],
                         [w, d],
-                        emitter=_area(radiance * tint),
+                        emitter=area_emitter(radiance * tint),
                     ),
                 )
             else:  # a tilted soft box above the content
                 pos = np.array([rng.uniform(-3, 3), rng.uniform(3, 5), rng.uniform(-3, 3)])
                 b.add(
                     "light",
-                    _rectangle(pos, -pos + [0, 0.5, 0], [w, d], emitter=_area(radiance * tint)),
+                    rectangle(
+                        pos, -pos + [0, 0.5, 0], [w, d], emitter=area_emitter(radiance * tint)
+                    ),
                 )
         elif kind == "area_small":
             count = rng.integers(1, 5)
@@ -179,11 +181,11 @@ def _lights(b: SceneBuilder, cfg: RandomSceneConfig, layout: Layout, window: boo
                 y = ceiling if layout.room else rng.uniform(2.5, 4.0)
                 b.add(
                     "light",
-                    _rectangle(
+                    rectangle(
                         _free_spot(rng, layout, y),
                         [0, -1, 0],
                         [s, s],
-                        emitter=_area(radiance * tint),
+                        emitter=area_emitter(radiance * tint),
                     ),
                 )
         elif kind == "sphere":
@@ -193,7 +195,8 @@ def _lights(b: SceneBuilder, cfg: RandomSceneConfig, layout: Layout, window: boo
                 radiance = p / count / (np.pi * 4 * np.pi * r * r)
                 y = layout.height - rng.uniform(0.3, 0.7) if layout.room else rng.uniform(1.5, 3.5)
                 b.add(
-                    "bulb", _sphere(_free_spot(rng, layout, y), r, emitter=_area(radiance * tint))
+                    "bulb",
+                    sphere(_free_spot(rng, layout, y), r, emitter=area_emitter(radiance * tint)),
                 )
         else:
             count = rng.integers(1, 4)
@@ -204,7 +207,7 @@ def _lights(b: SceneBuilder, cfg: RandomSceneConfig, layout: Layout, window: boo
                     {
                         "type": "point",
                         "position": _free_spot(rng, layout, y),
-                        "intensity": _rgb(p / count / (4 * np.pi) * tint),
+                        "intensity": rgb(p / count / (4 * np.pi) * tint),
                     },
                 )
 
@@ -256,7 +259,7 @@ def _camera(
         break
     fov = rng.uniform(35.0, 75.0)
     if rng.uniform() < cfg.p_thinlens:
-        return _sensor(
+        return camera(
             origin,
             target,
             resolution,
@@ -264,7 +267,7 @@ def _camera(
             aperture=rng.uniform(0.02, 0.1) * min(dist, 3.0),
             focus=dist,
         )
-    return _sensor(origin, target, resolution, fov=fov)
+    return camera(origin, target, resolution, fov=fov)
 
 
 # -- Public API ------------------------------------------------------------------------------
@@ -302,7 +305,7 @@ def random_scene(
     Raises:
         ValueError: negative ``seed``/``view`` or bad ``resolution``.
     """
-    resolution = _check_resolution(resolution)
+    resolution = check_resolution(resolution)
     for name, value in (("seed", seed), ("view", view)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
             raise ValueError(f"{name} must be a non-negative int, got {value!r}")
@@ -317,7 +320,7 @@ def random_scene(
     place_objects(b, cfg, layout)
     _lights(b, cfg, layout, window)
     view_rng = np.random.Generator(np.random.PCG64([int(seed), _VIEW_SALT, int(view)]))
-    return _scene(_camera(view_rng, cfg, layout, resolution), **b.entries)
+    return scene(_camera(view_rng, cfg, layout, resolution), **b.entries)
 
 
 def random_views(

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gdpt.scenes.elements import SceneDict, Vec3, _cube, _cylinder, _disk, _rectangle, _sphere
+from gdpt.scenes.elements import SceneDict, Vec3, cube, cylinder, disk, rectangle, sphere
 from gdpt.scenes.procedural_materials import (
     SOLID_MATERIALS,
     SURFACE_MATERIALS,
@@ -74,7 +74,7 @@ def _wall_with_window(
     c = np.asarray(center, dtype=np.float64)
     a = np.asarray(along, dtype=np.float64)
     if window is None:
-        b.add("wall", _rectangle(c + [0, height / 2, 0], normal, [width, height], bsdf))
+        b.add("wall", rectangle(c + [0, height / 2, 0], normal, [width, height], bsdf))
         return
     off, y0, ww, wh = window
     lo, hi = off - ww / 2, off + ww / 2
@@ -86,7 +86,7 @@ def _wall_with_window(
     ]
     for s0, s1, t0, t1 in pieces:
         mid = c + a * (s0 + s1) / 2 + [0, (t0 + t1) / 2, 0]
-        b.add("wall", _rectangle(mid, normal, [s1 - s0, t1 - t0], bsdf))
+        b.add("wall", rectangle(mid, normal, [s1 - s0, t1 - t0], bsdf))
 
 
 def build_room(b: SceneBuilder, cfg: RandomSceneConfig, window: bool) -> Layout:
@@ -98,8 +98,8 @@ def build_room(b: SceneBuilder, cfg: RandomSceneConfig, window: bool) -> Layout:
     )
     floor, floor_albedo = wall_material(rng, True)
     ceiling, ceiling_albedo = wall_material(rng, False)
-    b.add("floor", _rectangle([0, 0, 0], [0, 1, 0], [2 * hx, 2 * hz], floor))
-    b.add("ceiling", _rectangle([0, height, 0], [0, -1, 0], [2 * hx, 2 * hz], ceiling))
+    b.add("floor", rectangle([0, 0, 0], [0, 1, 0], [2 * hx, 2 * hz], floor))
+    b.add("ceiling", rectangle([0, height, 0], [0, -1, 0], [2 * hx, 2 * hz], ceiling))
     sides = {  # side -> (center, inward normal, direction along the wall, wall length)
         "+x": ([hx, 0, 0], [-1, 0, 0], [0, 0, 1], 2 * hz),
         "-x": ([-hx, 0, 0], [1, 0, 0], [0, 0, 1], 2 * hz),
@@ -134,11 +134,11 @@ def build_room(b: SceneBuilder, cfg: RandomSceneConfig, window: bool) -> Layout:
 def build_open_layout(b: SceneBuilder) -> Layout:
     rng = b.rng
     ground, albedo = wall_material(rng, True)
-    b.add("ground", _rectangle([0, 0, 0], [0, 1, 0], [60, 60], ground))
+    b.add("ground", rectangle([0, 0, 0], [0, 1, 0], [60, 60], ground))
     if rng.uniform() < 0.3:  # a backdrop wall behind the content
         angle = rng.uniform(0, 2 * np.pi)
         n = np.array([np.cos(angle), 0, np.sin(angle)])
-        b.add("backdrop", _rectangle(-4 * n + [0, 2, 0], n, [10, 4], wall_material(rng, False)[0]))
+        b.add("backdrop", rectangle(-4 * n + [0, 2, 0], n, [10, 4], wall_material(rng, False)[0]))
     half = rng.uniform(1.8, 3.0)
     return Layout(False, (half, half), 4.0, albedo)
 
@@ -159,12 +159,12 @@ def _small_object(b: SceneBuilder, base: np.ndarray, max_size: float) -> float:
     size = rng.uniform(0.4, 1.0) * max_size
     if kind == "sphere":
         bsdf = random_material(rng, SOLID_MATERIALS)
-        b.add("sphere", _sphere(base + [0, size / 2, 0], size / 2, bsdf))
+        b.add("sphere", sphere(base + [0, size / 2, 0], size / 2, bsdf))
     elif kind == "box":
         dims = size * rng.uniform(0.5, 1.0, size=3)
         b.add(
             "box",
-            _cube(
+            cube(
                 base + [0, dims[1] / 2, 0],
                 dims,
                 random_material(rng, SOLID_MATERIALS),
@@ -175,8 +175,8 @@ def _small_object(b: SceneBuilder, base: np.ndarray, max_size: float) -> float:
     else:
         bsdf = random_material(rng, SURFACE_MATERIALS)
         r = size * rng.uniform(0.2, 0.45)
-        b.add("cylinder", _cylinder(base, base + [0, size, 0], r, bsdf))
-        b.add("cap", _disk(base + [0, size, 0], [0, 1, 0], r, bsdf))
+        b.add("cylinder", cylinder(base, base + [0, size, 0], r, bsdf))
+        b.add("cap", disk(base + [0, size, 0], [0, 1, 0], r, bsdf))
     return size
 
 
@@ -186,12 +186,12 @@ def _table(b: SceneBuilder, x: float, z: float, angle: float, max_height: float)
     h, t = min(rng.uniform(0.65, 0.8), max_height), rng.uniform(0.03, 0.06)
     bsdf = random_material(rng, SURFACE_MATERIALS)
     base = np.array([x, 0.0, z])
-    b.add("tabletop", _cube(base + [0, h - t / 2, 0], [w, t, d], bsdf, angle))
+    b.add("tabletop", cube(base + [0, h - t / 2, 0], [w, t, d], bsdf, angle))
     leg_r = rng.uniform(0.02, 0.04)
     for sx in (-1, 1):
         for sz in (-1, 1):
             p = base + _rot(angle, sx * (w / 2 - 2 * leg_r), sz * (d / 2 - 2 * leg_r))
-            b.add("leg", _cylinder(p, p + [0, h - t, 0], leg_r, bsdf))
+            b.add("leg", cylinder(p, p + [0, h - t, 0], leg_r, bsdf))
     top = h
     for _ in range(rng.integers(0, 3)):
         offset = _rot(angle, rng.uniform(-0.3, 0.3) * w, rng.uniform(-0.3, 0.3) * d)
@@ -209,15 +209,15 @@ def _shelf(b: SceneBuilder, x: float, z: float, angle: float, max_height: float)
     for sx in (-1, 1):
         b.add(
             "shelfside",
-            _cube(base + _rot(angle, sx * (w - t) / 2, 0) + [0, h / 2, 0], [t, h, d], bsdf, angle),
+            cube(base + _rot(angle, sx * (w - t) / 2, 0) + [0, h / 2, 0], [t, h, d], bsdf, angle),
         )
     b.add(
         "shelfback",
-        _cube(base + _rot(angle, 0, -(d - t) / 2) + [0, h / 2, 0], [w, h, t], bsdf, angle),
+        cube(base + _rot(angle, 0, -(d - t) / 2) + [0, h / 2, 0], [w, h, t], bsdf, angle),
     )
     levels = np.linspace(t / 2, h - t / 2, rng.integers(3, 6))
     for y in levels:
-        b.add("board", _cube(base + [0, y, 0], [w - 2 * t, t, d - t], bsdf, angle))
+        b.add("board", cube(base + [0, y, 0], [w - 2 * t, t, d - t], bsdf, angle))
     gap = levels[1] - levels[0]
     for y in levels[:-1]:
         if rng.uniform() < 0.6:
@@ -234,7 +234,7 @@ def _floor_object(b: SceneBuilder, layout: Layout, x: float, z: float, radius: f
     max_height = layout.height - 1.0
     if kind == "sphere":
         b.add(
-            "sphere", _sphere(base + [0, radius, 0], radius, random_material(rng, SOLID_MATERIALS))
+            "sphere", sphere(base + [0, radius, 0], radius, random_material(rng, SOLID_MATERIALS))
         )
         return PlacedItem(x, z, radius, 2 * radius)
     if kind == "box":
@@ -246,7 +246,7 @@ def _floor_object(b: SceneBuilder, layout: Layout, x: float, z: float, radius: f
         ]
         b.add(
             "box",
-            _cube(
+            cube(
                 base + [0, dims[1] / 2, 0],
                 dims,
                 random_material(rng, SOLID_MATERIALS),
@@ -257,13 +257,13 @@ def _floor_object(b: SceneBuilder, layout: Layout, x: float, z: float, radius: f
     if kind == "cylinder":
         h = min(rng.uniform(0.2, 1.5), max_height)
         bsdf = random_material(rng, SURFACE_MATERIALS)
-        b.add("cylinder", _cylinder(base, base + [0, h, 0], radius, bsdf))
-        b.add("cap", _disk(base + [0, h, 0], [0, 1, 0], radius, bsdf))
+        b.add("cylinder", cylinder(base, base + [0, h, 0], radius, bsdf))
+        b.add("cap", disk(base + [0, h, 0], [0, 1, 0], radius, bsdf))
         return PlacedItem(x, z, radius, h)
     if kind == "rug":
         b.add(
             "rug",
-            _disk(
+            disk(
                 base + [0, 0.005, 0],
                 [0, 1, 0],
                 radius,
@@ -279,7 +279,7 @@ def _floor_object(b: SceneBuilder, layout: Layout, x: float, z: float, radius: f
     else:
         bsdf = random_material(rng, SURFACE_MATERIALS)
     b.add(
-        "panel", _rectangle(base + [0, h / 2, 0], [np.cos(a), 0, np.sin(a)], [2 * radius, h], bsdf)
+        "panel", rectangle(base + [0, h / 2, 0], [np.cos(a), 0, np.sin(a)], [2 * radius, h], bsdf)
     )
     return PlacedItem(x, z, radius, h)
 
@@ -300,9 +300,9 @@ def _wall_decor(b: SceneBuilder, layout: Layout) -> None:
     size = rng.uniform(0.3, 0.6)
     bsdf = random_material(rng, {"checker": 0.4, "diffuse": 0.3, "conductor": 0.3})
     if rng.uniform() < 0.5:
-        b.add("picture", _rectangle(center, normal, [2 * size, size * rng.uniform(1.0, 1.6)], bsdf))
+        b.add("picture", rectangle(center, normal, [2 * size, size * rng.uniform(1.0, 1.6)], bsdf))
     else:
-        b.add("plate", _disk(center, normal, size, bsdf))
+        b.add("plate", disk(center, normal, size, bsdf))
 
 
 def place_objects(b: SceneBuilder, cfg: RandomSceneConfig, layout: Layout) -> None:

@@ -7,7 +7,7 @@ import colorsys
 
 import numpy as np
 
-from gdpt.scenes.elements import Vec3, _checker, _diffuse, _rgb, _twosided
+from gdpt.scenes.elements import Vec3, checker, diffuse, rgb, twosided
 
 
 def random_color(
@@ -55,9 +55,9 @@ def random_material(rng: np.random.Generator, weights: dict[str, float]) -> dict
     if kind == "dielectric":
         return {"type": "dielectric", "int_ior": float(rng.uniform(1.33, 1.8))}
     if kind == "diffuse":
-        bsdf = _diffuse(random_color(rng, (0.0, 0.8), (0.15, 0.85)))
+        bsdf = diffuse(random_color(rng, (0.0, 0.8), (0.15, 0.85)))
     elif kind == "checker":
-        bsdf = _checker(
+        bsdf = checker(
             random_color(rng, (0.0, 0.9), (0.4, 0.9)),
             random_color(rng, (0.0, 0.9), (0.05, 0.5)),
             rng.choice([2, 4, 6, 8, 12]),
@@ -65,7 +65,7 @@ def random_material(rng: np.random.Generator, weights: dict[str, float]) -> dict
     elif kind in ("plastic", "roughplastic"):
         bsdf = {
             "type": kind,
-            "diffuse_reflectance": _rgb(random_color(rng, (0.2, 0.9), (0.1, 0.8))),
+            "diffuse_reflectance": rgb(random_color(rng, (0.2, 0.9), (0.1, 0.8))),
             "int_ior": float(rng.uniform(1.4, 1.6)),
         }
         if kind == "roughplastic":
@@ -74,7 +74,7 @@ def random_material(rng: np.random.Generator, weights: dict[str, float]) -> dict
         bsdf = {"type": kind, "material": str(rng.choice(_CONDUCTORS))}
         if kind == "roughconductor":
             bsdf["alpha"] = float(np.exp(rng.uniform(np.log(0.02), np.log(0.4))))
-    return _twosided(bsdf)
+    return twosided(bsdf)
 
 
 def luminance(color: Vec3) -> float:
@@ -86,14 +86,14 @@ def wall_material(rng: np.random.Generator, floor: bool) -> tuple[dict, float]:
     if floor and rng.uniform() < 0.4:
         c0 = np.array(random_color(rng, (0.0, 0.4), (0.5, 0.85)))
         c1 = c0 * rng.uniform(0.2, 0.6)
-        return _twosided(_checker(c0, c1, rng.integers(4, 16))), luminance((c0 + c1) / 2)
+        return twosided(checker(c0, c1, rng.integers(4, 16))), luminance((c0 + c1) / 2)
     if floor and rng.uniform() < 0.3:
         c = random_color(rng, (0.3, 0.7), (0.2, 0.5))
         bsdf = {
             "type": "roughplastic",
             "alpha": float(rng.uniform(0.1, 0.4)),
-            "diffuse_reflectance": _rgb(c),
+            "diffuse_reflectance": rgb(c),
         }
-        return _twosided(bsdf), luminance(c) + 0.05
+        return twosided(bsdf), luminance(c) + 0.05
     c = random_color(rng, (0.0, 0.35), (0.45, 0.85))
-    return _twosided(_diffuse(c)), luminance(c)
+    return twosided(diffuse(c)), luminance(c)
