@@ -3,6 +3,10 @@
 
 * the method names ``ngpt`` and ``ngpt-nograd`` (:data:`METHOD_ALIASES`, registered as
   aliases of :data:`gdpt.methods.METHODS`);
+* the study method names ``gdpt+ngpt`` and ``pt+ngpt-nograd`` (:data:`EVAL_METHOD_ALIASES`,
+  registered as aliases of :data:`gdpt.study.methods.EVAL_METHODS`, and read under their
+  current names from an earlier study's ``results.json`` by
+  :func:`gdpt.study.results.read_results`);
 * the environment variable ``GDPT_NGPT_MODEL`` (:data:`MODEL_ENV_DEPRECATED`, read by
   :func:`gdpt.checkpoints.model_path`);
 * the ``oidn`` method's ``backend="pyoidn"``, now ``"native"``
@@ -24,6 +28,10 @@ REMOVED_IN = "0.2.0"
 
 #: Deprecated method name -> its current name.
 METHOD_ALIASES = {"ngpt": "oidn-grad", "ngpt-nograd": "oidn-tuned"}
+
+#: Deprecated study method name -> its current name (the method names of
+#: :data:`METHOD_ALIASES` behind their sampler, ``gdpt+`` or ``pt+``).
+EVAL_METHOD_ALIASES = {"gdpt+ngpt": "gdpt+oidn-grad", "pt+ngpt-nograd": "pt+oidn-tuned"}
 
 #: Deprecated name of the environment variable ``GDPT_OIDN_GRAD_MODEL``
 #: (:data:`gdpt.checkpoints.MODEL_ENV`).

@@ -1,7 +1,8 @@
 """Scenes: the one loader of every scene source (:mod:`.loading`: XML files, dicts,
 ``builtin:NAME``, ``random:SEED[:VIEW]``), and scenes built in code: built-in test scenes
-(:mod:`.builtin`) and the procedural training-scene generator (:mod:`.procedural`), from the
-blocks in :mod:`.elements`.
+(:mod:`.builtin`) and the procedural training-scene generator (:mod:`.procedural`, with its
+rooms and objects in :mod:`.procedural_layout` and materials in :mod:`.procedural_materials`),
+from the blocks in :mod:`.elements`.
 
 Importing :mod:`gdpt.scenes` or :mod:`gdpt.scenes.loading` imports no Mitsuba (the loader sets
 the variant first, :func:`gdpt.backend.ensure_variant`); the builders below are loaded on first

@@ -9,26 +9,26 @@ import mitsuba as mi
 import numpy as np
 
 from gdpt.scenes.elements import (
-    _GREEN,
-    _RED,
-    _WHITE,
+    CBOX_GREEN,
+    CBOX_RED,
+    CBOX_WHITE,
     TEST_RESOLUTION,
     SceneDict,
     Vec3,
-    _area,
-    _check_resolution,
-    _checker,
-    _cube,
-    _diffuse,
-    _envmap,
-    _rectangle,
-    _rgb,
-    _scene,
-    _sensor,
-    _shape,
-    _sky_image,
-    _sphere,
-    _twosided,
+    area_emitter,
+    camera,
+    check_resolution,
+    checker,
+    cube,
+    diffuse,
+    envmap,
+    rectangle,
+    rgb,
+    scene,
+    shape,
+    sky_image,
+    sphere,
+    twosided,
 )
 
 # --------------------------------------------------------------------------------------------
@@ -72,7 +72,7 @@ def builtin_scene(name: str, *, resolution: Sequence[int] | None = None) -> Scen
     if name not in _BUILTINS:
         raise ValueError(f"unknown builtin scene {name!r}; valid names: {', '.join(_BUILTINS)}")
     builder, default = _BUILTINS[name]
-    return builder(_check_resolution(default if resolution is None else resolution))
+    return builder(check_resolution(default if resolution is None else resolution))
 
 
 def _box_walls(
@@ -80,31 +80,31 @@ def _box_walls(
 ) -> SceneDict:
     """Cornell-box shell spanning [-1, 1]^3, open towards +z, optional ceiling light."""
     walls = {
-        "floor": _rectangle([0, -1, 0], [0, 1, 0], [2, 2], _diffuse(_WHITE)),
-        "ceiling": _rectangle([0, 1, 0], [0, -1, 0], [2, 2], _diffuse(_WHITE)),
-        "back": _rectangle([0, 0, -1], [0, 0, 1], [2, 2], _diffuse(_WHITE)),
-        "left": _rectangle([-1, 0, 0], [1, 0, 0], [2, 2], _diffuse(_RED)),
-        "right": _rectangle([1, 0, 0], [-1, 0, 0], [2, 2], _diffuse(_GREEN)),
+        "floor": rectangle([0, -1, 0], [0, 1, 0], [2, 2], diffuse(CBOX_WHITE)),
+        "ceiling": rectangle([0, 1, 0], [0, -1, 0], [2, 2], diffuse(CBOX_WHITE)),
+        "back": rectangle([0, 0, -1], [0, 0, 1], [2, 2], diffuse(CBOX_WHITE)),
+        "left": rectangle([-1, 0, 0], [1, 0, 0], [2, 2], diffuse(CBOX_RED)),
+        "right": rectangle([1, 0, 0], [-1, 0, 0], [2, 2], diffuse(CBOX_GREEN)),
     }
     if light is not None:
         size = [light_size, light_size * 0.8]
-        walls["light"] = _rectangle([0, 0.995, 0], [0, -1, 0], size, emitter=_area(light))
+        walls["light"] = rectangle([0, 0.995, 0], [0, -1, 0], size, emitter=area_emitter(light))
     return walls
 
 
 def _box_camera(resolution: tuple[int, int], **lens) -> dict:
-    return _sensor([0, 0, 3.9], [0, 0, 0], resolution, fov=39.3, **lens)
+    return camera([0, 0, 3.9], [0, 0, 0], resolution, fov=39.3, **lens)
 
 
 @_builtin("cbox-demo", default_resolution=(256, 256))
 def _cbox_demo(res: tuple[int, int]) -> SceneDict:
     """Demo Cornell box: red/green walls, small ceiling light (hard-ish shadows), white
     box with a rough gold sphere (alpha 0.1) on top, a glass sphere and a mirror sphere."""
-    return _scene(
+    return scene(
         _box_camera(res),
         **_box_walls(light=(20.0, 15.5, 10.0), light_size=0.45),
-        tall_box=_cube([-0.36, -0.6, -0.32], [0.56, 0.8, 0.56], _diffuse(_WHITE), angle=18),
-        gold=_sphere(
+        tall_box=cube([-0.36, -0.6, -0.32], [0.56, 0.8, 0.56], diffuse(CBOX_WHITE), angle=18),
+        gold=sphere(
             [-0.36, 0.03, -0.32],
             0.23,
             {
@@ -113,18 +113,18 @@ def _cbox_demo(res: tuple[int, int]) -> SceneDict:
                 "alpha": 0.1,
             },
         ),
-        glass=_sphere([0.42, -0.66, 0.25], 0.34, {"type": "dielectric", "int_ior": 1.5}),
-        mirror=_sphere([-0.45, -0.8, 0.5], 0.2, {"type": "conductor"}),
+        glass=sphere([0.42, -0.66, 0.25], 0.34, {"type": "dielectric", "int_ior": 1.5}),
+        mirror=sphere([-0.45, -0.8, 0.5], 0.2, {"type": "conductor"}),
     )
 
 
 @_builtin("diffuse-box")
 def _diffuse_box(res: tuple[int, int]) -> SceneDict:
     """Diffuse only: Cornell shell, ceiling area light, one rotated diffuse box."""
-    return _scene(
+    return scene(
         _box_camera(res),
         **_box_walls(),
-        block=_cube([0.2, -0.55, -0.1], [0.8, 0.9, 0.8], _diffuse(_WHITE), angle=-20),
+        block=cube([0.2, -0.55, -0.1], [0.8, 0.9, 0.8], diffuse(CBOX_WHITE), angle=-20),
     )
 
 
@@ -132,7 +132,7 @@ def _diffuse_box(res: tuple[int, int]) -> SceneDict:
 def _rough_conductor(res: tuple[int, int]) -> SceneDict:
     """Glossy reflection: a roughconductor sphere (alpha 0.1) lit by the ceiling area light."""
     bsdf = {"type": "roughconductor", "material": "Cu", "alpha": 0.1}
-    return _scene(_box_camera(res), **_box_walls(), ball=_sphere([0, -0.45, 0], 0.55, bsdf))
+    return scene(_box_camera(res), **_box_walls(), ball=sphere([0, -0.45, 0], 0.55, bsdf))
 
 
 @_builtin("mirror")
@@ -140,12 +140,12 @@ def _mirror(res: tuple[int, int]) -> SceneDict:
     """Perfect specular reflection: a mirror panel on the green wall and a mirror sphere, both
     reflecting the lit diffuse box and a blue diffuse cube."""
     mirror = {"type": "conductor"}
-    return _scene(
+    return scene(
         _box_camera(res),
         **_box_walls(),
-        panel=_rectangle([0.99, 0.0, -0.3], [-1, 0, 0], [1.2, 1.0], mirror),
-        ball=_sphere([0.4, -0.65, 0.2], 0.35, mirror),
-        block=_cube([-0.45, -0.7, -0.2], [0.5, 0.6, 0.5], _diffuse((0.2, 0.3, 0.7)), angle=25),
+        panel=rectangle([0.99, 0.0, -0.3], [-1, 0, 0], [1.2, 1.0], mirror),
+        ball=sphere([0.4, -0.65, 0.2], 0.35, mirror),
+        block=cube([-0.45, -0.7, -0.2], [0.5, 0.6, 0.5], diffuse((0.2, 0.3, 0.7)), angle=25),
     )
 
 
@@ -153,11 +153,11 @@ def _mirror(res: tuple[int, int]) -> SceneDict:
 def _glass(res: tuple[int, int]) -> SceneDict:
     """Refraction: a dielectric sphere (IOR 1.5) over a checkerboard floor, area light."""
     walls = _box_walls()
-    walls["floor"]["bsdf"] = _checker((0.8, 0.8, 0.8), (0.15, 0.15, 0.2), 6)
-    return _scene(
+    walls["floor"]["bsdf"] = checker((0.8, 0.8, 0.8), (0.15, 0.15, 0.2), 6)
+    return scene(
         _box_camera(res),
         **walls,
-        ball=_sphere([0, -0.5, 0.1], 0.5, {"type": "dielectric", "int_ior": 1.5}),
+        ball=sphere([0, -0.5, 0.1], 0.5, {"type": "dielectric", "int_ior": 1.5}),
     )
 
 
@@ -167,14 +167,14 @@ def _near_specular(res: tuple[int, int]) -> SceneDict:
     glass sphere (roughdielectric, alpha 0.03) over a checkerboard floor and a rough mirror
     panel (roughconductor, alpha 0.02) on the green wall, area light."""
     walls = _box_walls()
-    walls["floor"]["bsdf"] = _checker((0.8, 0.8, 0.8), (0.15, 0.15, 0.2), 6)
-    return _scene(
+    walls["floor"]["bsdf"] = checker((0.8, 0.8, 0.8), (0.15, 0.15, 0.2), 6)
+    return scene(
         _box_camera(res),
         **walls,
-        ball=_sphere(
+        ball=sphere(
             [-0.2, -0.5, 0.1], 0.45, {"type": "roughdielectric", "int_ior": 1.5, "alpha": 0.03}
         ),
-        panel=_rectangle(
+        panel=rectangle(
             [0.99, 0.0, -0.3],
             [-1, 0, 0],
             [1.2, 1.0],
@@ -186,11 +186,11 @@ def _near_specular(res: tuple[int, int]) -> SceneDict:
 def _ground_with_objects(bsdf: dict | None = None) -> SceneDict:
     """Ground plane at y=0 (10 x 10) with a few diffuse objects for the environment scenes."""
     return {
-        "ground": _rectangle(
-            [0, 0, 0], [0, 1, 0], [10, 10], bsdf or _checker((0.6, 0.6, 0.55), (0.3, 0.3, 0.3), 10)
+        "ground": rectangle(
+            [0, 0, 0], [0, 1, 0], [10, 10], bsdf or checker((0.6, 0.6, 0.55), (0.3, 0.3, 0.3), 10)
         ),
-        "ball": _sphere([-0.6, 0.5, 0], 0.5, _diffuse((0.7, 0.3, 0.2))),
-        "block": _cube([0.7, 0.4, -0.3], [0.8, 0.8, 0.8], _diffuse((0.3, 0.5, 0.7)), angle=30),
+        "ball": sphere([-0.6, 0.5, 0], 0.5, diffuse((0.7, 0.3, 0.2))),
+        "block": cube([0.7, 0.4, -0.3], [0.8, 0.8, 0.8], diffuse((0.3, 0.5, 0.7)), angle=30),
     }
 
 
@@ -198,21 +198,21 @@ def _ground_with_objects(bsdf: dict | None = None) -> SceneDict:
 def _envmap_scene(res: tuple[int, int]) -> SceneDict:
     """Image-based lighting: a 16x32 procedural sky+sun ``envmap`` (built with ``mi.Bitmap``)
     over a checkerboard ground with a diffuse sphere and cube; the sky is visible."""
-    sky = _sky_image(16, 32, [0.5, 0.8, 0.4], sun=40.0, overcast=0.2)
-    return _scene(
-        _sensor([0.5, 1.3, 3.5], [0, 0.4, 0], res, fov=50),
+    sky = sky_image(16, 32, [0.5, 0.8, 0.4], sun=40.0, overcast=0.2)
+    return scene(
+        camera([0.5, 1.3, 3.5], [0, 0.4, 0], res, fov=50),
         **_ground_with_objects(),
-        env=_envmap(sky),
+        env=envmap(sky),
     )
 
 
 @_builtin("constant-env")
 def _constant_env(res: tuple[int, int]) -> SceneDict:
     """Uniform ``constant`` environment (ambient-occlusion look) over diffuse objects."""
-    return _scene(
-        _sensor([0.5, 1.3, 3.5], [0, 0.4, 0], res, fov=50),
-        **_ground_with_objects(_diffuse(0.6)),
-        env={"type": "constant", "radiance": _rgb(1.0)},
+    return scene(
+        camera([0.5, 1.3, 3.5], [0, 0.4, 0], res, fov=50),
+        **_ground_with_objects(diffuse(0.6)),
+        env={"type": "constant", "radiance": rgb(1.0)},
     )
 
 
@@ -220,11 +220,11 @@ def _constant_env(res: tuple[int, int]) -> SceneDict:
 def _point_light(res: tuple[int, int]) -> SceneDict:
     """Delta-position light: a ``point`` emitter (intensity 3) inside the unlit Cornell shell,
     casting a sharp shadow of a cube."""
-    return _scene(
+    return scene(
         _box_camera(res),
         **_box_walls(light=None),
-        block=_cube([0.1, -0.7, -0.1], [0.5, 0.6, 0.5], _diffuse(_WHITE), angle=30),
-        lamp={"type": "point", "position": [-0.2, 0.6, 0.3], "intensity": _rgb(3.0)},
+        block=cube([0.1, -0.7, -0.1], [0.5, 0.6, 0.5], diffuse(CBOX_WHITE), angle=30),
+        lamp={"type": "point", "position": [-0.2, 0.6, 0.3], "intensity": rgb(3.0)},
     )
 
 
@@ -232,11 +232,11 @@ def _point_light(res: tuple[int, int]) -> SceneDict:
 def _sphere_light(res: tuple[int, int]) -> SceneDict:
     """Spherical area light (radius 0.08, radiance 80): an ``area`` emitter on a small sphere
     (cone sampling, so no plain reconnection) above a diffuse cube."""
-    return _scene(
+    return scene(
         _box_camera(res),
         **_box_walls(light=None),
-        block=_cube([0.1, -0.7, -0.1], [0.5, 0.6, 0.5], _diffuse(_WHITE), angle=30),
-        bulb=_sphere([-0.3, 0.5, 0.2], 0.08, emitter=_area(80.0)),
+        block=cube([0.1, -0.7, -0.1], [0.5, 0.6, 0.5], diffuse(CBOX_WHITE), angle=30),
+        bulb=sphere([-0.3, 0.5, 0.2], 0.08, emitter=area_emitter(80.0)),
     )
 
 
@@ -244,12 +244,12 @@ def _sphere_light(res: tuple[int, int]) -> SceneDict:
 def _thin_lens(res: tuple[int, int]) -> SceneDict:
     """Depth of field: ``thinlens`` camera (aperture 0.12) focused on the middle of three
     spheres at different depths, so the near and far ones are visibly blurred."""
-    return _scene(
+    return scene(
         _box_camera(res, aperture=0.12, focus=3.9),
         **_box_walls(),
-        near=_sphere([-0.5, -0.75, 0.7], 0.25, _diffuse((0.8, 0.7, 0.2))),
-        middle=_sphere([0.0, -0.7, 0.0], 0.3, _diffuse((0.2, 0.4, 0.8))),
-        far=_sphere([0.5, -0.65, -0.7], 0.35, _diffuse((0.8, 0.3, 0.6))),
+        near=sphere([-0.5, -0.75, 0.7], 0.25, diffuse((0.8, 0.7, 0.2))),
+        middle=sphere([0.0, -0.7, 0.0], 0.3, diffuse((0.2, 0.4, 0.8))),
+        far=sphere([0.5, -0.65, -0.7], 0.35, diffuse((0.8, 0.3, 0.6))),
     )
 
 
@@ -259,15 +259,15 @@ def _tir_glass(res: tuple[int, int]) -> SceneDict:
     above on a checkerboard floor before a white backdrop, lit by a large area light; many
     paths bounce inside the block."""
     glass = {"type": "dielectric", "int_ior": 1.7}
-    return _scene(
-        _sensor([1.3, 1.5, 2.4], [0, 0.25, 0], res, fov=50),
-        floor=_rectangle(
-            [0, 0, 0], [0, 1, 0], [6, 6], _checker((0.85, 0.85, 0.8), (0.1, 0.1, 0.15), 12)
+    return scene(
+        camera([1.3, 1.5, 2.4], [0, 0.25, 0], res, fov=50),
+        floor=rectangle(
+            [0, 0, 0], [0, 1, 0], [6, 6], checker((0.85, 0.85, 0.8), (0.1, 0.1, 0.15), 12)
         ),
-        backdrop=_rectangle([0, 1.5, -1.5], [0, 0, 1], [6, 3], _diffuse(_WHITE)),
-        light=_rectangle([0.5, 3, 0.5], [0, -1, 0], [2, 2], emitter=_area(6.0)),
-        block=_cube([-0.2, 0.35, 0], [1.0, 0.7, 0.7], glass, angle=35),
-        ball=_sphere([0.65, 0.3, 0.6], 0.3, glass),
+        backdrop=rectangle([0, 1.5, -1.5], [0, 0, 1], [6, 3], diffuse(CBOX_WHITE)),
+        light=rectangle([0.5, 3, 0.5], [0, -1, 0], [2, 2], emitter=area_emitter(6.0)),
+        block=cube([-0.2, 0.35, 0], [1.0, 0.7, 0.7], glass, angle=35),
+        ball=sphere([0.65, 0.3, 0.6], 0.3, glass),
     )
 
 
@@ -276,11 +276,11 @@ def _tiny_bright_light(res: tuple[int, int]) -> SceneDict:
     """Extreme emitter: a 1 cm x 1 cm ceiling light with radiance 1e5 (about the power of
     the usual one), firefly-prone for any strategy that hits it by BSDF sampling."""
     walls = _box_walls(light=None)
-    walls["light"] = _rectangle([0, 0.995, 0], [0, -1, 0], [0.01, 0.01], emitter=_area(1e5))
-    return _scene(
+    walls["light"] = rectangle([0, 0.995, 0], [0, -1, 0], [0.01, 0.01], emitter=area_emitter(1e5))
+    return scene(
         _box_camera(res),
         **walls,
-        block=_cube([0.2, -0.6, -0.1], [0.6, 0.8, 0.6], _diffuse(_WHITE), angle=-20),
+        block=cube([0.2, -0.6, -0.1], [0.6, 0.8, 0.6], diffuse(CBOX_WHITE), angle=-20),
     )
 
 
@@ -288,12 +288,12 @@ def _tiny_bright_light(res: tuple[int, int]) -> SceneDict:
 def _grazing(res: tuple[int, int]) -> SceneDict:
     """Grazing angles: camera 8 cm above a large checkerboard plane looking almost
     horizontally (about 2 degrees down) under a large overhead area light."""
-    return _scene(
-        _sensor([0, 0.08, 4], [0, -0.06, 0], res, fov=40),
-        ground=_rectangle(
-            [0, 0, -2], [0, 1, 0], [20, 20], _checker((0.8, 0.8, 0.8), (0.2, 0.2, 0.25), 40)
+    return scene(
+        camera([0, 0.08, 4], [0, -0.06, 0], res, fov=40),
+        ground=rectangle(
+            [0, 0, -2], [0, 1, 0], [20, 20], checker((0.8, 0.8, 0.8), (0.2, 0.2, 0.25), 40)
         ),
-        light=_rectangle([0, 3, 1], [0, -1, 0], [4, 4], emitter=_area(10.0)),
+        light=rectangle([0, 3, 1], [0, -1, 0], [4, 4], emitter=area_emitter(10.0)),
     )
 
 
@@ -306,14 +306,14 @@ def _degenerate(res: tuple[int, int]) -> SceneDict:
     def zero(y: float) -> mi.ScalarTransform4f:
         return mi.ScalarTransform4f().translate([0, y, 0]).scale([0.5, 0.0, 0.5])
 
-    return _scene(
+    return scene(
         _box_camera(res),
         **_box_walls(),
-        zero_area=_shape("rectangle", _diffuse(0.5), to_world=zero(0.0)),
-        zero_light=_shape("rectangle", None, to_world=zero(0.5), emitter=_area(10.0)),
-        flat_cube=_cube([0.3, -1.0, 0.2], [0.6, 0.0, 0.6], _diffuse((0.2, 0.2, 0.7))),
-        quad_a=_rectangle([-0.2, 0.0, -1], [0, 0, 1], [0.8, 0.8], _diffuse((0.8, 0.8, 0.1))),
-        quad_b=_rectangle([0.2, -0.2, -1], [0, 0, 1], [0.8, 0.8], _diffuse((0.1, 0.7, 0.8))),
+        zero_area=shape("rectangle", diffuse(0.5), to_world=zero(0.0)),
+        zero_light=shape("rectangle", None, to_world=zero(0.5), emitter=area_emitter(10.0)),
+        flat_cube=cube([0.3, -1.0, 0.2], [0.6, 0.0, 0.6], diffuse((0.2, 0.2, 0.7))),
+        quad_a=rectangle([-0.2, 0.0, -1], [0, 0, 1], [0.8, 0.8], diffuse((0.8, 0.8, 0.1))),
+        quad_b=rectangle([0.2, -0.2, -1], [0, 0, 1], [0.8, 0.8], diffuse((0.1, 0.7, 0.8))),
     )
 
 
@@ -321,37 +321,37 @@ def _degenerate(res: tuple[int, int]) -> SceneDict:
 def _thin_dielectric(res: tuple[int, int]) -> SceneDict:
     """Thin glass: a ``thindielectric`` pane (IOR 1.5) between the camera and a diffuse cube,
     tilted so the pane also reflects the red wall."""
-    return _scene(
+    return scene(
         _box_camera(res),
         **_box_walls(),
-        pane=_rectangle(
+        pane=rectangle(
             [0, -0.3, 0.3], [0.35, 0, 1], [1.2, 1.3], {"type": "thindielectric", "int_ior": 1.5}
         ),
-        block=_cube([0.1, -0.7, -0.4], [0.5, 0.6, 0.5], _diffuse((0.2, 0.3, 0.7)), angle=30),
+        block=cube([0.1, -0.7, -0.4], [0.5, 0.6, 0.5], diffuse((0.2, 0.3, 0.7)), angle=30),
     )
 
 
 @_builtin("plastic")
 def _plastic(res: tuple[int, int]) -> SceneDict:
     """Coated materials: a smooth ``plastic`` sphere and a ``roughplastic`` (alpha 0.15) cube."""
-    return _scene(
+    return scene(
         _box_camera(res),
         **_box_walls(),
-        ball=_sphere(
+        ball=sphere(
             [-0.4, -0.6, 0.1],
             0.4,
             {
                 "type": "plastic",
-                "diffuse_reflectance": _rgb((0.1, 0.3, 0.7)),
+                "diffuse_reflectance": rgb((0.1, 0.3, 0.7)),
             },
         ),
-        block=_cube(
+        block=cube(
             [0.45, -0.6, -0.2],
             [0.6, 0.8, 0.6],
             {
                 "type": "roughplastic",
                 "alpha": 0.15,
-                "diffuse_reflectance": _rgb((0.7, 0.6, 0.2)),
+                "diffuse_reflectance": rgb((0.7, 0.6, 0.2)),
             },
             angle=-25,
         ),
@@ -362,26 +362,26 @@ def _plastic(res: tuple[int, int]) -> SceneDict:
 def _principled(res: tuple[int, int]) -> SceneDict:
     """Multi-lobe BSDF: a ``principled`` sphere (half metallic, roughness 0.3, clearcoat) and a
     fully dielectric-coated principled cube (roughness 0.5)."""
-    return _scene(
+    return scene(
         _box_camera(res),
         **_box_walls(),
-        ball=_sphere(
+        ball=sphere(
             [-0.4, -0.6, 0.1],
             0.4,
             {
                 "type": "principled",
-                "base_color": _rgb((0.8, 0.4, 0.2)),
+                "base_color": rgb((0.8, 0.4, 0.2)),
                 "metallic": 0.5,
                 "roughness": 0.3,
                 "clearcoat": 0.5,
             },
         ),
-        block=_cube(
+        block=cube(
             [0.45, -0.6, -0.2],
             [0.6, 0.8, 0.6],
             {
                 "type": "principled",
-                "base_color": _rgb((0.2, 0.5, 0.3)),
+                "base_color": rgb((0.2, 0.5, 0.3)),
                 "roughness": 0.5,
             },
             angle=-25,
@@ -423,13 +423,13 @@ def _alpha_mask(res: tuple[int, int]) -> SceneDict:
             "color1": 0.15,
             "to_uv": mi.ScalarTransform4f().scale([float(cells), float(cells), 1.0]),
         }
-        return {"type": "mask", "opacity": opacity, "nested": _twosided(_diffuse(color))}
+        return {"type": "mask", "opacity": opacity, "nested": twosided(diffuse(color))}
 
-    return _scene(
+    return scene(
         _box_camera(res),
         **_box_walls(light_size=0.7),
-        screen=_rectangle([0.15, -0.35, 0.1], [0.2, 0, 1], [1.1, 1.2], masked((0.8, 0.7, 0.3), 4)),
-        lattice=_rectangle([0, 0.6, 0], [0, -1, 0], [1.2, 1.2], masked((0.6, 0.6, 0.7), 5)),
+        screen=rectangle([0.15, -0.35, 0.1], [0.2, 0, 1], [1.1, 1.2], masked((0.8, 0.7, 0.3), 4)),
+        lattice=rectangle([0, 0.6, 0], [0, -1, 0], [1.2, 1.2], masked((0.6, 0.6, 0.7), 5)),
     )
 
 
@@ -442,7 +442,7 @@ def _bump_map(res: tuple[int, int]) -> SceneDict:
         "type": "bumpmap",
         "arbitrary": {"type": "bitmap", "bitmap": _height_field(), "raw": True},
         "scale": 0.5,
-        "bsdf": {"type": "roughplastic", "alpha": 0.15, "diffuse_reflectance": _rgb(0.5)},
+        "bsdf": {"type": "roughplastic", "alpha": 0.15, "diffuse_reflectance": rgb(0.5)},
     }
     normal = {
         "type": "normalmap",
@@ -457,21 +457,21 @@ def _bump_map(res: tuple[int, int]) -> SceneDict:
             "color1": 0.8,
             "to_uv": mi.ScalarTransform4f().scale([3.0, 3.0, 1.0]),
         },
-        "bsdf_0": _diffuse(_WHITE),
+        "bsdf_0": diffuse(CBOX_WHITE),
         "bsdf_1": {"type": "roughconductor", "material": "Cu", "alpha": 0.25},
     }
     walls = _box_walls()
-    walls["floor"] = _rectangle([0, -1, 0], [0, 1, 0], [2, 2], normal)
-    walls["back"] = _rectangle([0, 0, -1], [0, 0, 1], [2, 2], blend)
-    return _scene(_box_camera(res), **walls, ball=_sphere([0, -0.5, 0], 0.45, bump))
+    walls["floor"] = rectangle([0, -1, 0], [0, 1, 0], [2, 2], normal)
+    walls["back"] = rectangle([0, 0, -1], [0, 0, 1], [2, 2], blend)
+    return scene(_box_camera(res), **walls, ball=sphere([0, -0.5, 0], 0.45, bump))
 
 
 @_builtin("spot-directional")
 def _spot_directional(res: tuple[int, int]) -> SceneDict:
     """Delta lights other than points: a ``spot`` (cutoff 25 deg, soft falloff) and a low
     ``directional`` light over the ground with objects."""
-    return _scene(
-        _sensor([0.5, 1.3, 3.5], [0, 0.4, 0], res, fov=50),
+    return scene(
+        camera([0.5, 1.3, 3.5], [0, 0.4, 0], res, fov=50),
         **_ground_with_objects(),
         spot={
             "type": "spot",
@@ -480,9 +480,9 @@ def _spot_directional(res: tuple[int, int]) -> SceneDict:
             ),
             "cutoff_angle": 25.0,
             "beam_width": 15.0,
-            "intensity": _rgb(25.0),
+            "intensity": rgb(25.0),
         },
-        sun={"type": "directional", "direction": [0.6, -0.5, -0.4], "irradiance": _rgb(1.5)},
+        sun={"type": "directional", "direction": [0.6, -0.5, -0.4], "irradiance": rgb(1.5)},
     )
 
 
@@ -502,9 +502,9 @@ def _textured_roughness(res: tuple[int, int]) -> SceneDict:
 
     metal = {"type": "roughconductor", "material": "Au", "alpha": alpha(4.0)}
     glass = {"type": "roughdielectric", "int_ior": 1.5, "alpha": alpha(3.0)}
-    return _scene(
+    return scene(
         _box_camera(res),
         **_box_walls(),
-        ball=_sphere([-0.4, -0.55, -0.2], 0.45, metal),
-        slab=_cube([0.45, -0.6, 0.3], [0.5, 0.8, 0.15], glass, angle=20),
+        ball=sphere([-0.4, -0.55, -0.2], 0.45, metal),
+        slab=cube([0.45, -0.6, 0.3], [0.5, 0.8, 0.15], glass, angle=20),
     )

@@ -19,10 +19,10 @@ Vec3 = Sequence[float]
 #: Default resolution of the tiny statistical test scenes.
 TEST_RESOLUTION = (24, 24)
 
-# Classic Cornell-box reflectances (diffuse albedo in linear RGB).
-_WHITE = (0.725, 0.71, 0.68)
-_RED = (0.63, 0.065, 0.05)
-_GREEN = (0.14, 0.45, 0.091)
+#: Classic Cornell-box reflectances (diffuse albedo in linear RGB).
+CBOX_WHITE = (0.725, 0.71, 0.68)
+CBOX_RED = (0.63, 0.065, 0.05)
+CBOX_GREEN = (0.14, 0.45, 0.091)
 
 
 # --------------------------------------------------------------------------------------------
@@ -30,7 +30,7 @@ _GREEN = (0.14, 0.45, 0.091)
 # --------------------------------------------------------------------------------------------
 
 
-def _check_resolution(resolution: Sequence[int]) -> tuple[int, int]:
+def check_resolution(resolution: Sequence[int]) -> tuple[int, int]:
     """Returns ``resolution`` as ``(width, height)`` or raises ``ValueError``."""
     try:
         width, height = resolution
@@ -46,7 +46,8 @@ def _floats(v: Vec3) -> list[float]:
     return [float(x) for x in v]
 
 
-def _rgb(value: float | Vec3) -> dict:
+def rgb(value: float | Vec3) -> dict:
+    """An ``rgb`` value (a scalar is grey)."""
     values = [value] * 3 if np.isscalar(value) else value
     return {"type": "rgb", "value": _floats(values)}
 
@@ -61,7 +62,7 @@ def _film(resolution: tuple[int, int]) -> dict:
     }
 
 
-def _sensor(
+def camera(
     origin: Vec3,
     target: Vec3,
     resolution: tuple[int, int],
@@ -98,18 +99,19 @@ def _frame(center: Vec3, normal: Vec3) -> mi.ScalarTransform4f:
     return mi.ScalarTransform4f().look_at(origin=_floats(c), target=_floats(c + n), up=up)
 
 
-def _rectangle(center: Vec3, normal: Vec3, size: Vec3, bsdf: dict | None = None, **extra) -> dict:
+def rectangle(center: Vec3, normal: Vec3, size: Vec3, bsdf: dict | None = None, **extra) -> dict:
     """A ``size[0] x size[1]`` rectangle facing ``normal`` (one-sided for emitters)."""
     to_world = _frame(center, normal).scale([size[0] / 2, size[1] / 2, 1.0])
-    return _shape("rectangle", bsdf, to_world=to_world, **extra)
+    return shape("rectangle", bsdf, to_world=to_world, **extra)
 
 
-def _disk(center: Vec3, normal: Vec3, radius: float, bsdf: dict | None = None, **extra) -> dict:
+def disk(center: Vec3, normal: Vec3, radius: float, bsdf: dict | None = None, **extra) -> dict:
+    """A disk of ``radius`` facing ``normal``."""
     to_world = _frame(center, normal).scale([radius, radius, 1.0])
-    return _shape("disk", bsdf, to_world=to_world, **extra)
+    return shape("disk", bsdf, to_world=to_world, **extra)
 
 
-def _cube(center: Vec3, size: Vec3, bsdf: dict, angle: float = 0.0) -> dict:
+def cube(center: Vec3, size: Vec3, bsdf: dict, angle: float = 0.0) -> dict:
     """An axis-aligned (then rotated by ``angle`` degrees about +y) box of extent ``size``."""
     to_world = (
         mi.ScalarTransform4f()
@@ -117,63 +119,69 @@ def _cube(center: Vec3, size: Vec3, bsdf: dict, angle: float = 0.0) -> dict:
         .rotate([0.0, 1.0, 0.0], float(angle))
         .scale([s / 2 for s in _floats(size)])
     )
-    return _shape("cube", bsdf, to_world=to_world)
+    return shape("cube", bsdf, to_world=to_world)
 
 
-def _sphere(center: Vec3, radius: float, bsdf: dict | None = None, **extra) -> dict:
-    return _shape("sphere", bsdf, center=_floats(center), radius=float(radius), **extra)
+def sphere(center: Vec3, radius: float, bsdf: dict | None = None, **extra) -> dict:
+    """A sphere (``extra``: e.g. ``emitter=``)."""
+    return shape("sphere", bsdf, center=_floats(center), radius=float(radius), **extra)
 
 
-def _cylinder(p0: Vec3, p1: Vec3, radius: float, bsdf: dict) -> dict:
+def cylinder(p0: Vec3, p1: Vec3, radius: float, bsdf: dict) -> dict:
     """An open tube (no caps) from ``p0`` to ``p1``."""
-    return _shape("cylinder", bsdf, p0=_floats(p0), p1=_floats(p1), radius=float(radius))
+    return shape("cylinder", bsdf, p0=_floats(p0), p1=_floats(p1), radius=float(radius))
 
 
-def _shape(kind: str, bsdf: dict | None, **props) -> dict:
+def shape(kind: str, bsdf: dict | None, **props) -> dict:
+    """A shape of plugin type ``kind`` with ``props`` and, unless ``None``, ``bsdf``."""
     shape = {"type": kind, **props}
     if bsdf is not None:
         shape["bsdf"] = bsdf
     return shape
 
 
-def _area(radiance: float | Vec3) -> dict:
-    return {"type": "area", "radiance": _rgb(radiance)}
+def area_emitter(radiance: float | Vec3) -> dict:
+    """An ``area`` emitter of constant ``radiance``."""
+    return {"type": "area", "radiance": rgb(radiance)}
 
 
-def _diffuse(color: float | Vec3) -> dict:
-    return {"type": "diffuse", "reflectance": _rgb(color)}
+def diffuse(color: float | Vec3) -> dict:
+    """A ``diffuse`` BSDF of reflectance ``color``."""
+    return {"type": "diffuse", "reflectance": rgb(color)}
 
 
-def _checker(color0: Vec3, color1: Vec3, scale: float) -> dict:
+def checker(color0: Vec3, color1: Vec3, scale: float) -> dict:
     """Diffuse BSDF with a ``scale x scale`` checkerboard over the shape's UV square."""
     texture = {
         "type": "checkerboard",
-        "color0": _rgb(color0),
-        "color1": _rgb(color1),
+        "color0": rgb(color0),
+        "color1": rgb(color1),
         "to_uv": mi.ScalarTransform4f().scale([float(scale), float(scale), 1.0]),
     }
     return {"type": "diffuse", "reflectance": texture}
 
 
-def _twosided(bsdf: dict) -> dict:
+def twosided(bsdf: dict) -> dict:
+    """``bsdf`` on both sides of a surface."""
     return {"type": "twosided", "bsdf": bsdf}
 
 
-def _envmap(image: np.ndarray, scale: float = 1.0) -> dict:
+def envmap(image: np.ndarray, scale: float = 1.0) -> dict:
     """An ``envmap`` emitter from an in-memory ``(H, W, 3)`` float32 lat-long image."""
     bitmap = mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32))
     return {"type": "envmap", "bitmap": bitmap, "scale": float(scale)}
 
 
-def _scene(sensor: dict, **objects: dict) -> SceneDict:
+def scene(sensor: dict, **objects: dict) -> SceneDict:
+    """A scene dictionary of ``sensor`` and ``objects`` (no integrator)."""
     return {"type": "scene", "sensor": sensor, **objects}
 
 
 # --------------------------------------------------------------------------------------------
-#  Built-in scenes
+#  Procedural sky
 
 
-def _sky_image(
+def sky_image(
     height: int,
     width: int,
     sun_dir: Vec3,

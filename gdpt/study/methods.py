@@ -26,8 +26,8 @@ Registered methods:
 A method that cannot run here (package not installed, no shipped model) says so through its
 ``check`` function and is skipped with that note. A reconstruction registered in
 :data:`gdpt.methods.METHODS` appears here on its own (as ``gdpt+NAME``, or ``pt+NAME`` when it
-reads no gradients; a deprecated alias of a reconstruction, such as ``ngpt``, gives the
-deprecated alias ``gdpt+ngpt`` of ``gdpt+oidn-grad``); another method (a different sampler) is
+reads no gradients; the deprecated study names, such as ``gdpt+ngpt`` for ``gdpt+oidn-grad``,
+are :data:`gdpt.deprecated.EVAL_METHOD_ALIASES`); another method (a different sampler) is
 ``EVAL_METHODS.register(name, EvalMethod(name, description, f))`` with
 ``f(scene, *, spp, seed) -> MethodResult``; the harness needs no change.
 
@@ -47,6 +47,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
+from gdpt.deprecated import EVAL_METHOD_ALIASES
 from gdpt.methods import METHODS as DENOISERS
 from gdpt.methods import Method, reconstruct_image
 from gdpt.reconstruct.registry import Registry
@@ -208,9 +209,8 @@ def register_denoiser(name: str, method: Method) -> str:
 
 for _name, _method in {"oidn": DENOISERS["oidn"], **DENOISERS}.items():  # pt+oidn next to pt
     register_denoiser(_name, _method)
-for _old, _new in DENOISERS.aliases.items():
-    _sampler = "gdpt" if DENOISERS[_new].gradients else "pt"
-    EVAL_METHODS.alias(f"{_sampler}+{_old}", f"{_sampler}+{_new}")
+for _old, _new in EVAL_METHOD_ALIASES.items():
+    EVAL_METHODS.alias(_old, _new)
 
 
 def auto_route(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:

@@ -16,9 +16,9 @@ from typing import Any
 
 import torch
 
+from gdpt.deprecated import EVAL_METHOD_ALIASES
 from gdpt.io.atomic import atomic_write
 from gdpt.study.config import EvaluateConfig
-from gdpt.study.methods import EVAL_METHODS
 
 RESULTS_FORMAT = "gdpt-evaluate/1"
 
@@ -116,7 +116,7 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
 
 def read_results(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The content of a ``results.json``, with the methods an earlier study recorded under a
-    deprecated name (an alias in :data:`gdpt.study.methods.EVAL_METHODS`, e.g. ``gdpt+ngpt``)
+    deprecated name (:data:`gdpt.deprecated.EVAL_METHOD_ALIASES`, e.g. ``gdpt+ngpt``)
     under their current name (``gdpt+oidn-grad``): in the scenes, ``methods`` and
     ``config.methods``.
 
@@ -126,7 +126,7 @@ def read_results(path: str | os.PathLike[str]) -> dict[str, Any]:
     results = json.loads(Path(path).read_text())
     if results.get("format") != RESULTS_FORMAT:
         raise ValueError(f"{path} is not a gdpt evaluation ({results.get('format')!r})")
-    current = EVAL_METHODS.aliases
+    current = EVAL_METHOD_ALIASES
     for entry in [*results.get("scenes", {}).values(), results]:
         if isinstance(entry.get("methods"), dict):
             entry["methods"] = {current.get(k, k): v for k, v in entry["methods"].items()}

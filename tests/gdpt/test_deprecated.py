@@ -1,5 +1,6 @@
 """The deprecated module ``gdpt.denoise``: it warns on import, names its removal release, and
-re-exports the moved names unchanged."""
+re-exports the moved names unchanged; the study's deprecated method names are the method
+aliases behind their sampler."""
 
 from __future__ import annotations
 
@@ -38,3 +39,14 @@ def test_gdpt_denoise_reexports_the_moved_names():
     assert denoise.MODEL_DIR == checkpoints.MODEL_DIR
     assert denoise.oidn_denoise is oidn.oidn_denoise and denoise.oidn_check is oidn.oidn_check
     assert set(deprecated.METHOD_ALIASES) <= set(methods.METHODS.aliases)
+
+
+def test_study_aliases_are_the_method_aliases_behind_their_sampler():
+    from gdpt.study.methods import EVAL_METHODS
+
+    assert EVAL_METHODS.aliases == deprecated.EVAL_METHOD_ALIASES
+    expected = {}
+    for old, new in deprecated.METHOD_ALIASES.items():
+        sampler = "gdpt" if methods.METHODS[new].gradients else "pt"
+        expected[f"{sampler}+{old}"] = f"{sampler}+{new}"
+    assert deprecated.EVAL_METHOD_ALIASES == expected
