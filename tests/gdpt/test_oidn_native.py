@@ -31,6 +31,7 @@ def cbox_renders(variant) -> list:
     """Two renders of ``builtin:cbox-demo``, 64x64 at 4 spp and 77x53 (not multiples of OIDN's
     16-pixel alignment) at 32 spp, features, no gradients."""
     import mitsuba as mi
+
     from gdpt.scenes.loading import generated_scene
 
     renders = []
