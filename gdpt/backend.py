@@ -27,6 +27,8 @@ from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING
 
+from gdpt.interrupt import interrupts_deferred
+
 if TYPE_CHECKING:
     import torch
 
@@ -113,6 +115,11 @@ def set_variant(name: str | None = None) -> str:
         RuntimeError: the requested backend, or no backend at all, is available, or
             ``cuda_ad_rgb`` is requested and torch has no CUDA.
     """
+    with interrupts_deferred():  # a Ctrl-C inside Mitsuba's module set-up would abort
+        return _set_variant(name)
+
+
+def _set_variant(name: str | None) -> str:
     source = "set_variant()"
     if name is None and os.environ.get(ENV_VARIANT):
         name, source = os.environ[ENV_VARIANT], f"${ENV_VARIANT}"
@@ -135,7 +142,7 @@ def set_variant(name: str | None = None) -> str:
         if has_cuda and has_llvm and not _torch_has_cuda():
             warnings.warn(
                 f"gdpt uses llvm_ad_rgb (CPU): Dr.Jit has a CUDA device but {_TORCH_CPU}",
-                stacklevel=2,
+                stacklevel=3,
             )
             name = "llvm_ad_rgb"
     elif name.startswith("cuda_") and not has_cuda:
@@ -177,12 +184,13 @@ def ensure_variant() -> str:
     Returns:
         The active variant name.
     """
-    import mitsuba as mi
+    with interrupts_deferred():  # a Ctrl-C inside Mitsuba's module set-up would abort
+        import mitsuba as mi
 
-    if mi.variant() is None:
-        return set_variant()
-    _register_plugins()
-    return mi.variant()
+        if mi.variant() is None:
+            return _set_variant(None)
+        _register_plugins()
+        return mi.variant()
 
 
 def torch_device() -> torch.device:

@@ -14,7 +14,10 @@ so ``gdpt --help`` and the light commands stay fast. Options of typed configurat
 
 User errors (missing or malformed input, refusing to overwrite, invalid options) print one line
 ``gdpt <command>: error: <message>`` to stderr and exit with status 2, without a traceback.
-Set ``GDPT_DEBUG=1`` to get the traceback instead. gdpt's own ``DeprecationWarning`` (a
+Set ``GDPT_DEBUG=1`` to get the traceback instead. A Ctrl-C (``SIGINT``), wherever it lands
+(also inside a Dr.Jit frozen function, which wraps it in a ``RuntimeError``), prints one line
+``gdpt <command>: <what was kept, how to resume>`` (:attr:`Command.interrupted`) and exits
+with status 130. gdpt's own ``DeprecationWarning`` (a
 method's former name, ``GDPT_NGPT_MODEL``) is printed to stderr, once per place.
 """
 
@@ -28,6 +31,7 @@ from collections.abc import Callable, Sequence
 
 from gdpt.cli import render, study, training
 from gdpt.cli.command import Command, UsageError
+from gdpt.interrupt import caused_by_interrupt
 from gdpt.version import __version__
 
 #: Exceptions reported as one-line user errors with exit status 2.
@@ -86,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     for command in COMMANDS:
         sub = subparsers.add_parser(command.name, help=command.help, description=command.help)
         sub.add_arguments = command.add_arguments
-        sub.set_defaults(run=command.run)
+        sub.set_defaults(run=command.run, interrupted=command.interrupted)
     return parser
 
 
@@ -102,18 +106,34 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     with warnings.catch_warnings():
         warnings.filterwarnings("default", category=DeprecationWarning, module=r"gdpt(\.|$)")
-        args = build_parser().parse_args(argv)
+        parser = build_parser()
+        args = None
         try:
+            args = parser.parse_args(argv)  # (imports the command's modules)
             return args.run(args)
-        except _USER_ERRORS as error:
-            if os.environ.get("GDPT_DEBUG"):
+        except BaseException as error:
+            debug = os.environ.get("GDPT_DEBUG")
+            if caused_by_interrupt(error) and not debug:
+                if args is None:
+                    print("gdpt: interrupted", file=sys.stderr)
+                else:
+                    print(f"gdpt {args.command}: {_interrupted(args)}", file=sys.stderr)
+                return 130
+            if not isinstance(error, _USER_ERRORS) or debug:
                 raise
             message = " ".join(str(error).split())  # one line, whatever the exception text
             print(f"gdpt {args.command}: error: {message}", file=sys.stderr)
             return 2
-        except KeyboardInterrupt:
-            print(f"gdpt {args.command}: interrupted", file=sys.stderr)
-            return 130
+
+
+def _interrupted(args: argparse.Namespace) -> str:
+    """The command's line after a Ctrl-C; plain "interrupted" if it has none or it fails."""
+    if args.interrupted is None:
+        return "interrupted"
+    try:
+        return args.interrupted(args)
+    except Exception:  # the state on disk could not be read: say only what happened
+        return "interrupted"
 
 
 if __name__ == "__main__":

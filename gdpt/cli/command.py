@@ -21,12 +21,15 @@ class Command:
         help: one-line description shown by ``gdpt --help``.
         add_arguments: adds the subcommand's arguments to its sub-parser.
         run: executes the subcommand with the parsed arguments; returns the exit status.
+        interrupted: after a Ctrl-C, one line from the parsed arguments saying what was kept
+            and how to resume (``None``: "interrupted").
     """
 
     name: str
     help: str
     add_arguments: Callable[[argparse.ArgumentParser], None]
     run: Callable[[argparse.Namespace], int]
+    interrupted: Callable[[argparse.Namespace], str] | None = None
 
 
 def add_model_option(parser: argparse.ArgumentParser, text: str) -> None:

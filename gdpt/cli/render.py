@@ -207,6 +207,10 @@ def _run_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _written_at_the_end(args: argparse.Namespace) -> str:
+    return f"interrupted; nothing written ({args.output} is written at the end)"
+
+
 # -------------------------------------------------------------------------- render-and-denoise
 def _add_render_and_denoise_arguments(parser: argparse.ArgumentParser) -> None:
     _add_scene_arguments(parser)
@@ -299,12 +303,20 @@ COMMANDS: tuple[Command, ...] = (
         "reconstruct an image from primal + gradient buffers",
         _add_reconstruct_arguments,
         _run_reconstruct,
+        _written_at_the_end,
     ),
-    Command("render", "render gradient-domain buffers to EXR", _add_render_arguments, _run_render),
+    Command(
+        "render",
+        "render gradient-domain buffers to EXR",
+        _add_render_arguments,
+        _run_render,
+        _written_at_the_end,
+    ),
     Command(
         "render-and-denoise",
         "render and reconstruct in one go: image EXR + PNG preview (gdpt.render_and_denoise)",
         _add_render_and_denoise_arguments,
         _run_render_and_denoise,
+        _written_at_the_end,
     ),
 )

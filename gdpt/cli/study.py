@@ -176,6 +176,21 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluate_interrupted(args: argparse.Namespace) -> str:
+    if args.references_only:
+        cache = args.references or args.out / "references"
+        return f"interrupted; finished reference chunks are kept in {cache}; " + _AGAIN
+    from gdpt.study.results import cells_done, read_results
+
+    path = args.out / "results.json"
+    done = cells_done(read_results(path)) if path.is_file() else 0
+    return f"interrupted with {done} cells done in {path}; " + _AGAIN
+
+
+#: How an interrupted study continues.
+_AGAIN = "run the same command to resume"
+
+
 #: The study commands, in the order ``gdpt --help`` lists them.
 COMMANDS: tuple[Command, ...] = (
     Command(
@@ -186,5 +201,6 @@ COMMANDS: tuple[Command, ...] = (
         "equal-time study: error vs measured time of every method on a scene set",
         _add_evaluate_arguments,
         _run_evaluate,
+        _evaluate_interrupted,
     ),
 )

@@ -55,6 +55,17 @@ def _run_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
+def _dataset_interrupted(args: argparse.Namespace) -> str:
+    from gdpt.training.manifest import read_manifest
+
+    records, _ = read_manifest(args.out)
+    done = sum(r["scene"] < args.scenes and r["view"] < args.views for r in records)
+    return (
+        f"interrupted after {done} of {args.scenes * args.views} crops; "
+        "run the same command to resume"
+    )
+
+
 # -------------------------------------------------------------------------------------- train
 def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
     from gdpt.reconstruct.families import FAMILIES
@@ -79,6 +90,15 @@ def _run_train(args: argparse.Namespace) -> int:
     if int(os.environ.get("RANK", "0")) == 0:
         print(f"wrote {path}")
     return 0
+
+
+def _train_interrupted(args: argparse.Namespace) -> str:
+    from gdpt.training.run_dir import complete_checkpoints
+
+    found = complete_checkpoints(Path(args.out))
+    kept = f"step {found[0][0]} is kept in {found[0][1]}.*" if found else "no checkpoint yet"
+    again = "the same command" if args.resume else "the same command with --resume"
+    return f"interrupted; {kept}; run {again} to continue"
 
 
 # ------------------------------------------------------------------------------- model-report
@@ -213,12 +233,14 @@ COMMANDS: tuple[Command, ...] = (
         "render training crops for the networks (resumable, parallel, Ray)",
         _add_dataset_arguments,
         _run_dataset,
+        _dataset_interrupted,
     ),
     Command(
         "train",
         "train a reconstruction network on a dataset (torchrun-ready)",
         _add_train_arguments,
         _run_train,
+        _train_interrupted,
     ),
     Command(
         "select-refinement",

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -50,6 +51,7 @@ from typing import Any
 
 import torch
 
+from gdpt.interrupt import caused_by_interrupt
 from gdpt.statistics import mean_interval
 from gdpt.study.calibration import calibrate, run_at_budget, timed_run
 from gdpt.study.config import PRESETS, EvaluateConfig
@@ -59,6 +61,7 @@ from gdpt.study.results import (
     CONVENTIONS,
     budget_key,
     cell_seed,
+    cells_done,
     finite,
     load_results,
     machine_info,
@@ -158,7 +161,8 @@ def evaluate(
         command: the command line that started the run (recorded in the results).
 
     Returns:
-        The content of ``results.json``.
+        The content of ``results.json``. A resumed study says on stderr how many of its cells
+        were done.
 
     Raises:
         ValueError: unknown methods or metrics, or ``out_dir`` holds an incompatible study.
@@ -206,6 +210,9 @@ def evaluate(
     cache = Path(cfg.reference_dir) if cfg.reference_dir else out / "references"
 
     total = len(specs) * len(methods) * len(cfg.budgets)
+    done = cells_done(results, [s.name for s in specs], methods, cfg.budgets)
+    if done:  # to stderr, as the progress bar
+        print(f"{results_path}: resuming: {done} of {total} cells done", file=sys.stderr)
     bar = tqdm(total=total, unit="cell", desc="evaluate", disable=not progress, dynamic_ncols=True)
     history_flag = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
@@ -262,6 +269,8 @@ def render_references(
             _, meta = _study_reference(scene, spec, cfg, Path(cache_dir), bar)
             done[spec.name] = meta["path"]
         except Exception as err:  # reported, the other scenes still run
+            if caused_by_interrupt(err):  # Ctrl-C inside a Dr.Jit frozen function
+                raise
             done[spec.name] = f"failed: {type(err).__name__}: {err}"
     return done
 
@@ -313,6 +322,8 @@ def _evaluate_scene(
         stage = "reference"
         reference, ref_meta = _study_reference(scene, spec, cfg, cache, bar)
     except Exception as err:  # a broken scene is a result, not the end of the study
+        if caused_by_interrupt(err):  # Ctrl-C inside a Dr.Jit frozen function
+            raise
         entry.update(status="failed", stage=stage, error=f"{type(err).__name__}: {err}")
         entry.pop("reference", None)
         write_json(results_path, results)
@@ -420,6 +431,8 @@ def _evaluate_method(
         except MethodUnavailable as err:
             reason = str(err)
         except Exception as err:  # e.g. a model that fails to load, an unsupported plugin
+            if caused_by_interrupt(err):  # Ctrl-C inside a Dr.Jit frozen function
+                raise
             reason = f"could not run: {type(err).__name__}: {' '.join(str(err).split())}"
             error = err
     if model is None:
@@ -436,6 +449,8 @@ def _evaluate_method(
         try:
             result, record, replicates = _run_replicates(method, scene, model, budget, cfg)
         except Exception as err:  # e.g. out of memory at a large spp: report, retry on resume
+            if caused_by_interrupt(err):  # Ctrl-C inside a Dr.Jit frozen function
+                raise
             info.setdefault("errors", {})[key] = f"{type(err).__name__}: {err}"
             write_json(results_path, results)
             bar.update(1)

@@ -10,6 +10,7 @@ import os
 import platform
 import sys
 import zlib
+from collections.abc import Sequence
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import Any
@@ -103,6 +104,25 @@ def replicate_seed(base: int, scene: str, budget: str, replicate: int) -> int:
 
 def budget_key(budget: float) -> str:
     return f"{budget:g}"
+
+
+def cells_done(
+    results: dict[str, Any],
+    scenes: Sequence[str] | None = None,
+    methods: Sequence[str] | None = None,
+    budgets: Sequence[float] | None = None,
+) -> int:
+    """Number of finished cells in ``results``, among the given scenes, methods and budgets
+    (``None``: all of them)."""
+    return sum(
+        1
+        for scene, entry in results.get("scenes", {}).items()
+        if scenes is None or scene in scenes
+        for method, info in entry.get("methods", {}).items()
+        if methods is None or method in methods
+        for key in info.get("cells", {})
+        if budgets is None or key in {budget_key(b) for b in budgets}
+    )
 
 
 def finite(value: float) -> float | None:

@@ -23,10 +23,11 @@ re-rendered identically. The files, and why a crash never corrupts them, are
 :mod:`gdpt.training.manifest`'s; re-running the same command skips the crops listed in the
 manifest, so a crash or kill loses at most the crops in flight.
 
-Parallelism: ``workers`` local processes (``spawn`` context; each sets the Mitsuba variant and
-uses ``cpu_count // workers`` Dr.Jit threads), or Ray tasks (one per crop) when a Ray address is
-given; results are written by the workers to ``DIR`` (shared storage on a cluster) and the
-manifest is appended by the driver only. :mod:`gdpt.training.dataset` reads the crops back.
+Parallelism: ``workers`` local processes (``spawn`` context; each sets the Mitsuba variant,
+uses ``cpu_count // workers`` Dr.Jit threads and ends with the driver, even a killed one), or
+Ray tasks (one per crop) when a Ray address is given; results are written by the workers to
+``DIR`` (shared storage on a cluster) and the manifest is appended by the driver only.
+:mod:`gdpt.training.dataset` reads the crops back.
 
 :mod:`gdpt.scenes` imports Mitsuba, so it is imported inside the functions that use it: a worker
 imports this module before it sets the variant, and Dr.Jit must locate libLLVM first
@@ -35,11 +36,14 @@ imports this module before it sets the variant, and Dr.Jit must locate libLLVM f
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import json
 import math
 import multiprocessing
 import os
+import signal
+import sys
 import time
 import warnings
 from collections.abc import Iterator
@@ -78,6 +82,9 @@ TARGET_KINDS = ("l1", "pt")
 
 #: Salt separating the render-seed stream of a crop from the scene-seed stream.
 _CROP_SALT = 0xC409
+
+#: ``prctl`` option: the signal a process receives when its parent dies (``<linux/prctl.h>``).
+_PR_SET_PDEATHSIG = 1
 
 
 # --------------------------------------------------------------------------------- configuration
@@ -346,8 +353,26 @@ def _check_config(root: Path, content: dict[str, Any]) -> None:
     atomic_write(path, json.dumps({"format": DATASET_FORMAT, "config": content}, indent=2) + "\n")
 
 
-def _init_worker(variant: str | None, threads: int) -> None:
-    """Worker-process set-up: Mitsuba variant and Dr.Jit thread count."""
+def _stop_with_parent(parent: int) -> None:
+    """Make this worker process end when process ``parent`` does, however it ends.
+
+    Ctrl-C is left to the parent (it ends the pool); on Linux the kernel sends ``SIGKILL``
+    when the parent dies (``prctl(PR_SET_PDEATHSIG)``, also after a ``SIGKILL`` of the parent),
+    so no orphan keeps rendering.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(1)
+
+
+def _init_worker(variant: str | None, threads: int, parent: int | None = None) -> None:
+    """Worker-process set-up: stop with process ``parent`` (if given), Mitsuba variant and
+    Dr.Jit thread count."""
+    if parent is not None:
+        _stop_with_parent(parent)
     set_variant(variant)
     import drjit as dr  # (after set_variant: libLLVM located first)
 
@@ -376,7 +401,8 @@ def _run_local(
         return
     threads = max(1, (os.cpu_count() or 1) // workers)
     context = multiprocessing.get_context("spawn")
-    with context.Pool(workers, initializer=_init_worker, initargs=(variant, threads)) as pool:
+    initargs = (variant, threads, os.getpid())
+    with context.Pool(workers, initializer=_init_worker, initargs=initargs) as pool:
         tasks = [(plan, str(root), content, variant) for plan in plans]
         yield from pool.imap_unordered(_render_task, tasks)
 
@@ -459,7 +485,8 @@ def build_dataset(
         progress: show a progress bar with ETA (tqdm).
 
     Returns:
-        Counts and timing of this call.
+        Counts and timing of this call. A resumed build says on stderr how many crops were
+        done.
 
     Raises:
         ValueError: ``out`` holds a dataset with other content settings, or ``workers < 1``.
@@ -484,6 +511,8 @@ def build_dataset(
     ids = [(s, v) for s in range(config.scenes) for v in range(config.views)]
     plans = [plan_crop(config, s, v) for s, v in ids if crop_id(s, v) not in done]
     skipped = len(ids) - len(plans)
+    if skipped and plans:
+        print(f"{root}: resuming: {skipped} of {len(ids)} crops done", file=sys.stderr, flush=True)
     if ray_address is None:
         results = _run_local(plans, root, content, variant, workers)
     else:

@@ -1,0 +1,64 @@
+"""Ctrl-C (``SIGINT``) where native code is involved: recognising it when it reaches Python
+wrapped in another exception, and holding it while native modules initialise.
+
+A ``KeyboardInterrupt`` raised inside a function that Dr.Jit records (``dr.freeze``) comes out
+as a ``RuntimeError`` ("error encountered while recording a frozen function") whose
+``__cause__`` is the interrupt; code that catches ``Exception`` to record a failure must let
+such an error through (:func:`caused_by_interrupt`). A ``KeyboardInterrupt`` raised while
+Mitsuba's nanobind modules initialise (``import mitsuba``, ``mi.set_variant``) aborts the
+process (``std::terminate``, or a fatal error at interpreter exit); :func:`interrupts_deferred`
+holds it until the block ends.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+
+def caused_by_interrupt(error: BaseException) -> bool:
+    """Whether ``error`` is a ``KeyboardInterrupt`` or has one in its chain.
+
+    Args:
+        error: any exception; its ``__cause__`` and ``__context__`` links are followed.
+
+    Returns:
+        ``True`` if ``error`` or an exception it was raised from (or during) is a
+        ``KeyboardInterrupt``.
+    """
+    seen: set[int] = set()
+    pending: list[BaseException] = [error]
+    while pending:
+        current = pending.pop()
+        if id(current) in seen:
+            continue
+        seen.add(id(current))
+        if isinstance(current, KeyboardInterrupt):
+            return True
+        pending += [e for e in (current.__cause__, current.__context__) if e is not None]
+    return False
+
+
+@contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Hold a Ctrl-C received inside the block; raise it as ``KeyboardInterrupt`` at the end.
+
+    Only the main thread receives signals: in another thread the block runs unchanged. A
+    ``SIGINT`` handler other than Python's default one is left alone.
+    """
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+    ):
+        yield
+        return
+    received: list[int] = []
+    signal.signal(signal.SIGINT, lambda number, frame: received.append(number))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if received:
+        raise KeyboardInterrupt
