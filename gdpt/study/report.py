@@ -24,7 +24,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-__all__ = ["METRIC_LABELS", "best_methods", "write_report"]
+__all__ = ["METRIC_LABELS", "best_methods", "plot_scene", "write_report"]
 
 #: Short column labels of the metrics.
 METRIC_LABELS = {
@@ -289,8 +289,20 @@ def _html(results: dict[str, Any], plots: dict[str, str], crops: dict[str, str])
 
 
 # ----------------------------------------------------------------------------------- figures
-def _plot(results: dict[str, Any], scene: str, entry: dict[str, Any], path: Path) -> bool:
-    """Error versus achieved time, log-log, one line per method, one panel per metric."""
+def plot_scene(results: dict[str, Any], scene: str, entry: dict[str, Any], path: Path) -> bool:
+    """Error versus achieved time, log-log, one line per method, one panel per metric.
+
+    Args:
+        results: a ``results.json`` content; its ``config`` (``metrics``, ``budgets``,
+            ``protocol``) is read.
+        scene: the scene's name (the title).
+        entry: ``results["scenes"][scene]``: ``resolution`` and per method its ``cells``
+            (``seconds`` or ``charged_seconds``, ``metrics``).
+        path: the PNG to write.
+
+    Returns:
+        Whether a plot was written (``False``: no cell or no plotted metric).
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -428,7 +440,7 @@ def write_report(results: dict[str, Any], out: str | os.PathLike[str]) -> list[P
     for scene, entry in _scenes(results):
         if entry.get("status") != "ok":
             continue
-        if _plot(results, scene, entry, out / "plots" / f"{scene}.png"):
+        if plot_scene(results, scene, entry, out / "plots" / f"{scene}.png"):
             plots[scene] = f"plots/{scene}.png"
         if _crops(results, scene, entry, out, out / "crops" / f"{scene}.png"):
             crops[scene] = f"crops/{scene}.png"
