@@ -89,3 +89,30 @@ def test_readme_quick_start_commands_run(tmp_path):
             env={**os.environ, "OMP_NUM_THREADS": "1"},
         )
         assert result.returncode == 0, f"{command}: {result.stderr[-2000:]}"
+
+
+def _markdown_table(text: str) -> dict[str, dict[str, str]]:
+    """The first markdown table in ``text``: first cell -> {column header: cell}."""
+    lines = re.search(r"^\|.*?(?=^[^|]|\Z)", text, re.M | re.S).group(0).splitlines()
+    split = [[cell.strip() for cell in line.strip().strip("|").split("|")] for line in lines]
+    head, rows = split[0], split[2:]
+    return {row[0]: dict(zip(head, row, strict=True)) for row in rows}
+
+
+def test_readme_costs_are_the_cost_tables():
+    """The README's methods table copies its cost columns from ``docs/cost-table.md``
+    (``benchmarks/cost_table.py``): one run, one machine, one condition."""
+    text = README.read_text()
+    methods = _markdown_table(text.split("<!-- methods-table:", 1)[1].split("-->", 1)[1])
+    costs = _markdown_table((ROOT / "docs" / "cost-table.md").read_text())
+    columns = [h for h in next(iter(methods.values())) if h.startswith(("render", "reconstruct"))]
+    shared = [h for h in columns if h in next(iter(costs.values()))]
+    assert len(shared) >= 2 and shared == columns, (columns, shared)
+    differ = [
+        f"{method} {column}: README {row[column]!r}, cost table "
+        f"{costs.get(method, {}).get(column)!r}"
+        for method, row in methods.items()
+        for column in shared
+        if costs.get(method, {}).get(column) != row[column]
+    ]
+    assert not differ, differ
