@@ -240,52 +240,58 @@ def training_loop(
                 plan.net, device_ids=[device.index] if device.type == "cuda" else None
             )
         last_val: dict[str, float] = {}
-        bar = tqdm(total=config.steps, initial=start, unit="step", desc=desc,
-                   disable=not progress or rank != 0, dynamic_ncols=True)  # fmt: skip
-        for step in range(start, config.steps):
-            t0 = time.perf_counter()
-            torch.manual_seed(step_seed(config.seed, step, rank) ^ 1)
-            lr = learning_rate(step, config)
-            loss, updated = update(
-                plan.net, optimizer, lambda s=step: plan.loss(forward, s), lr, plan.update_scale
-            )
-            if world > 1:
-                total = torch.tensor([loss], dtype=torch.float64)
-                dist.all_reduce(total)
-                loss = float(total) / world
-            seconds = time.perf_counter() - t0
-            elapsed += seconds
-            done = step + 1
-            final = done == config.steps
-            validating = bool(config.val_every) and (done % config.val_every == 0 or final)
-            saving = done % config.ckpt_every == 0 or final
-            if rank == 0:
-                record = {"step": done, "loss": loss, "lr": lr, "time": round(elapsed, 3),
-                          "step_seconds": round(seconds, 4)}  # fmt: skip
-                append_jsonl(run / "log.jsonl", record | ({} if updated else {"skipped": True}))
-                bar.update(1)
-                bar.set_postfix(loss=f"{loss:.4g}", lr=f"{lr:.2e}")
-                if validating:
-                    last_val = plan.validate()
-                    append_jsonl(
-                        run / "val.jsonl", {"step": done, "time": round(elapsed, 3), **last_val}
-                    )
-                card = {**plan.card, "steps": done, "train_seconds": round(elapsed, 1),
-                        "validation": last_val}  # fmt: skip
-                if saving:
-                    base = checkpoint_base(run, done)
-                    plan.save(base, card)  # the network first: a .pt marks a complete checkpoint
-                    state = {"step": done, "elapsed": elapsed, "world_size": world,
-                             "model": plan.net.state_dict(),
-                             "optimizer": optimizer.state_dict()}  # fmt: skip
-                    with atomic_path(base.with_suffix(".pt")) as tmp:
-                        torch.save(state, tmp)
-                    prune_checkpoints(run, config.keep_checkpoints)
-                if final:
-                    plan.save(run / "model", card)
-            if world > 1 and (saving or validating):
-                dist.barrier()
-        bar.close()
+        bar = tqdm(
+            total=config.steps,
+            initial=start,
+            unit="step",
+            desc=desc,
+            disable=not progress or rank != 0,
+            dynamic_ncols=True,
+        )
+        with bar:  # closed before an interrupted command's last line
+            for step in range(start, config.steps):
+                t0 = time.perf_counter()
+                torch.manual_seed(step_seed(config.seed, step, rank) ^ 1)
+                lr = learning_rate(step, config)
+                loss, updated = update(
+                    plan.net, optimizer, lambda s=step: plan.loss(forward, s), lr, plan.update_scale
+                )
+                if world > 1:
+                    total = torch.tensor([loss], dtype=torch.float64)
+                    dist.all_reduce(total)
+                    loss = float(total) / world
+                seconds = time.perf_counter() - t0
+                elapsed += seconds
+                done = step + 1
+                final = done == config.steps
+                validating = bool(config.val_every) and (done % config.val_every == 0 or final)
+                saving = done % config.ckpt_every == 0 or final
+                if rank == 0:
+                    record = {"step": done, "loss": loss, "lr": lr, "time": round(elapsed, 3),
+                              "step_seconds": round(seconds, 4)}  # fmt: skip
+                    append_jsonl(run / "log.jsonl", record | ({} if updated else {"skipped": True}))
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{loss:.4g}", lr=f"{lr:.2e}")
+                    if validating:
+                        last_val = plan.validate()
+                        append_jsonl(
+                            run / "val.jsonl", {"step": done, "time": round(elapsed, 3), **last_val}
+                        )
+                    card = {**plan.card, "steps": done, "train_seconds": round(elapsed, 1),
+                            "validation": last_val}  # fmt: skip
+                    if saving:
+                        base = checkpoint_base(run, done)
+                        plan.save(base, card)  # the network first: a .pt marks it complete
+                        state = {"step": done, "elapsed": elapsed, "world_size": world,
+                                 "model": plan.net.state_dict(),
+                                 "optimizer": optimizer.state_dict()}  # fmt: skip
+                        with atomic_path(base.with_suffix(".pt")) as tmp:
+                            torch.save(state, tmp)
+                        prune_checkpoints(run, config.keep_checkpoints)
+                    if final:
+                        plan.save(run / "model", card)
+                if world > 1 and (saving or validating):
+                    dist.barrier()
         return run / "model.safetensors"
     finally:
         if owns_group:
