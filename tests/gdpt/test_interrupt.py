@@ -18,7 +18,7 @@ import pytest
 import gdpt.rendering
 import gdpt.training.train
 from gdpt.cli import main
-from gdpt.interrupt import caused_by_interrupt
+from gdpt.interrupt import caused_by_interrupt, interrupts_deferred
 from gdpt.study.results import cells_done
 from gdpt.training.manifest import read_manifest
 
@@ -86,6 +86,16 @@ def test_a_keyboard_interrupt_is_found_in_an_exception_chain():
         assert caused_by_interrupt(context)  # __context__ is kept, only not shown
     assert caused_by_interrupt(KeyboardInterrupt())
     assert not caused_by_interrupt(RuntimeError("out of memory"))
+
+
+def test_a_ctrl_c_inside_a_deferred_block_is_raised_at_its_end():
+    finished = []
+    with pytest.raises(KeyboardInterrupt), interrupts_deferred():
+        os.kill(os.getpid(), signal.SIGINT)  # (as Mitsuba's module set-up would receive it)
+        time.sleep(0.05)
+        finished.append(True)
+    assert finished == [True]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 def test_ctrl_c_inside_a_dataset_render_says_what_was_kept_and_the_same_command_resumes(
