@@ -33,7 +33,8 @@ Solvers (:mod:`.solvers`):
   ``"l1-fast"``).
 
 The energies are in :mod:`.energy`, input checks and the internal layout in :mod:`.problem`,
-the backward pass in :mod:`.adjoint`.
+the preconditioners in :mod:`.precond` (the multigrid V-cycle in :mod:`.multigrid`), the
+backward pass in :mod:`.adjoint`.
 
 Layout, dtype, device: images are ``(..., H, W, C)`` tensors (the project's HWC layout, any
 leading batch dimensions, any channel count) or ``(H, W)`` single-channel images. All inputs must
@@ -64,10 +65,11 @@ Only ``torch`` and ``numpy`` are imported here (layering rule of ``gdpt.reconstr
 """
 
 from .adjoint import ADJOINT_MAX_ITER
-from .cg import Precondition, default_tol
+from .cg import default_tol
 from .dct import dct2, idct2
 from .energy import l1_energy, l2_energy
 from .l1 import L1_PRESETS, L1Preset, get_l1_preset
+from .precond import Precondition
 from .problem import DEFAULT_ALPHA, MISSING_PRIMAL_WEIGHT, NonFiniteInputWarning, SolveInfo
 from .solvers import SOLVERS, solve, solve_l1, solve_l2, solve_weighted_cg
 

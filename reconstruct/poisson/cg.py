@@ -3,7 +3,6 @@
 
 :class:`Operator` applies ``A = alpha^2 Wp + Dx^T Wx Dx + Dy^T Wy Dy`` as a 5-point stencil,
 :func:`rhs` builds ``P^T W b``, :func:`pcg` runs CG per ``(B, C)`` system,
-:func:`make_precond` builds the ``"none"``, ``"jacobi"`` or ``"dct"`` preconditioner and
 :func:`l2_exact` solves the unweighted problem (DCT closed form, or DCT-preconditioned CG when
 constraints are missing). Everything works on the internal ``(B, C, H, W)`` layout of
 :class:`~.problem.Problem`.
@@ -14,7 +13,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
 
 import torch
 
@@ -59,26 +57,34 @@ class Operator:
 
     def __init__(self, prob: Problem, w: Weights) -> None:
         self.w = w
-        self.diag = _diag_a(prob, w)
+        self.diag = diag_of(prob.alpha**2, w, prob.p[:, :1])
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        out = x * self.diag
-        wx, wy = self.w.x, self.w.y
-        if x.shape[-1] > 1:
-            if wx is None:
-                out[..., :-1].sub_(x[..., 1:])
-                out[..., 1:].sub_(x[..., :-1])
-            else:
-                out[..., :-1].addcmul_(wx, x[..., 1:], value=-1.0)
-                out[..., 1:].addcmul_(wx, x[..., :-1], value=-1.0)
-        if x.shape[-2] > 1:
-            if wy is None:
-                out[..., :-1, :].sub_(x[..., 1:, :])
-                out[..., 1:, :].sub_(x[..., :-1, :])
-            else:
-                out[..., :-1, :].addcmul_(wy, x[..., 1:, :], value=-1.0)
-                out[..., 1:, :].addcmul_(wy, x[..., :-1, :], value=-1.0)
-        return out
+        return apply_stencil(self.diag, self.w.x, self.w.y, x)
+
+
+def apply_stencil(
+    diag: torch.Tensor, wx: torch.Tensor | None, wy: torch.Tensor | None, x: torch.Tensor
+) -> torch.Tensor:
+    """``diag * x - (off-diagonal couplings wx, wy)``: the product of a 5-point stencil whose
+    off-diagonal entries are ``-wx`` (horizontal, ``(B, 1|C, H, W-1)``) and ``-wy`` (vertical,
+    ``(B, 1|C, H-1, W)``), ``None`` meaning all ones; ``x`` is ``(B, C, H, W)``."""
+    out = x * diag
+    if x.shape[-1] > 1:
+        if wx is None:
+            out[..., :-1].sub_(x[..., 1:])
+            out[..., 1:].sub_(x[..., :-1])
+        else:
+            out[..., :-1].addcmul_(wx, x[..., 1:], value=-1.0)
+            out[..., 1:].addcmul_(wx, x[..., :-1], value=-1.0)
+    if x.shape[-2] > 1:
+        if wy is None:
+            out[..., :-1, :].sub_(x[..., 1:, :])
+            out[..., 1:, :].sub_(x[..., :-1, :])
+        else:
+            out[..., :-1, :].addcmul_(wy, x[..., 1:, :], value=-1.0)
+            out[..., 1:, :].addcmul_(wy, x[..., :-1, :], value=-1.0)
+    return out
 
 
 def rhs(prob: Problem, w: Weights) -> torch.Tensor:
@@ -106,7 +112,8 @@ def default_tol(dtype: torch.dtype) -> float:
 
 def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Per-system inner products over ``(H, W)``: ``(B, C, 1, 1)``."""
-    return torch.linalg.vecdot(a.flatten(2), b.flatten(2)).unsqueeze(-1).unsqueeze(-1)
+    # einsum reduces through a batched matrix product: ~2x faster on the CPU than vecdot here.
+    return torch.einsum("bchw,bchw->bc", a, b)[..., None, None]
 
 
 def _safe_div(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
@@ -160,19 +167,24 @@ def pcg(
         x.addcmul_(step, p)
         r.addcmul_(step, ap, value=-1.0)
         it += 1
-        z = precond(r) if precond is not None else r
-        rz_new = _dot(r, z)
         if check:
-            rr = _dot(r, r) if precond is not None else rz_new
+            rr = _dot(r, r)
             active &= rr > thresh
             if not bool(active.any()):
                 break
         if it >= max_iter:
             break
+        # The preconditioner is applied only when another iteration follows.
+        if precond is not None:
+            z = precond(r)
+            rz_new = _dot(r, z)
+        else:
+            z = r
+            rz_new = rr if check else _dot(r, r)
         beta = _safe_div(rz_new, rz)
         p = torch.addcmul(z, p, beta, out=p)  # p = z + beta * p, in place
         rz = rz_new
-    if precond is not None or not check:
+    if not check:
         rr = _dot(r, r)
     return x, it, relres(rr)
 
@@ -211,17 +223,12 @@ def l2_exact(
     )
 
 
-Precondition = Literal["none", "jacobi", "dct"]
-PRECONDITIONERS = ("none", "jacobi", "dct")
-
-
-def _diag_a(prob: Problem, w: Weights) -> torch.Tensor:
-    """Diagonal of ``A = alpha^2 Wp + Dx^T Wx Dx + Dy^T Wy Dy``: ``(B, 1|C, H, W)``."""
-    a2 = prob.alpha**2
-    ref = prob.p[:, :1]
+def diag_of(a2: float, w: Weights, ref: torch.Tensor) -> torch.Tensor:
+    """Diagonal of ``A = a2 Wp + Dx^T Wx Dx + Dy^T Wy Dy``: ``(B, 1|C, H, W)``; ``ref`` is a
+    ``(B, 1, H, W)`` tensor giving shape, dtype and device."""
     d = torch.full_like(ref, a2) if w.p is None else (w.p * a2).expand_as(ref).clone()
-    wx = torch.ones_like(prob.gx[:, :1]) if w.x is None else w.x
-    wy = torch.ones_like(prob.gy[:, :1]) if w.y is None else w.y
+    wx = torch.ones_like(ref[..., :-1]) if w.x is None else w.x
+    wy = torch.ones_like(ref[..., :-1, :]) if w.y is None else w.y
     if wx.shape[1] != d.shape[1] or wy.shape[1] != d.shape[1]:
         c = max(wx.shape[1], wy.shape[1], d.shape[1])
         d = d.expand(-1, c, -1, -1).clone()
@@ -232,24 +239,3 @@ def _diag_a(prob: Problem, w: Weights) -> torch.Tensor:
         d[..., :-1, :] += wy
         d[..., 1:, :] += wy
     return d
-
-
-def make_precond(
-    kind: str, prob: Problem, w: Weights, dct: LaplaceDCT, op: Operator
-) -> Callable[[torch.Tensor], torch.Tensor] | None:
-    if kind == "none":
-        return None
-    if kind == "jacobi":
-        # Positive: the diagonal has alpha^2 * Wp > 0 (missing primals keep a tiny weight) unless
-        # a caller passes zero primal weights; guard so the preconditioner stays finite.
-        inv = op.diag.clamp_min(torch.finfo(prob.p.dtype).tiny).reciprocal()
-        return lambda r: r * inv
-    if kind == "dct":
-        a2 = prob.alpha**2
-        cp = w.p.mean(dim=(2, 3), keepdim=True) * a2 if w.p is not None else a2
-        mx = w.x.mean(dim=(2, 3), keepdim=True) if w.x is not None and w.x.numel() else 1.0
-        my = w.y.mean(dim=(2, 3), keepdim=True) if w.y is not None and w.y.numel() else 1.0
-        cg = 0.5 * (mx + my)
-        return lambda r: dct.solve(r, cp, cg)
-    valid = ", ".join(repr(k) for k in PRECONDITIONERS)
-    raise ValueError(f"unknown preconditioner {kind!r}; valid: {valid}")

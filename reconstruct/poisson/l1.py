@@ -10,18 +10,16 @@ from dataclasses import dataclass
 import torch
 
 from .cg import (
-    PRECONDITIONERS,
     Operator,
-    Precondition,
     Weights,
     l2_exact,
-    make_precond,
     mask_weights,
     pcg,
     rhs,
 )
 from .dct import LaplaceDCT
 from .energy import channel_norm, residuals
+from .precond import PRECONDITIONERS, Precondition, make_precond
 from .problem import MISSING_PRIMAL_WEIGHT, Problem, ProgressFn
 
 
@@ -56,8 +54,9 @@ class L1Preset:
     late_cg_iters: int = 0
     """Iterations per round from ``late_round`` on."""
     precondition: Precondition = "none"
-    """CG preconditioner: ``"none"``, ``"jacobi"`` (diagonal of ``P^T W P``) or ``"dct"``
-    (DCT solve of the Laplacian with mean weights)."""
+    """CG preconditioner: ``"none"``, ``"jacobi"`` (diagonal of ``P^T W P``), ``"dct"``
+    (DCT solve of the Laplacian with mean weights) or ``"multigrid"`` (a V-cycle on
+    ``P^T W P``)."""
     exact_first_round: bool = False
     """Replace the uniform first round by the exact DCT L2 solution."""
     description: str = ""

@@ -12,13 +12,10 @@ import torch
 
 from .adjoint import ADJOINT_MAX_ITER, System, dtypes_of, run_solver
 from .cg import (
-    PRECONDITIONERS,
     Operator,
-    Precondition,
     Weights,
     default_tol,
     l2_exact,
-    make_precond,
     mask_weights,
     pcg,
     relative_residual_of,
@@ -27,6 +24,7 @@ from .cg import (
 from .dct import LaplaceDCT
 from .energy import energy_of
 from .l1 import L1Preset, get_l1_preset, irls
+from .precond import PRECONDITIONERS, Precondition, make_precond
 from .problem import (
     DEFAULT_ALPHA,
     Problem,
@@ -226,7 +224,9 @@ def solve_weighted_cg(
             (default :func:`default_tol` of the compute dtype; 0 runs exactly ``max_iter``
             iterations).
         precondition: ``"jacobi"`` (diagonal), ``"dct"`` (mean-weight Laplacian, exact for
-            uniform weights) or ``"none"`` (plain CG, as the reference solver).
+            uniform weights), ``"multigrid"`` (a V-cycle of aggregation multigrid on the
+            weighted system; fewest iterations for spatially coherent weights) or ``"none"``
+            (plain CG, as the reference solver).
         return_info: Also return a :class:`SolveInfo`.
 
     Returns:
