@@ -1,0 +1,92 @@
+"""``auto`` against ``pt+oidn-tuned`` at equal time: the route it takes and its relMSE ratio.
+
+Runs the equal-time study (:func:`gdpt.study.evaluate.evaluate`; the two methods share the cost
+calibration of the plain route, so they render the same sample counts) and prints, per scene and
+budget, the routes ``auto`` took over the replicates and the geometric mean of the paired
+relMSE ratios ``auto / pt+oidn-tuned`` with its 95% interval (Student t on the log ratios).
+Usage::
+
+    .venv/bin/python benchmarks/auto_route.py --out out/auto-route
+        [--scenes ../shared/scenes/cornell-box ... random:202] [--budgets 2 8] [--seeds 2]
+        [--resolution 128] [--reference-spp 4096]
+
+An interrupted run resumes (``results.json`` in ``--out``); ``--summary-only`` prints the table
+of an earlier run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from gdpt.statistics import mean_interval
+from gdpt.study.config import EvaluateConfig
+from gdpt.study.evaluate import evaluate
+from gdpt.study.results import read_results
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
+DEFAULT_SCENES = [
+    *(str(SHARED / n) for n in ("cornell-box", "sponza", "veach-mis", "living-room-2")),
+    "random:202",
+]
+METHODS = ("pt+oidn-tuned", "auto")
+
+
+def summary(results: dict) -> list[str]:
+    """Markdown table rows: scene, budget, spp of both, routes, ratio and interval."""
+    rows = [
+        "| scene | budget s | spp (pt+oidn-tuned / auto) | auto routes | auto s / pt s "
+        "| relMSE auto / pt+oidn-tuned [95%] |",
+        "|---|---:|---|---|---:|---|",
+    ]
+    for scene, entry in results["scenes"].items():
+        methods = entry.get("methods", {})
+        if not all(m in methods for m in METHODS):
+            continue
+        base, auto = (methods[m]["cells"] for m in METHODS)
+        for key in sorted(set(base) & set(auto), key=float):
+            pairs = [
+                (a["metrics"]["relmse"], b["metrics"]["relmse"], a.get("route", {}))
+                for a, b in zip(auto[key]["replicates"], base[key]["replicates"], strict=False)
+            ]
+            logs = [math.log(a / b) for a, b, _ in pairs if a and b]
+            mean, low, high = mean_interval(logs) if logs else (math.nan,) * 3
+            routes = ", ".join(r.get("route", "?") for _, _, r in pairs)
+            seconds = auto[key]["seconds"] / max(base[key]["seconds"], 1e-9)
+            rows.append(
+                f"| {scene} | {key} | {base[key]['spp']} / {auto[key]['spp']} | {routes} | "
+                f"{seconds:.2f} | {math.exp(mean):.3f} [{math.exp(low):.3f}, "
+                f"{math.exp(high):.3f}] |"
+            )
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("out/auto-route"))
+    parser.add_argument("--scenes", nargs="+", default=DEFAULT_SCENES)
+    parser.add_argument("--budgets", type=float, nargs="+", default=[2.0, 8.0])
+    parser.add_argument("--seeds", type=int, default=2)
+    parser.add_argument("--resolution", type=int, default=128)
+    parser.add_argument("--reference-spp", type=int, default=4096)
+    parser.add_argument("--summary-only", action="store_true")
+    args = parser.parse_args()
+    if not args.summary_only:
+        cfg = EvaluateConfig(
+            budgets=tuple(args.budgets),
+            resolution=args.resolution,
+            reference_spp=args.reference_spp,
+            metrics=("relmse", "smape"),
+            metric_options={},
+            methods=METHODS,
+            seeds=args.seeds,
+            keep_going=True,
+            profile="auto-route",
+        )
+        evaluate(args.scenes, args.out, cfg, progress=False, report=False)
+    print("\n".join(summary(read_results(args.out / "results.json"))))
+
+
+if __name__ == "__main__":
+    main()
