@@ -457,6 +457,24 @@ def _run_replicates(
     return runs[0], record, replicates
 
 
+def _score(
+    replicate: dict[str, Any], image: torch.Tensor, reference: torch.Tensor, cfg: EvaluateConfig
+) -> dict[str, str]:
+    """Set ``replicate["metrics"]`` (``cfg.metrics``) and ``replicate["companions"]`` (the
+    robust companion of each headline metric that has one, :data:`gdpt.metrics.COMPANIONS`)
+    of ``image`` against ``reference``; returns the metrics skipped, with the reason."""
+    from gdpt.metrics import COMPANIONS, compute_metrics
+
+    values = compute_metrics(image, reference, cfg.metrics, options=cfg.metric_options)
+    replicate["metrics"] = {k: finite(v) for k, v in values.values.items()}
+    replicate["companions"] = {
+        name: finite(function(image, reference))
+        for metric, (name, function) in COMPANIONS.items()
+        if metric in values.values
+    }
+    return values.skipped
+
+
 def _interval_too_wide(replicates: list[dict[str, Any]], cfg: EvaluateConfig) -> bool:
     """Whether ``cfg.until_interval`` asks for another replicate: the 95% interval of the
     first metric over ``replicates`` reaches further than that share of its mean (a single
@@ -484,7 +502,6 @@ def _evaluate_method(
     """Calibrate one method on one scene and fill its missing budget cells."""
     from gdpt.io.exr import save_image
     from gdpt.io.images import save_png
-    from gdpt.metrics import compute_metrics
 
     info = entry["methods"].setdefault(method.name, {"cells": {}})
     info.setdefault("cells", {})
@@ -534,36 +551,39 @@ def _evaluate_method(
             continue
         info.get("errors", {}).pop(key, None)
         for replicate in replicates:
-            values = compute_metrics(
-                replicate.pop("result").image, reference, cfg.metrics, options=cfg.metric_options
-            )
-            replicate["metrics"] = {k: finite(v) for k, v in values.values.items()}
-            skipped = values.skipped
+            skipped = _score(replicate, replicate.pop("result").image, reference, cfg)
         while _interval_too_wide(replicates, cfg) and len(replicates) < cfg.max_seeds:
             seed = replicate_seed(cfg.seed, scene.name, key, len(replicates))
             run = timed_run(method, scene, record["spp"], seed)
-            values = compute_metrics(run.image, reference, cfg.metrics, options=cfg.metric_options)
-            replicates.append(
-                {
-                    "seed": seed,
-                    "spp": record["spp"],
-                    "seconds": run.seconds,
-                    "render_seconds": run.render_seconds,
-                    "reconstruct_seconds": run.reconstruct_seconds,
-                    **({"route": run.route} if run.route is not None else {}),
-                    "metrics": {k: finite(v) for k, v in values.values.items()},
-                    "added": "until_interval",
-                }
-            )
+            replicate = {
+                "seed": seed,
+                "spp": record["spp"],
+                "seconds": run.seconds,
+                "render_seconds": run.render_seconds,
+                "reconstruct_seconds": run.reconstruct_seconds,
+                **({"route": run.route} if run.route is not None else {}),
+                "added": "until_interval",
+            }
+            _score(replicate, run.image, reference, cfg)
+            replicates.append(replicate)
         summary = {
             k: mean_interval([r["metrics"][k] for r in replicates])
             for k in replicates[0]["metrics"]
             if all(r["metrics"][k] is not None for r in replicates)
         }
+        companions = {
+            k: mean_interval([r["companions"][k] for r in replicates])
+            for k in replicates[0].get("companions", {})
+            if all(r["companions"][k] is not None for r in replicates)
+        }
         record.update(
             budget=budget,
             metrics={k: finite(v[0]) for k, v in summary.items()},
             interval={k: [finite(v[1]), finite(v[2])] for k, v in summary.items()},
+            companions={
+                k: {"mean": finite(v[0]), "interval": [finite(v[1]), finite(v[2])]}
+                for k, v in companions.items()
+            },
             replicates=replicates,
             skipped_metrics=skipped,
             nonfinite_pixels=int((~torch.isfinite(result.image)).any(-1).sum()),

@@ -479,6 +479,7 @@ def test_methods_of_one_render_configuration_share_one_calibration_fake_clock(
             cells["fake-a"][key]["spp"]
         ] * 2
     assert cells["fake-b"]["0.2"]["seconds"] > cells["fake-a"]["0.2"]["seconds"]  # its own
+    assert set(cells["fake-a"]["0.2"]["companions"]) == {"relmse_trimmed"}
     (calibration,) = scene["calibrations"].values()
     assert calibration["runner"] == "fake-a" and set(calibration["methods"]) == {"fake-a", "fake-b"}
     assert calibration["configuration"] == same
