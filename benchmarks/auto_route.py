@@ -12,7 +12,12 @@ Usage::
 
 Torch runs on ``--threads`` threads (default 1: on a machine whose 2 cores are shared, a
 thread pool stalls on every small tensor operation, which made the 128 px ``fuse`` solve take
-seconds). An interrupted run resumes (``results.json`` in ``--out``); ``--summary-only``
+seconds). ``--spp N ...`` instead compares at fixed plain sample counts, no timing (a loaded machine
+calibrates budgets to few samples): per scene, count and seed, ``auto``, the primal-only
+denoiser on the same count and ``fuse`` on gradient samples of the same cost (the pilot's
+measured cost ratio), each against the study's cached reference.
+
+An interrupted run resumes (``results.json`` in ``--out``); ``--summary-only``
 prints the table of an earlier run.
 """
 
@@ -66,6 +71,46 @@ def summary(results: dict) -> list[str]:
     return rows
 
 
+def at_sample_counts(args: argparse.Namespace) -> list[str]:
+    """Table rows of the ``--spp`` mode (see the module docstring)."""
+    import gdpt
+    from gdpt.adapters import FUSE_PRIMAL_SPP_FACTOR, plain_denoiser
+    from gdpt.metrics import relmse
+    from gdpt.study.references import reference_seed, render_reference
+    from gdpt.study.scenes import load_eval_scene, resolve_scenes
+
+    rows = [
+        "| scene | plain spp | seed | auto route (reason) | auto / D | fuse / D (gradient spp) |",
+        "|---|---:|---:|---|---:|---:|",
+    ]
+    cache = args.references or args.out / "references"
+    for spec in resolve_scenes(args.scenes):
+        scene = load_eval_scene(spec, resolution=args.resolution, max_depth=None)
+        reference, _ = render_reference(
+            scene, cache, spp=args.reference_spp, chunk_spp=256, seed=reference_seed(0)
+        )
+        for spp in args.spp:
+            for seed in range(args.seeds):
+                kwargs = {"seed": seed, "max_depth": scene.max_depth}
+                auto = gdpt.render_and_denoise(scene.scene, spp=spp, **kwargs)
+                plain = gdpt.render_and_denoise(
+                    scene.scene, spp=spp, method=plain_denoiser(), **kwargs
+                )
+                cost = auto.route.cost_ratio + FUSE_PRIMAL_SPP_FACTOR
+                gradient_spp = max(1, round(spp / cost))
+                fuse = gdpt.render_and_denoise(
+                    scene.scene, spp=gradient_spp, method="fuse", **kwargs
+                )
+                base = relmse(plain.image, reference)
+                rows.append(
+                    f"| {spec.name} | {spp} | {seed} | {auto.route.route} ({auto.route.reason}) "
+                    f"| {relmse(auto.image, reference) / base:.3f} "
+                    f"| {relmse(fuse.image, reference) / base:.3f} ({gradient_spp}) |"
+                )
+                print(rows[-1], flush=True)
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("out/auto-route"))
@@ -79,8 +124,12 @@ def main() -> None:
         "--threads", type=int, default=1, help="torch threads (1: a loaded machine's pool stalls)"
     )
     parser.add_argument("--summary-only", action="store_true")
+    parser.add_argument("--spp", type=int, nargs="+", help="fixed plain sample counts, no timing")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.spp:
+        print("\n".join(at_sample_counts(args)))
+        return
     if not args.summary_only:
         cfg = EvaluateConfig(
             budgets=tuple(args.budgets),
