@@ -8,8 +8,8 @@ path-traced reference, denoises with the primal-only network, and prints
 * the spread of the two half denoises (variance only) against the true error, the same way;
 * relative MSE of ``fuse`` over ``D`` (the same input, so < 1 means the gradients helped),
   with the estimated error and with the true error (an oracle bound);
-* the per-pixel predicted gain (:func:`gdpt.reconstruct.fuse.predicted_gain`), which
-  :data:`gdpt.auto_route.PREDICTION_BIAS` corrects.
+* the per-pixel predicted gain (:func:`gdpt.reconstruct.fuse.predicted_gain`), optimistic by
+  10-26x here (:mod:`gdpt.auto_route` uses only its ratio between two sample counts).
 
 No timing (run it on a busy machine). Usage::
 

@@ -14,6 +14,7 @@ Gradient convention (shared with the integrators and the Poisson solvers)::
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -278,3 +279,80 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
     if None not in seconds:
         metadata["render_seconds"] = sum(seconds)
     return gradient.replace(**pooled, metadata=metadata)
+
+
+def primal_count(buffers: GradientBuffers) -> int:
+    """Samples per pixel behind ``buffers.primal``: the pooled count of a pooled render
+    (``metadata["primal_spp"]``), else ``spp``."""
+    return int(buffers.metadata.get("primal_spp") or buffers.spp)
+
+
+def merge_renders(renders: Sequence[GradientBuffers]) -> GradientBuffers:
+    """Merge independent renders of one scene and film into the render of all their samples.
+
+    The primal, the features (:data:`POOLED`) and ``var_primal`` become sample-weighted means
+    over every render (:func:`primal_count` samples each); ``dx``/``dy`` and their variances
+    over the renders with gradients (``spp`` samples each); a variance of a mean pools as
+    ``sum(w_i^2 v_i)``. A buffer some render lacks is left out, except that gradients come
+    from the renders that have them; the half-buffers pool half by half
+    (``metadata["half_spp"]``) when every render has them.
+
+    Args:
+        renders: at least one render, same size and device, seeds independent.
+
+    Returns:
+        New buffers: ``spp`` the gradient samples when any render has gradients (with
+        ``metadata["primal_spp"]`` the primal's count), else the primal's count;
+        ``metadata`` that of the last render plus ``merged_spp`` (each render's primal count)
+        and ``render_seconds`` summed where every render has one.
+
+    Raises:
+        ValueError: no renders, or their sizes or devices differ.
+    """
+    if not renders:
+        raise ValueError("merge_renders: no renders")
+    shapes = {(r.height, r.width, str(r.device)) for r in renders}
+    if len(shapes) > 1:
+        raise ValueError(f"merge_renders: renders of different sizes or devices: {shapes}")
+    counts = [primal_count(r) for r in renders]
+    gradient = [r for r in renders if r.has_gradients]
+    fields: dict[str, torch.Tensor] = {}
+
+    def mean(group: Sequence[GradientBuffers], weights: Sequence[float], name: str) -> None:
+        if group and all(getattr(r, name) is not None for r in group) and sum(weights) > 0:
+            share = [w / sum(weights) for w in weights]
+            fields[name] = sum(s * getattr(r, name) for r, s in zip(group, share, strict=True))
+
+    def pooled_variance(
+        group: Sequence[GradientBuffers], weights: Sequence[float], name: str
+    ) -> None:
+        if group and all(getattr(r, name) is not None for r in group) and sum(weights) > 0:
+            share = [w / sum(weights) for w in weights]
+            fields[name] = sum(s * s * getattr(r, name) for r, s in zip(group, share, strict=True))
+
+    for name in POOLED:
+        mean(renders, counts, name)
+    pooled_variance(renders, counts, "var_primal")
+    for name in ("dx", "dy"):
+        mean(gradient, [r.spp for r in gradient], name)
+    for name in ("var_dx", "var_dy"):
+        pooled_variance(gradient, [r.spp for r in gradient], name)
+    metadata = {**renders[-1].metadata, "merged_spp": counts}
+    if all(r.has_halves for r in renders):
+        half_spp = [[int(n) for n in r.metadata["half_spp"]] for r in renders]
+        for name in POOLED:
+            for side, which in enumerate("ab"):
+                mean(renders, [max(h[side], 0) for h in half_spp], f"{name}_{which}")
+        metadata["half_spp"] = [sum(h[0] for h in half_spp), sum(h[1] for h in half_spp)]
+    else:
+        metadata.pop("half_spp", None)
+    seconds = [r.metadata.get("render_seconds") for r in renders]
+    if None not in seconds:
+        metadata["render_seconds"] = sum(seconds)
+    if gradient:
+        metadata["primal_spp"] = sum(counts)
+        spp = sum(r.spp for r in gradient)
+    else:
+        metadata.pop("primal_spp", None)
+        spp = sum(counts)
+    return GradientBuffers(**fields, spp=spp, metadata=metadata)

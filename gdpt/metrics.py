@@ -12,6 +12,8 @@ instead of failing.
 Conventions (apply them to every method that is compared):
 
 * ``relmse``: NGPT's relative MSE, reference *channel-mean* in the denominator, eps = 1e-3.
+* ``relmse_trimmed``: ``relmse`` without its 0.1% largest per-pixel terms, the robust companion
+  of ``relmse`` for heavy-tailed images (:data:`COMPANIONS`).
 * ``smape``: OIDN's symmetric MAPE, eps = 1e-2.
 * Display-referred metrics (``one_minus_ssim``, ``flip_ldr``, ``elpips``) see
   ``sRGB(clamp(R(x), 0, 1))`` with NGPT's Reinhard ``R(x) = x / (1 + mean_c |x|)``.
@@ -20,6 +22,7 @@ Conventions (apply them to every method that is compared):
 from __future__ import annotations
 
 import functools
+import math
 import os
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
@@ -45,6 +48,7 @@ from gdpt.reconstruct.registry import Registry
 __all__ = [
     "METRICS",
     "MetricResults",
+    "COMPANIONS",
     "MetricUnavailable",
     "compute_metrics",
     "elpips",
@@ -53,6 +57,7 @@ __all__ = [
     "mse",
     "one_minus_ssim",
     "relmse",
+    "relmse_trimmed",
     "smape",
 ]
 
@@ -61,6 +66,10 @@ Metric = Callable[..., float]
 
 #: Registered metrics, name -> function (``METRICS.register(name)`` decorates a new one).
 METRICS: Registry[Metric] = Registry("metric")
+
+#: Robust companions of headline metrics, headline name -> (companion name, function): the
+#: study records the companion beside the headline (:func:`relmse_trimmed` for ``relmse``).
+COMPANIONS: dict[str, tuple[str, Metric]] = {}
 
 
 class MetricUnavailable(RuntimeError):
@@ -134,6 +143,35 @@ def relmse(image_test: Image, image_ref: Image, *, eps: float = 1e-3) -> float:
     test, ref = _pair("relmse", image_test, image_ref)
     denominator = eps + ref.mean(-1, keepdim=True).square()
     return float(((test - ref).square() / denominator).mean())
+
+
+def relmse_trimmed(
+    image_test: Image, image_ref: Image, *, eps: float = 1e-3, trim: float = 1e-3
+) -> float:
+    """:func:`relmse` without its largest ``trim`` share of pixels: the mean of the per-pixel
+    relative squared errors (channel mean) after the ``ceil(trim * pixels)`` largest are left
+    out (a trimmed mean). A robust companion of ``relmse`` on heavy-tailed images, where one
+    firefly can move the mean several-fold; ``relmse`` stays the headline (not registered in
+    :data:`METRICS`: the study records it beside every ``relmse``, as :data:`COMPANIONS`).
+
+    Args:
+        image_test: ``(H, W, C)`` float linear image (torch, any device, or numpy).
+        image_ref: ``(H, W, C)`` float linear reference.
+        eps: denominator offset, as :func:`relmse`.
+        trim: share of pixels left out, in ``[0, 1)``.
+
+    Returns:
+        The trimmed relative MSE.
+    """
+    test, ref = _pair("relmse_trimmed", image_test, image_ref)
+    denominator = eps + ref.mean(-1, keepdim=True).square()
+    per_pixel = ((test - ref).square() / denominator).mean(-1).flatten().double()
+    cut = min(math.ceil(trim * per_pixel.numel()), per_pixel.numel() - 1)
+    largest = per_pixel.topk(cut).values.sum() if cut else 0.0
+    return float((per_pixel.sum() - largest) / (per_pixel.numel() - cut))
+
+
+COMPANIONS["relmse"] = ("relmse_trimmed", relmse_trimmed)
 
 
 @METRICS.register("smape")

@@ -58,12 +58,13 @@ def render_and_denoise(
 
     Args:
         scene: as in :func:`render`.
-        spp (int): samples per pixel (for ``"auto"``: plain path samples; the gradient
-            route renders gradient samples of the same cost,
-            :func:`gdpt.auto_route.route_sampling`).
-        method (str): ``"auto"`` (the primal-only denoiser on plain samples, or from
-            :func:`gdpt.auto_route.pilot_threshold` spp on, a pilot render chooses between that
-            and ``fuse`` on gradient-domain samples, :mod:`gdpt.auto_route`), or a key of
+        spp (int): samples per pixel (for ``"auto"``: plain path samples, the pilot's
+            included; the gradient route renders gradient samples of the same cost,
+            :func:`gdpt.auto_route.render_route`).
+        method (str): ``"auto"`` (from :func:`gdpt.auto_route.pilot_threshold` spp on, a pilot
+            render, whose samples go into the image, chooses between the primal-only denoiser
+            on plain samples and ``fuse`` on gradient-domain samples, :mod:`gdpt.auto_route`;
+            below, the former), or a key of
             :data:`gdpt.methods.METHODS` (a deprecated name runs its new one, with a
             ``DeprecationWarning``).
         seed (int): random seed.
@@ -86,18 +87,20 @@ def render_and_denoise(
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
     choice, timings = None, {}
+    start = time.perf_counter()
     if method == "auto":
         scene = load_scene(scene)
         seed_pilot = (int(seed) ^ PILOT_SEED_SALT) & 0xFFFFFFFF
-        choice = auto_route.choose_route(scene, spp=spp, seed=seed_pilot, **props)
+        choice, pilot = auto_route.run_pilot(scene, spp=spp, seed=seed_pilot, **props)
         timings["pilot"] = choice.pilot_seconds
-        sampling, method = auto_route.route_sampling(choice, spp), choice.method
-        spp = sampling.pop("spp")
+        start = time.perf_counter()
+        buffers = auto_route.render_route(
+            scene, choice, pilot, spp=spp, seed=seed, progress=progress, **props
+        )
+        method = choice.method
     else:
-        sampling = METHODS[method].sampling(spp)
-    props = {**sampling, **props}
-    start = time.perf_counter()
-    buffers = render(scene, spp=spp, seed=seed, progress=progress, **props)
+        props = {**METHODS[method].sampling(spp), **props}
+        buffers = render(scene, spp=spp, seed=seed, progress=progress, **props)
     t_render = time.perf_counter() - start
     if choice is not None:
         buffers.metadata["route"] = choice.to_json()

@@ -219,9 +219,9 @@ def _add_render_and_denoise_arguments(parser: argparse.ArgumentParser) -> None:
         type=_method_name,
         choices=["auto", *METHODS],
         default="auto",
-        help="reconstruction (default: auto: --spp plain samples + the primal-only denoiser, "
-        "or from 360 spp on a pilot render chooses between that and fuse on gradient-domain "
-        "samples of the same cost); the render has the buffers it reads",
+        help="reconstruction (default: auto: a pilot render, whose samples go into the image, "
+        "chooses between --spp plain samples + the primal-only denoiser and fuse on "
+        "gradient-domain samples of the same cost); the render has the buffers it reads",
     )
     parser.add_argument(
         "--alpha", type=float, default=0.2, help="weight of the primal term (default: 0.2)"

@@ -94,6 +94,16 @@ def _add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
         "gives their mean and a 95%% interval (default: 1)",
     )
     parser.add_argument(
+        "--until-interval",
+        type=float,
+        metavar="SHARE",
+        help="add paired replicates to a cell (up to --max-seeds) while the 95%% interval of "
+        "its first metric reaches further than SHARE of its mean (e.g. 0.1)",
+    )
+    parser.add_argument(
+        "--max-seeds", type=int, help="most replicates per cell with --until-interval (default 8)"
+    )
+    parser.add_argument(
         "--references", type=Path, help="reference cache folder (default: OUT/references)"
     )
     parser.add_argument(
@@ -142,6 +152,8 @@ def _run_evaluate(args: argparse.Namespace) -> int:
         "max_depth": args.max_depth,
         "seed": args.seed,
         "seeds": args.seeds,
+        "until_interval": args.until_interval,
+        "max_seeds": args.max_seeds,
         "protocol": args.protocol,
         "reference_dir": args.references,
         "keep_going": args.keep_going,

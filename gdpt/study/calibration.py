@@ -1,5 +1,11 @@
-"""Sample counts that meet a time budget: a measured linear time model per method and scene
-(:class:`TimeModel`, :func:`calibrate`) and one timed cell (:func:`run_at_budget`).
+"""Sample counts that meet a time budget: a measured linear time model per render
+configuration and scene (:class:`TimeModel`, :func:`calibrate`) and one timed cell
+(:func:`run_at_budget`).
+
+Methods that render the same thing share one calibration: :func:`configuration_key` names what
+a method's ``spp`` buys (:attr:`EvalMethod.configuration`), and :func:`calibration_runner` is
+the registered method that renders exactly that and is timed for all of them, so they get the
+same sample count at every budget (``auto`` on its plain route and ``pt+oidn-tuned``).
 
 What the budget pays for is the *protocol* (:data:`PROTOCOLS`, :func:`charged_seconds`):
 ``"total"``, sampling and reconstruction (what a user waits for); ``"render-time"``, sampling
@@ -9,6 +15,7 @@ sec. 4, give every method the same input rendering time).
 
 from __future__ import annotations
 
+import json
 import math
 import statistics
 from dataclasses import dataclass, field
@@ -17,7 +24,7 @@ from typing import Any
 import torch
 
 from gdpt.study.config import PROTOCOLS
-from gdpt.study.methods import EvalMethod, MethodResult
+from gdpt.study.methods import EVAL_METHODS, EvalMethod, MethodResult
 from gdpt.study.scenes import EvalScene
 
 
@@ -32,6 +39,33 @@ def charged_seconds(result: MethodResult, protocol: str) -> float:
     if protocol == "render-time":
         return result.render_seconds
     raise ValueError(f"unknown protocol {protocol!r}; valid: {', '.join(PROTOCOLS)}")
+
+
+def configuration_key(method: EvalMethod, protocol: str) -> str:
+    """The name of what ``method``'s ``spp`` buys under ``protocol``: its render configuration
+    as sorted JSON, without the reconstruction under ``render-time`` (not charged there);
+    ``"method NAME"`` for a method without a configuration."""
+    if method.configuration is None:
+        return f"method {method.name}"
+    config = method.configuration()
+    if protocol == "render-time":
+        config = {k: v for k, v in config.items() if k != "reconstruction"}
+    return json.dumps(config, sort_keys=True)
+
+
+def calibration_runner(method: EvalMethod, protocol: str) -> EvalMethod:
+    """The method timed for ``method``'s calibration: the first registered method
+    (:data:`~gdpt.study.methods.EVAL_METHODS` order) of the same :func:`configuration_key`
+    that can run here, else ``method`` itself."""
+    key = configuration_key(method, protocol)
+    for candidate in EVAL_METHODS.values():
+        if (
+            candidate.configuration is not None
+            and configuration_key(candidate, protocol) == key
+            and candidate.check() is None
+        ):
+            return candidate
+    return method
 
 
 # ------------------------------------------------------------------------------- calibration

@@ -50,6 +50,12 @@ class EvaluateConfig:
     seeds: int = 1
     """Replicates per cell, paired across methods (replicate ``r`` of a scene and budget has
     the same seed for every method); a cell reports their mean and a 95% interval."""
+    until_interval: float | None = None
+    """Add replicates to a cell (paired seeds, up to :attr:`max_seeds`) while the 95% interval
+    of its first metric is wider than this share of its mean on either side; ``None``: exactly
+    :attr:`seeds` replicates."""
+    max_seeds: int = 8
+    """Most replicates per cell with :attr:`until_interval`."""
     tolerance: float = 0.2
     """Relative deviation of the achieved time from the budget that triggers a re-render."""
     max_rounds: int = 3
@@ -78,6 +84,10 @@ class EvaluateConfig:
             raise ValueError("at least one metric is needed")
         if self.seeds < 1:
             raise ValueError(f"seeds must be >= 1, got {self.seeds}")
+        if self.until_interval is not None and not self.until_interval > 0:
+            raise ValueError(f"until_interval must be > 0, got {self.until_interval}")
+        if self.max_seeds < self.seeds:
+            raise ValueError(f"max_seeds ({self.max_seeds}) must be >= seeds ({self.seeds})")
         # options of metrics not requested are dropped (e.g. elpips when --metrics omits it)
         self.metric_options = {k: v for k, v in self.metric_options.items() if k in self.metrics}
         if self.protocol not in PROTOCOLS:

@@ -19,15 +19,20 @@ Protocol, per scene:
 2. Render the reference once: path tracing (``gdpt`` primal only) at ``reference_spp``, in
    chunks whose running mean is saved, so an interrupted reference resumes; the finished file
    is cached with its spp, seed and resolution in its name and metadata.
-3. Per method: warm up (1 and 2 spp, untimed, compiles the kernels), then fit
+3. Per render configuration (:func:`~gdpt.study.calibration.configuration_key`: methods that
+   render the same thing, such as ``auto`` on its plain route and ``pt+oidn-tuned``, share
+   it; recorded per scene in ``calibrations``), timed with its
+   :func:`~gdpt.study.calibration.calibration_runner`: warm up (1 and 2 spp, untimed, compiles
+   the kernels), then fit
    ``t(spp) = a + b * spp`` from a median of 1-spp runs and geometrically growing probe runs
    (:func:`calibrate`), solve for each budget, render and check the achieved time; if it is off
    by more than ``tolerance`` the model is corrected and the cell rendered again
-   (``max_rounds`` times at most). Every timed render follows an untimed render of the same
-   method at the same spp: the integrators record a frozen pass per spp per pass and replay it
-   afterwards, so the timed render pays neither kernel compilation nor the Python tracing of
-   the path loop, as a repeated render of that configuration does not. Achieved times, every
-   attempt and kernel compilation (excluded from the times) are recorded.
+   (``max_rounds`` times at most). Every method of the configuration renders its replicates at
+   that sample count, its own times recorded. Every timed render follows an untimed render of
+   the same method at the same spp: the integrators record a frozen pass per spp per pass and
+   replay it afterwards, so the timed render pays neither kernel compilation nor the Python
+   tracing of the path loop, as a repeated render of that configuration does not. Achieved
+   times, every attempt and kernel compilation (excluded from the times) are recorded.
 4. Metrics of every cell; ``results.json`` is rewritten after each cell, so an interrupted run
    resumes without recomputing finished cells.
 
@@ -53,7 +58,15 @@ import torch
 
 from gdpt.interrupt import caused_by_interrupt
 from gdpt.statistics import mean_interval
-from gdpt.study.calibration import calibrate, run_at_budget, timed_run
+from gdpt.study.calibration import (
+    TimeModel,
+    calibrate,
+    calibration_runner,
+    charged_seconds,
+    configuration_key,
+    run_at_budget,
+    timed_run,
+)
 from gdpt.study.config import PRESETS, EvaluateConfig
 from gdpt.study.methods import EVAL_METHODS, EvalMethod, MethodResult, MethodUnavailable
 from gdpt.study.references import reference_seed, render_reference
@@ -192,9 +205,11 @@ def evaluate(
         methods={m: _method_info(EVAL_METHODS[m]) for m in methods},
         protocol=(
             f"{PROTOCOL_TEXT[cfg.protocol]}; "
-            "per scene and budget, each method's spp is calibrated by timing on this machine "
-            "in this run (t = a + b*spp fitted to 1-spp medians and growing probes, then "
-            f"verified and re-rendered if off by more than {cfg.tolerance:.0%}); every timed "
+            "per scene and budget, each render configuration's spp is calibrated by timing on "
+            "this machine in this run, once, and shared by every method that renders it "
+            "('calibrations' per scene; t = a + b*spp fitted to 1-spp medians and growing "
+            f"probes, then verified and re-rendered if off by more than {cfg.tolerance:.0%}); "
+            "every timed "
             "render follows an untimed one at the same spp (kernel compilation and frozen-pass "
             "recording are paid once per configuration, not timed); reference: "
             f"path tracing at {cfg.reference_spp} spp on the same box-filtered film"
@@ -348,33 +363,95 @@ def _evaluate_scene(
         )
 
 
+#: Fields of a cell record that describe the timed run itself (the evaluated method's, where
+#: the sample count came from a shared calibration).
+RUN_FIELDS = ("seconds", "render_seconds", "reconstruct_seconds", "compile_seconds")
+
+
+def _shared_calibration(
+    method: EvalMethod, scene: EvalScene, cfg: EvaluateConfig, entry: dict[str, Any], todo: list
+) -> tuple[EvalMethod, str, dict[str, Any], TimeModel]:
+    """The calibration ``method`` shares on this scene (:func:`configuration_key`): its runner,
+    key, record in ``entry["calibrations"]`` (``runner``, ``configuration``, ``model``,
+    ``budgets``: the :func:`run_at_budget` record per budget) and the time model, fitted by
+    timing the runner unless an earlier method of the configuration did.
+
+    Raises:
+        MethodUnavailable: the runner cannot run here.
+    """
+    runner = calibration_runner(method, cfg.protocol)
+    key = configuration_key(method, cfg.protocol)
+    shared = entry.setdefault("calibrations", {}).setdefault(key, {"budgets": {}})
+    if "model" in shared:
+        model = TimeModel(
+            shared["model"]["fixed"],
+            shared["model"]["per_spp"],
+            [(int(s), float(t)) for s, t in shared["model"]["measurements"]],
+        )
+    else:
+        model = calibrate(
+            runner,
+            scene,
+            budget=min(todo),
+            seed=cell_seed(cfg.seed, scene.name, runner.name, "calibration"),
+            probe_fraction=cfg.probe_fraction,
+            protocol=cfg.protocol,
+        )
+    configuration = method.configuration() if method.configuration is not None else None
+    shared.update(runner=runner.name, configuration=configuration, model=dataclasses.asdict(model))
+    shared.setdefault("methods", [])
+    if method.name not in shared["methods"]:
+        shared["methods"].append(method.name)
+    return runner, key, shared, model
+
+
 def _run_replicates(
-    method: EvalMethod, scene: EvalScene, model: Any, budget: float, cfg: EvaluateConfig
+    method: EvalMethod,
+    scene: EvalScene,
+    calibration: tuple[EvalMethod, str, dict[str, Any], TimeModel],
+    budget: float,
+    cfg: EvaluateConfig,
 ) -> tuple[MethodResult, dict[str, Any], list[dict[str, Any]]]:
-    """One budget cell: the sample count that fills ``budget`` (:func:`run_at_budget`), then
-    ``cfg.seeds`` replicates at that count with the paired seeds of
+    """One budget cell: the sample count that fills ``budget`` for the method's configuration
+    (:func:`run_at_budget` on the calibration's runner, once per configuration, scene and
+    budget), then ``cfg.seeds`` replicates of ``method`` at that count with the paired seeds of
     :func:`~gdpt.study.results.replicate_seed`.
 
     Returns:
-        The first replicate's result (its image is saved), the :func:`run_at_budget` record
-        and per replicate ``{"seed", "spp", "seconds", "render_seconds",
-        "reconstruct_seconds", "result"}``.
+        The first replicate's result (its image is saved), the cell record (the
+        :func:`run_at_budget` record, its timings those of ``method``'s first replicate, plus
+        ``calibration``: the configuration key and ``calibrated_by``: the runner) and per
+        replicate ``{"seed", "spp", "seconds", "render_seconds", "reconstruct_seconds",
+        "result"}``.
     """
+    runner, config_key, shared, model = calibration
     key = budget_key(budget)
     seeds = [replicate_seed(cfg.seed, scene.name, key, r) for r in range(cfg.seeds)]
-    result, record = run_at_budget(
-        method,
-        scene,
-        model,
-        budget=budget,
-        seed=seeds[0],
-        tolerance=cfg.tolerance,
-        max_rounds=cfg.max_rounds,
-        protocol=cfg.protocol,
-    )
+    first: MethodResult | None = None
+    if key not in shared["budgets"]:
+        result, record = run_at_budget(
+            runner,
+            scene,
+            model,
+            budget=budget,
+            seed=seeds[0],
+            tolerance=cfg.tolerance,
+            max_rounds=cfg.max_rounds,
+            protocol=cfg.protocol,
+        )
+        shared["budgets"][key] = record
+        shared["model"] = dataclasses.asdict(model)
+        if runner is method and record["seed"] == seeds[0]:
+            first = result
+    record = {**shared["budgets"][key], "calibration": config_key, "calibrated_by": runner.name}
     spp = record["spp"]
-    runs = [result if record["seed"] == seeds[0] else None] + [None] * (cfg.seeds - 1)
+    runs = [first] + [None] * (cfg.seeds - 1)
     runs = [r or timed_run(method, scene, spp, seed) for r, seed in zip(runs, seeds, strict=True)]
+    if first is None:  # the timings of this method's own run
+        charged = charged_seconds(runs[0], cfg.protocol)
+        record.update({f: getattr(runs[0], f) for f in RUN_FIELDS})
+        record.update(charged_seconds=charged, relative_error=(charged - budget) / budget)
+        record["within_tolerance"] = abs(record["relative_error"]) <= cfg.tolerance
     replicates = [
         {
             "seed": seed,
@@ -391,6 +468,37 @@ def _run_replicates(
     return runs[0], record, replicates
 
 
+def _score(
+    replicate: dict[str, Any], image: torch.Tensor, reference: torch.Tensor, cfg: EvaluateConfig
+) -> dict[str, str]:
+    """Set ``replicate["metrics"]`` (``cfg.metrics``) and ``replicate["companions"]`` (the
+    robust companion of each headline metric that has one, :data:`gdpt.metrics.COMPANIONS`)
+    of ``image`` against ``reference``; returns the metrics skipped, with the reason."""
+    from gdpt.metrics import COMPANIONS, compute_metrics
+
+    values = compute_metrics(image, reference, cfg.metrics, options=cfg.metric_options)
+    replicate["metrics"] = {k: finite(v) for k, v in values.values.items()}
+    replicate["companions"] = {
+        name: finite(function(image, reference))
+        for metric, (name, function) in COMPANIONS.items()
+        if metric in values.values
+    }
+    return values.skipped
+
+
+def _interval_too_wide(replicates: list[dict[str, Any]], cfg: EvaluateConfig) -> bool:
+    """Whether ``cfg.until_interval`` asks for another replicate: the 95% interval of the
+    first metric over ``replicates`` reaches further than that share of its mean (a single
+    replicate has no interval: too wide)."""
+    if cfg.until_interval is None:
+        return False
+    values = [r["metrics"].get(cfg.metrics[0]) for r in replicates]
+    if None in values:
+        return False
+    mean, low, high = mean_interval(values)
+    return len(values) < 2 or max(high - mean, mean - low) > cfg.until_interval * abs(mean)
+
+
 def _evaluate_method(
     method: EvalMethod,
     scene: EvalScene,
@@ -405,7 +513,6 @@ def _evaluate_method(
     """Calibrate one method on one scene and fill its missing budget cells."""
     from gdpt.io.exr import save_image
     from gdpt.io.images import save_png
-    from gdpt.metrics import compute_metrics
 
     info = entry["methods"].setdefault(method.name, {"cells": {}})
     info.setdefault("cells", {})
@@ -415,19 +522,11 @@ def _evaluate_method(
         return
     bar.set_postfix_str(f"{scene.name}/{method.name}: calibrating")
     reason = method.check()
-    model = None
+    calibration = None
     error = None
     if reason is None:
         try:
-            seed = cell_seed(cfg.seed, scene.name, method.name, "calibration")
-            model = calibrate(
-                method,
-                scene,
-                budget=min(todo),
-                seed=seed,
-                probe_fraction=cfg.probe_fraction,
-                protocol=cfg.protocol,
-            )
+            calibration = _shared_calibration(method, scene, cfg, entry, todo)
         except MethodUnavailable as err:
             reason = str(err)
         except Exception as err:  # e.g. a model that fails to load, an unsupported plugin
@@ -435,19 +534,26 @@ def _evaluate_method(
                 raise
             reason = f"could not run: {type(err).__name__}: {' '.join(str(err).split())}"
             error = err
-    if model is None:
+    if calibration is None:
         info.update(status="skipped", note=reason, failed=error is not None)
         write_json(results_path, results)
         bar.update(len(todo))
         if error is not None and not cfg.keep_going:
             raise StudyFailure(f"{scene.name} / {method.name}: calibration: {reason}") from error
         return
-    info.update(status="ok", note=None, failed=False, calibration=dataclasses.asdict(model))
+    model = calibration[3]
+    info.update(
+        status="ok",
+        note=None,
+        failed=False,
+        calibration=dataclasses.asdict(model),
+        calibration_key=calibration[1],
+    )
     for budget in todo:
         key = budget_key(budget)
         bar.set_postfix_str(f"{scene.name}/{method.name}: {key} s")
         try:
-            result, record, replicates = _run_replicates(method, scene, model, budget, cfg)
+            result, record, replicates = _run_replicates(method, scene, calibration, budget, cfg)
         except Exception as err:  # e.g. out of memory at a large spp: report, retry on resume
             if caused_by_interrupt(err):  # Ctrl-C inside a Dr.Jit frozen function
                 raise
@@ -460,20 +566,39 @@ def _evaluate_method(
             continue
         info.get("errors", {}).pop(key, None)
         for replicate in replicates:
-            values = compute_metrics(
-                replicate.pop("result").image, reference, cfg.metrics, options=cfg.metric_options
-            )
-            replicate["metrics"] = {k: finite(v) for k, v in values.values.items()}
-            skipped = values.skipped
+            skipped = _score(replicate, replicate.pop("result").image, reference, cfg)
+        while _interval_too_wide(replicates, cfg) and len(replicates) < cfg.max_seeds:
+            seed = replicate_seed(cfg.seed, scene.name, key, len(replicates))
+            run = timed_run(method, scene, record["spp"], seed)
+            replicate = {
+                "seed": seed,
+                "spp": record["spp"],
+                "seconds": run.seconds,
+                "render_seconds": run.render_seconds,
+                "reconstruct_seconds": run.reconstruct_seconds,
+                **({"route": run.route} if run.route is not None else {}),
+                "added": "until_interval",
+            }
+            _score(replicate, run.image, reference, cfg)
+            replicates.append(replicate)
         summary = {
             k: mean_interval([r["metrics"][k] for r in replicates])
             for k in replicates[0]["metrics"]
             if all(r["metrics"][k] is not None for r in replicates)
         }
+        companions = {
+            k: mean_interval([r["companions"][k] for r in replicates])
+            for k in replicates[0].get("companions", {})
+            if all(r["companions"][k] is not None for r in replicates)
+        }
         record.update(
             budget=budget,
             metrics={k: finite(v[0]) for k, v in summary.items()},
             interval={k: [finite(v[1]), finite(v[2])] for k, v in summary.items()},
+            companions={
+                k: {"mean": finite(v[0]), "interval": [finite(v[1]), finite(v[2])]}
+                for k, v in companions.items()
+            },
             replicates=replicates,
             skipped_metrics=skipped,
             nonfinite_pixels=int((~torch.isfinite(result.image)).any(-1).sum()),

@@ -20,8 +20,9 @@ Registered methods:
   gradients (shipped; the ablation).
 * ``gdpt+fuse``: pooled gradient-domain samples + variance-weighted fusion of the gradients
   around the primal-only network (:mod:`gdpt.reconstruct.fuse`).
-* ``auto``: ``render_and_denoise``'s default (:mod:`gdpt.auto_route`: plain path tracing + the
-  primal-only denoiser, or from 360 spp on a pilot render's choice); all of it timed.
+* ``auto``: ``render_and_denoise``'s default (:mod:`gdpt.auto_route`: a pilot render's choice
+  between plain path tracing + the primal-only denoiser and ``gdpt+fuse``); all of it timed, on
+  the cost calibration of its plain route (``pt+`` that denoiser).
 
 A method that cannot run here (package not installed, no shipped model) says so through its
 ``check`` function and is skipped with that note. A reconstruction registered in
@@ -105,6 +106,11 @@ class EvalMethod:
         check: returns ``None`` when the method can run here, else the reason it cannot.
         render: like ``run`` without the reconstruction (the image is the primal), to
             calibrate render times cheaply; ``None``: the method cannot be split.
+        configuration: returns the render configuration the method's ``spp`` buys (integrator
+            properties, pooling factor, ``reconstruction``: the method it runs); methods with
+            equal configurations share one cost calibration in the study
+            (:func:`gdpt.study.calibration.configuration_key`); ``None``: the method's cost is
+            its own.
     """
 
     name: str
@@ -112,6 +118,7 @@ class EvalMethod:
     run: RunFunction
     check: Callable[[], str | None] = field(default=lambda: None)
     render: RunFunction | None = None
+    configuration: Callable[[], dict[str, Any]] | None = None
 
 
 #: Registered methods, name -> :class:`EvalMethod`, in registration order.
@@ -172,9 +179,24 @@ def path_tracing(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     return _timed_run(scene, spp, seed, None, gradients=False, features=False)
 
 
+def render_configuration(
+    name: str | None, sampling: dict[str, Any], factor: float = 0.0
+) -> Callable[[], dict[str, Any]]:
+    """``configuration()`` of an :class:`EvalMethod` that renders with ``gdpt`` and
+    ``sampling`` (:meth:`gdpt.methods.Method.needs`), pools ``factor`` plain samples per
+    gradient sample and reconstructs with ``name`` (``None``: the primal as it is)."""
+    config = {"integrator": "gdpt", **dict(sorted(sampling.items()))}
+    return lambda: {**config, "primal_spp_factor": factor, "reconstruction": name}
+
+
 EVAL_METHODS.register(
     "pt",
-    EvalMethod("pt", "path tracing, primal only (gdpt integrator, gradients=False)", path_tracing),
+    EvalMethod(
+        "pt",
+        "path tracing, primal only (gdpt integrator, gradients=False)",
+        path_tracing,
+        configuration=render_configuration(None, {"gradients": False, "features": False}),
+    ),
 )
 
 
@@ -194,14 +216,20 @@ def register_denoiser(name: str, method: Method) -> str:
         return _timed_run(scene, spp, seed, None, **method.sampling(spp))
 
     label = "gradient-domain path tracing" if method.gradients else "path tracing"
-    if method.gradients and (factor := method.primal_spp_factor()):
+    factor = method.primal_spp_factor() if method.gradients else 0.0
+    if factor:
         label += f" (+ {factor:g} plain path samples per sample, pooled into the primal)"
     run.__name__ = run.__qualname__ = f"{sampler}_{name}".replace("-", "_")
     run.__doc__ = f"{label} buffers reconstructed with :data:`gdpt.methods.METHODS` ``{name}``."
     EVAL_METHODS.register(
         f"{sampler}+{name}",
         EvalMethod(
-            f"{sampler}+{name}", f"{label} + {method.description}", run, method.check, render
+            f"{sampler}+{name}",
+            f"{label} + {method.description}",
+            run,
+            method.check,
+            render,
+            render_configuration(name, method.needs, factor),
         ),
     )
     return f"{sampler}+{name}"
@@ -216,7 +244,8 @@ for _old, _new in EVAL_METHOD_ALIASES.items():
 def auto_route(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     """``render_and_denoise(method="auto")``: the pilot, the route's render and its
     reconstruction, all timed (kernel compilation excluded as for every method); ``spp`` are
-    plain samples, the gradient route renders gradient samples of the same cost."""
+    plain samples (the pilot's included), the gradient route renders gradient samples of the
+    same cost."""
     from gdpt.pipeline import render_and_denoise
 
     if reason := DENOISERS["oidn"].check() and DENOISERS["oidn-tuned"].check():
@@ -238,13 +267,23 @@ def auto_route(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
     )
 
 
+def plain_route_configuration() -> dict[str, Any]:
+    """The render configuration of ``auto``'s plain route: that of ``pt+`` the primal-only
+    denoiser, whose cost calibration ``auto`` shares (its ``spp`` are plain samples)."""
+    from gdpt.adapters import plain_denoiser
+
+    name = plain_denoiser()
+    return render_configuration(name, DENOISERS[name].needs)()
+
+
 EVAL_METHODS.register(
     "auto",
     EvalMethod(
         "auto",
-        "path tracing + the primal-only network, or from 360 spp a pilot render's choice "
-        "between that and gradient-domain path tracing + fuse (gdpt.auto_route)",
+        "a pilot render's choice between path tracing + the primal-only network and "
+        "gradient-domain path tracing + fuse, the pilot's samples in the image (gdpt.auto_route)",
         auto_route,
         lambda: DENOISERS["oidn"].check() and DENOISERS["oidn-tuned"].check(),
+        configuration=plain_route_configuration,
     ),
 )

@@ -152,3 +152,119 @@ def test_replicate_seeds_are_paired_across_methods_and_distinct_across_replicate
     assert len(set(seeds)) == 3
     assert seeds == [replicate_seed(0, "cornell-box", "1", r) for r in range(3)]
     assert replicate_seed(0, "cornell-box", "2", 0) != seeds[0]
+
+
+def _evidence(**changes) -> route.PilotEvidence:
+    """A pilot where ``fuse`` beat ``D`` by half, clearly, and the model keeps that ratio."""
+    base = dict(
+        error=0.01, error_half=0.02, delta=-0.005, delta_se=0.0005, model_pilot=0.5, model_main=0.5
+    )
+    return route.PilotEvidence(**{**base, **changes})
+
+
+@pytest.mark.parametrize(
+    "changes, expected, why",
+    [
+        ({}, "gradient", "predicted 0.50"),  # 0.5 < 0.78 (sample ratio at cost 2)
+        ({"model_main": 0.25}, "gradient", "predicted 0.25"),  # carried to the main counts
+        ({"delta": 0.002}, "plain", "no significant gain"),  # fuse lost on the pilot
+        ({"delta": -0.001, "delta_se": 0.001}, "plain", "no significant gain"),  # not visible
+        ({"delta": -0.001, "delta_se": 1e-5}, "plain", "predicted 0.90"),  # gain < sample price
+        ({"error": 0.0}, "plain", "cannot decide"),  # nothing measurable
+        ({"error": float("nan")}, "plain", "cannot decide"),
+    ],
+)
+def test_route_rule_on_pilot_evidence(changes, expected, why):
+    chosen, gain, decay, reason = route.predict(_evidence(**changes), cost_ratio=2.0)
+    assert chosen == expected and why in reason, reason
+    assert 0.0 <= decay <= 1.0 and 0.0 < gain <= 1.0
+
+
+def test_route_rule_weighs_the_sample_price_by_the_denoisers_error_decay():
+    """A denoiser whose error barely falls with samples (``beta`` near 0) makes the gradient
+    route's fewer primal samples cheap: a 0.9 gain is worth taking there, not at ``beta = 1``."""
+    slow = _evidence(delta=-0.001, delta_se=1e-5, error_half=0.0101)
+    assert route.predict(slow, cost_ratio=2.0)[0] == "gradient"
+    assert route.predict(_evidence(delta=-0.001, delta_se=1e-5), cost_ratio=2.0)[0] == "plain"
+
+
+def _pilot_pair(gradient_noise: float, seed: int = 0):
+    """Synthetic pilot and held-out renders of a smooth image: the primal carries noise of
+    variance 0.01, the gradients are exact plus noise of ``gradient_noise`` variance (as
+    reported)."""
+    from gdpt.buffers import GradientBuffers
+
+    gen = torch.Generator().manual_seed(seed)
+    y, x = torch.meshgrid(torch.linspace(0, 1, 48), torch.linspace(0, 1, 48), indexing="ij")
+    truth = (0.3 + 0.5 * x * y).unsqueeze(-1).expand(48, 48, 3).contiguous()
+
+    def noisy(var):
+        return torch.randn(truth.shape, generator=gen) * var**0.5
+
+    dx = torch.zeros_like(truth)
+    dy = torch.zeros_like(truth)
+    dx[:, :-1] = truth[:, 1:] - truth[:, :-1]
+    dy[:-1] = truth[1:] - truth[:-1]
+    halves = [truth + noisy(0.02) for _ in range(2)]
+    var = lambda v: torch.full((48, 48, 1), v)  # noqa: E731
+    pilot = GradientBuffers(
+        primal=(halves[0] + halves[1]) / 2, dx=dx + noisy(gradient_noise),
+        dy=dy + noisy(gradient_noise), var_primal=var(0.01), var_dx=var(gradient_noise),
+        var_dy=var(gradient_noise), primal_a=halves[0], primal_b=halves[1], spp=4,
+        metadata={"half_spp": [2, 2]},
+    )  # fmt: skip
+    held = [truth + noisy(0.02) for _ in range(2)]
+    held_out = GradientBuffers(
+        primal=(held[0] + held[1]) / 2, var_primal=var(0.01), primal_a=held[0],
+        primal_b=held[1], spp=4, metadata={"half_spp": [2, 2]},
+    )  # fmt: skip
+    return pilot, held_out
+
+
+@pytest.mark.parametrize("gradient_noise, expected", [(1e-6, "gradient"), (10.0, "plain")])
+def test_pilot_measurement_sees_exact_gradients_win_and_noisy_ones_not(gradient_noise, expected):
+    """:func:`measure` on synthetic renders whose denoiser is the identity: near-exact
+    gradients make ``fuse`` beat ``D`` on held-out data and the rule takes them; gradients far
+    noisier than ``D``'s error are not trusted, ``fuse`` equals ``D`` and the route is plain."""
+    pilot, held_out = _pilot_pair(gradient_noise)
+    evidence = route.measure(
+        pilot, held_out, lambda buffers: buffers.primal, main_primal=40, main_gradient=16
+    )
+    assert evidence.nonfinite == 0 and evidence.error > 0
+    chosen, _, _, reason = route.predict(evidence, cost_ratio=2.0)
+    assert chosen == expected, reason
+    if expected == "plain":
+        assert evidence.delta == 0.0
+
+
+def test_non_finite_pilot_statistics_are_counted_not_propagated():
+    pilot, held_out = _pilot_pair(1e-6)
+    held_out.primal[3, 5] = float("nan")
+    held_out.primal[7, 9] = float("inf")
+    evidence = route.measure(
+        pilot, held_out, lambda buffers: buffers.primal, main_primal=40, main_gradient=16
+    )
+    assert evidence.nonfinite == 2
+    values = (evidence.error, evidence.error_half, evidence.delta, evidence.delta_se)
+    assert all(math.isfinite(v) for v in values)
+
+
+def test_merged_renders_are_the_sample_weighted_mean():
+    from gdpt.buffers import GradientBuffers, merge_renders
+
+    ones, threes = torch.ones(2, 3, 3), torch.full((2, 3, 3), 3.0)
+    var = torch.ones(2, 3, 1)
+    gradient = GradientBuffers(
+        primal=ones, dx=ones, dy=ones, var_primal=var, var_dx=var, var_dy=var, spp=1,
+        metadata={"primal_spp": 3, "render_seconds": 1.0},
+    )  # fmt: skip
+    plain = GradientBuffers(primal=threes, var_primal=var, spp=1, metadata={"render_seconds": 2.0})
+    merged = merge_renders([gradient, plain])
+    assert torch.allclose(merged.primal, torch.full_like(ones, 1.5))  # 3 samples of 1, 1 of 3
+    assert torch.allclose(merged.var_primal, var * (0.75**2 + 0.25**2))
+    assert torch.equal(merged.dx, ones) and merged.spp == 1
+    assert merged.metadata["primal_spp"] == 4 and merged.metadata["render_seconds"] == 3.0
+    plain_only = merge_renders(
+        [gradient.replace(dx=None, dy=None, var_dx=None, var_dy=None), plain]
+    )
+    assert plain_only.spp == 4 and not plain_only.has_gradients

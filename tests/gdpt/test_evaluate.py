@@ -456,3 +456,76 @@ def test_model_option_compares_a_checkpoint(variant, tmp_path, capsys, registrie
     ):
         assert main([*args, "--model", bad]) == 2
         assert message in capsys.readouterr().err
+
+
+def test_methods_of_one_render_configuration_share_one_calibration_fake_clock(
+    tmp_path, monkeypatch
+):
+    """Two methods that render the same thing (equal ``configuration``) get the same sample
+    count at every budget from one calibration, timed on the first registered of them and
+    recorded per scene; each still renders its own replicates and reports its own times."""
+    first, second = FakeClock(fixed=0.05, per_spp=0.01), FakeClock(fixed=0.05, per_spp=0.013)
+    same = {"integrator": "gdpt", "features": True, "reconstruction": "x"}
+    for name, clock in (("fake-a", first), ("fake-b", second)):
+        method = dataclasses.replace(clock.method(name), configuration=lambda: dict(same))
+        monkeypatch.setitem(EVAL_METHODS, name, method)
+    cfg = _tiny_cfg(resolution=16, reference_spp=4, methods=("fake-b", "fake-a"), seeds=2)
+    results = evaluate(["random:3"], tmp_path / "report", cfg, progress=False, report=False)
+    scene = results["scenes"]["random-3"]
+    cells = {m: scene["methods"][m]["cells"] for m in ("fake-a", "fake-b")}
+    for key in ("0.1", "0.2"):
+        assert cells["fake-a"][key]["spp"] == cells["fake-b"][key]["spp"]
+        assert [r["spp"] for r in cells["fake-b"][key]["replicates"]] == [
+            cells["fake-a"][key]["spp"]
+        ] * 2
+    assert cells["fake-b"]["0.2"]["seconds"] > cells["fake-a"]["0.2"]["seconds"]  # its own
+    assert set(cells["fake-a"]["0.2"]["companions"]) == {"relmse_trimmed"}
+    (calibration,) = scene["calibrations"].values()
+    assert calibration["runner"] == "fake-a" and set(calibration["methods"]) == {"fake-a", "fake-b"}
+    assert calibration["configuration"] == same
+    spps = {spp for _, spp, _ in second.calls}
+    assert spps == {cells["fake-b"][k]["spp"] for k in ("0.1", "0.2")}  # no probes of its own
+
+
+def test_auto_shares_the_calibration_of_its_plain_route():
+    """``auto``'s ``spp`` are its plain route's samples: its render configuration is that of
+    ``pt+`` the primal-only denoiser, which is timed for both."""
+    from gdpt.adapters import plain_denoiser
+    from gdpt.study.calibration import calibration_runner, configuration_key
+
+    plain = EVAL_METHODS[f"pt+{plain_denoiser()}"]
+    for protocol in ("total", "render-time"):
+        key = configuration_key(EVAL_METHODS["auto"], protocol)
+        assert key == configuration_key(plain, protocol)
+    assert calibration_runner(EVAL_METHODS["auto"], "total") is plain
+    assert configuration_key(EVAL_METHODS["pt"], "total") != configuration_key(plain, "total")
+    assert configuration_key(EVAL_METHODS["gdpt+fuse"], "total") != configuration_key(
+        plain, "total"
+    )
+
+
+def test_replicates_are_added_while_the_interval_is_wide_fake_clock(tmp_path, monkeypatch):
+    """``until_interval``: a cell whose replicates scatter gets paired replicates (the seeds
+    every method uses for that index) up to ``max_seeds``; a tight enough cell keeps ``seeds``."""
+    clock = FakeClock()
+
+    def run(scene, *, spp: int, seed: int) -> MethodResult:
+        width, height = scene.resolution
+        value = 1.0 + (seed % 7) / 3  # a different error per seed
+        return MethodResult(torch.full((height, width, 3), value), seconds=0.05 + 0.01 * spp)
+
+    monkeypatch.setitem(EVAL_METHODS, "fake-noisy", EvalMethod("fake-noisy", "noisy", run))
+    monkeypatch.setitem(EVAL_METHODS, "fake", clock.method("fake"))
+    cells = {}
+    for share, out in ((0.01, "wide"), (100.0, "loose")):
+        cfg = _tiny_cfg(
+            resolution=16, reference_spp=4, methods=("fake-noisy",), budgets=(0.1,), seeds=2
+        )
+        cfg = dataclasses.replace(cfg, until_interval=share, max_seeds=5)
+        results = evaluate(["random:3"], tmp_path / out, cfg, progress=False, report=False)
+        cells[out] = results["scenes"]["random-3"]["methods"]["fake-noisy"]["cells"]["0.1"]
+    assert len(cells["wide"]["replicates"]) == 5 and len(cells["loose"]["replicates"]) == 2
+    seeds = [r["seed"] for r in cells["wide"]["replicates"]]
+    assert seeds[:2] == [r["seed"] for r in cells["loose"]["replicates"]] and len(set(seeds)) == 5
+    with pytest.raises(ValueError, match="max_seeds"):
+        EvaluateConfig(seeds=4, max_seeds=3)

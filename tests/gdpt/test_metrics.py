@@ -201,3 +201,15 @@ def test_elpips_metric_with_local_weights(tmp_path, monkeypatch: pytest.MonkeyPa
     assert M.elpips(ref, ref, samples=2) == pytest.approx(0.0, abs=1e-7)
     result = M.compute_metrics(test, ref, ["elpips"], options={"elpips": {"samples": 1}})
     assert result.skipped == {} and result.values["elpips"] > 0
+
+
+def test_relmse_trimmed_leaves_out_the_largest_pixels() -> None:
+    """One firefly in 10 000 pixels dominates relMSE; the trimmed companion leaves it out and
+    otherwise equals relMSE."""
+    ref = torch.full((100, 100, 3), 0.5)
+    test = ref + 0.01
+    assert M.relmse_trimmed(test, ref) == pytest.approx(M.relmse(test, ref))
+    test[3, 4] = 500.0
+    assert M.relmse(test, ref) > 100 * M.relmse_trimmed(test, ref)
+    assert M.relmse_trimmed(test, ref) == pytest.approx(1e-4 / (1e-3 + 0.25), rel=1e-4)
+    assert M.relmse_trimmed(test, ref, trim=0.0) == pytest.approx(M.relmse(test, ref))
