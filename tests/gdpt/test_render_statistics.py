@@ -140,3 +140,19 @@ def test_halves_split_by_the_render_wide_sample_index_whatever_the_passes(spp, p
     assert (n_a, n_b) == ((spp + 1) // 2, spp // 2)
     pooled = (n_a * b.primal_a + n_b * b.primal_b) / spp
     torch.testing.assert_close(pooled, b.primal, atol=1e-5, rtol=1e-5)
+
+
+def test_gradient_halves_average_to_the_gradients_and_fuse_reports_its_held_out_choice():
+    scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
+    b = gdpt.render(scene, spp=4, primal_spp=4, variance=True, halves=True)
+    assert b.metadata["gradient_half_spp"] == [2, 2] and b.metadata["half_spp"] == [4, 4]
+    torch.testing.assert_close(0.5 * (b.dx_a + b.dx_b), b.dx, atol=1e-6, rtol=0)
+    torch.testing.assert_close(0.5 * (b.dy_a + b.dy_b), b.dy, atol=1e-6, rtol=0)
+    assert not torch.equal(b.dx_a, b.dx_b)  # two independent halves
+    gdpt.reconstruct_image(b, "fuse")
+    held_out = b.metadata["fuse"]["held_out"]
+    assert set(held_out) == {"kept", "tile", "margin", "statistic", "difference", "nonfinite"}
+    assert 0.0 <= held_out["kept"] <= 1.0 and held_out["nonfinite"] == 0
+    without = b.replace(dx_a=None, dx_b=None, dy_a=None, dy_b=None)
+    with pytest.raises(ValueError, match=r"'dx_a' \(render with gradients=True, halves=True\)"):
+        gdpt.reconstruct_image(without, "fuse")
