@@ -198,12 +198,9 @@ class GradientBuffers:
             raise ValueError(f"empty image: {h}x{w} (HxW)")
         if (self.dx is None) != (self.dy is None):
             raise ValueError("'dx' and 'dy' must be given together")
-        for name in HALVED:
+        for name in (*HALVED, "dx", "dy"):
             if (getattr(self, f"{name}_a") is None) != (getattr(self, f"{name}_b") is None):
                 raise ValueError(f"'{name}_a' and '{name}_b' must be given together")
-        given = [getattr(self, n) is not None for n in GRADIENT_HALVES]
-        if any(given) and not all(given):
-            raise ValueError(f"{', '.join(map(repr, GRADIENT_HALVES))} must be given together")
 
 
 #: Buffers that are per-pixel sample means and can be pooled across renders of one scene.
