@@ -86,6 +86,9 @@ DESIGNS = {
     "image k1": {"tile": 0, "margin": 1.0},
     "tile32 k2": {"tile": 32, "margin": 2.0, "block": 8},
     "tile16 k1": {"tile": 16, "margin": 1.0, "block": 4},
+    "image k2 else tile16 k1": {"tile": 16, "margin": 1.0, "block": 4, "image_margin": 2.0},
+    "image k2 else tile16 k2": {"tile": 16, "margin": 2.0, "block": 4, "image_margin": 2.0},
+    "image k2 else tile32 k2": {"tile": 32, "margin": 2.0, "block": 8, "image_margin": 2.0},
 }
 
 
@@ -125,6 +128,7 @@ def main() -> None:
     parser.add_argument("--reference-spp", type=int, default=4096)
     parser.add_argument("--cache", type=Path, default=Path("/tmp/fuse_safety/refs"))
     parser.add_argument("--references-only", action="store_true")
+    parser.add_argument("--save", type=Path, help="folder for each render's D, F, terms, ref")
     args = parser.parse_args()
     gdpt.set_variant()
     name_d, denoise = primal_only()
@@ -156,6 +160,10 @@ def main() -> None:
                     max_depth=depth,
                 )
                 d, old, new, terms, nonfinite, info = candidates(b, denoise)
+                if args.save:
+                    args.save.mkdir(parents=True, exist_ok=True)
+                    case = {"d": d, "old": old, "new": new, "terms": terms, "ref": ref}
+                    torch.save(case, args.save / f"{name.replace(':', '-')}_{spp}_{seed}.pt")
                 base = relmse(d, ref)
                 ratios["fuse_new"].append(relmse(new, ref) / base)
                 ratios["fuse_old"].append(relmse(old, ref) / base)

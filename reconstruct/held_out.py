@@ -125,6 +125,7 @@ def choose(
     tile: int = 0,
     margin: float = 2.0,
     block: int = BLOCK,
+    image_margin: float | None = None,
     nonfinite: int = 0,
 ) -> HeldOutChoice:
     """Where the candidate's held-out sum is below ``-margin`` standard errors: per image
@@ -135,6 +136,9 @@ def choose(
         tile: region side (0: the whole image).
         margin: standard errors (>= 0).
         block: side of the blocks whose sums give the standard errors.
+        image_margin: with a ``tile``, keep the candidate in the whole image where the image's
+            sum is below ``-image_margin`` standard errors, and decide per tile only otherwise
+            (``None``: per tile always).
         nonfinite: the non-finite terms' count (:func:`held_out_terms`), recorded.
 
     Returns:
@@ -153,6 +157,8 @@ def choose(
     statistic = float(total / error) if float(error) > 0 else math.nan
     if tile == 0:
         keep_blocks = torch.full_like(blocks, float(bool(total < -margin * error)))
+    elif image_margin is not None and bool(total < -image_margin * error):
+        keep_blocks = torch.ones_like(blocks)
     else:
         k = tile // block
         nby, nbx = blocks.shape

@@ -150,3 +150,12 @@ def test_bad_choice_options_are_named():
 def test_zero_terms_keep_the_baseline():
     choice = held_out.choose(torch.zeros(16, 24, 1))
     assert choice.kept == 0.0 and math.isnan(choice.statistic)
+
+
+def test_an_image_that_passes_its_own_test_keeps_every_tile():
+    gen = torch.Generator().manual_seed(6)
+    terms = 0.01 * torch.randn(64, 64, 1, generator=gen) - 0.004
+    terms[:32, :32] = 0.01 * torch.randn(32, 32, 1, generator=gen)  # no gain in one tile
+    per_tile = held_out.choose(terms, tile=32, margin=2.0)
+    gated = held_out.choose(terms, tile=32, margin=2.0, image_margin=2.0)
+    assert per_tile.kept < 1.0 and gated.kept == 1.0
