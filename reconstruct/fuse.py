@@ -79,11 +79,16 @@ CORRECTION_BOUND = 3.0
 #: Largest ratio of a gradient weight to the data weight of its pixels (keeps CG conditioned).
 MAX_WEIGHT_RATIO = 1e3
 
-#: Region of :func:`fuse_checked`'s held-out choice, in pixels (0: the whole image).
-CHECK_TILE = 0
-
-#: Standard errors by which the held-out sum must favour the fusion for it to be kept.
+#: :func:`fuse_checked`'s held-out choice (:func:`.held_out.choose`): the fusion is kept in the
+#: whole image where the image's held-out sum favours it by :data:`CHECK_IMAGE_MARGIN` standard
+#: errors, else in each :data:`CHECK_TILE` px tile whose sum favours it by :data:`CHECK_MARGIN`
+#: (standard errors from :data:`CHECK_BLOCK` px blocks). Chosen over per-image choices (margin 1
+#: or 2), ungated tiles and 16 px tiles (margin 1 or 2: up to 1.3x ``D`` where the halves are
+#: far noisier than ``D``'s error) on 8 scenes x 16-256 gradient spp (docs/gradients.md).
+CHECK_TILE = 32
 CHECK_MARGIN = 2.0
+CHECK_BLOCK = 8
+CHECK_IMAGE_MARGIN = 2.0
 
 
 @dataclass
@@ -101,9 +106,10 @@ class FuseInfo:
             :data:`CORRECTION_BOUND` standard errors).
         held_out: the held-out choice between the fusion and ``D`` (:func:`fuse_checked`):
             ``kept`` (share of the pixels where the fusion is kept), ``tile``, ``margin``,
-            ``statistic`` (the image's held-out sum in standard errors, < 0: the fusion looks
-            better), ``difference`` (its estimated relMSE difference per pixel), ``nonfinite``
-            (held-out terms that were not finite, counted as 0); empty when not checked.
+            ``image_margin``, ``statistic`` (the image's held-out sum in standard errors, < 0:
+            the fusion looks better), ``difference`` (its estimated relMSE difference per
+            pixel), ``nonfinite`` (held-out terms that were not finite, counted as 0); empty
+            when not checked.
     """
 
     trusted: float
@@ -515,17 +521,19 @@ def fuse_checked(
     trust_ratio: float = TRUST_RATIO,
     tile: int = CHECK_TILE,
     margin: float = CHECK_MARGIN,
+    block: int = CHECK_BLOCK,
+    image_margin: float | None = CHECK_IMAGE_MARGIN,
 ) -> tuple[torch.Tensor, FuseInfo]:
     """:func:`fuse_statistics`, kept only where held-out data say it beats ``D``.
 
     Each half's fusion ``F_h`` (:func:`half_statistics`, the half's gradients) and denoise
     ``D_h`` are compared against the other half's primal (:func:`.held_out.held_out_terms`,
     relMSE weights from ``D``); the whole render's fusion is kept where the sum is below
-    ``-margin`` standard errors (:func:`.held_out.choose`, per image or per ``tile``), else
-    ``D``. Assumes the choice between the half fusions carries over to the whole render's
-    (both have the same statistics, at twice the samples). The half fusions' weights use
-    statistics of the whole render (smoothed over windows): a second-order dependence on the
-    held-out half.
+    ``-margin`` standard errors (:func:`.held_out.choose`: per ``tile``, or the whole image
+    where it passes ``image_margin``), else ``D``. Assumes the choice between the half fusions
+    carries over to the whole render's (both have the same statistics, at twice the samples).
+    The half fusions' weights use statistics of the whole render (smoothed over windows): a
+    second-order dependence on the held-out half.
 
     Args:
         statistics: :func:`fusion_statistics` of the render (with its half denoises).
@@ -535,7 +543,7 @@ def fuse_checked(
         variance_scales: per half, the render's gradient samples over the half's (``inf``: a
             half without samples; its fusion is its denoise and ``D`` is kept).
         trust_ratio: see :func:`fusion_weights`.
-        tile, margin: see :func:`.held_out.choose`.
+        tile, margin, block, image_margin: see :func:`.held_out.choose`.
 
     Returns:
         As :func:`fuse`; :attr:`FuseInfo.held_out` says what was kept.
@@ -554,9 +562,16 @@ def fuse_checked(
         *primal_halves,
         statistics.denoised.mean(-1, keepdim=True),
     )
-    choice = choose(terms, tile=tile, margin=margin, nonfinite=nonfinite)
+    choice = choose(
+        terms,
+        tile=tile,
+        margin=margin,
+        block=block,
+        image_margin=image_margin,
+        nonfinite=nonfinite,
+    )
     info.held_out = {
         name: getattr(choice, name)
-        for name in ("kept", "tile", "margin", "statistic", "difference", "nonfinite")
-    }
+        for name in ("kept", "tile", "margin", "image_margin", "statistic", "difference")
+    } | {"nonfinite": choice.nonfinite}
     return apply(image, statistics.denoised, choice), info

@@ -48,6 +48,7 @@ class HeldOutChoice:
         kept: share of the image's pixels where the candidate is kept.
         tile: region side in pixels (0: the whole image).
         margin: standard errors the held-out sum must fall below zero to keep the candidate.
+        image_margin: the same for the whole image before tiles are decided (``None``: none).
         statistic: the whole image's held-out sum over its standard error (< 0: the candidate
             looks better; ``nan`` when the standard error is 0).
         difference: the whole image's estimated relMSE of the candidate minus the baseline's
@@ -59,6 +60,7 @@ class HeldOutChoice:
     kept: float
     tile: int
     margin: float
+    image_margin: float | None
     statistic: float
     difference: float
     nonfinite: int
@@ -180,6 +182,7 @@ def choose(
         kept=float(keep.mean()),
         tile=tile,
         margin=margin,
+        image_margin=image_margin if tile else None,
         statistic=statistic,
         difference=float(total) / (h * w),
         nonfinite=nonfinite,

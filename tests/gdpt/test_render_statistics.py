@@ -151,7 +151,8 @@ def test_gradient_halves_average_to_the_gradients_and_fuse_reports_its_held_out_
     assert not torch.equal(b.dx_a, b.dx_b)  # two independent halves
     gdpt.reconstruct_image(b, "fuse")
     held_out = b.metadata["fuse"]["held_out"]
-    assert set(held_out) == {"kept", "tile", "margin", "statistic", "difference", "nonfinite"}
+    keys = {"kept", "tile", "margin", "image_margin", "statistic", "difference", "nonfinite"}
+    assert set(held_out) == keys
     assert 0.0 <= held_out["kept"] <= 1.0 and held_out["nonfinite"] == 0
     without = b.replace(dx_a=None, dx_b=None, dy_a=None, dy_b=None)
     with pytest.raises(ValueError, match=r"'dx_a' \(render with gradients=True, halves=True\)"):
