@@ -157,3 +157,29 @@ def test_gradient_halves_average_to_the_gradients_and_fuse_reports_its_held_out_
     without = b.replace(dx_a=None, dx_b=None, dy_a=None, dy_b=None)
     with pytest.raises(ValueError, match=r"'dx_a' \(render with gradients=True, halves=True\)"):
         gdpt.reconstruct_image(without, "fuse")
+
+
+def fisher_z(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Fisher z of the per-pixel correlation of ``a`` and ``b`` ``(runs, H, W)`` across runs
+    (pixels where either is constant left out)."""
+    ca, cb = a - a.mean(0), b - b.mean(0)
+    denom = np.sqrt((ca**2).sum(0) * (cb**2).sum(0))
+    ok = denom > 0
+    r = (ca * cb).sum(0)[ok] / denom[ok]
+    return np.arctanh(np.clip(r, -0.999999, 0.999999)) * np.sqrt(RUNS - 3)
+
+
+@pytest.mark.slow  # 64 renders: about 2.5 min on 2 loaded cores
+@pytest.mark.parametrize("name", ["dx", "dy"])
+def test_gradient_halves_are_independent_of_the_other_half(runs, name):
+    """``fuse``'s held-out check needs half ``a``'s gradients independent of half ``b``'s
+    primal (and gradients); the same half's primal shares its paths, which the test sees."""
+    inner = (
+        (slice(None), slice(None), slice(0, -1)) if name == "dx" else (slice(None), slice(0, -1))
+    )
+    g_a, g_b = (luminance(runs[f"{name}_{h}"])[inner] for h in "ab")
+    p_a, p_b = (luminance(runs[f"primal_{h}"])[inner] for h in "ab")
+    for other in (p_b, g_b):
+        assert np.mean(np.abs(fisher_z(g_a, other)) > 3.29) < 0.02
+    assert np.mean(np.abs(fisher_z(g_a, p_a)) > 3.29) > 0.1  # same paths: correlated
+    np.testing.assert_allclose((runs[f"{name}_a"] + runs[f"{name}_b"]) / 2, runs[name], atol=1e-5)
