@@ -9,6 +9,7 @@ the buffers lack with the render option that makes it.
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -153,17 +154,21 @@ def fuse_method(
     trust_ratio: float | None = None,
     **_: Any,
 ) -> torch.Tensor:
-    """Denoise the primal and its two halves with a primal-only denoiser, then fuse the result
-    with the gradients by variance-weighted screened Poisson (:mod:`gdpt.reconstruct.fuse`;
-    ``alpha`` does not apply). ``primal_only(denoiser)`` returns the denoiser's name and
-    function (:func:`gdpt.methods.primal_only`). ``buffers.metadata["fuse"]`` receives the
-    denoiser, the share of gradients used, the solver iterations and the guard counts.
+    """Denoise the primal and its two halves with a primal-only denoiser, fuse the result with
+    the gradients by variance-weighted screened Poisson, and keep the fusion only where the
+    two halves' own fusions beat their denoises on held-out data, else the denoise
+    (:func:`gdpt.reconstruct.fuse.fuse_checked`; ``alpha`` does not apply).
+    ``primal_only(denoiser)`` returns the denoiser's name and function
+    (:func:`gdpt.methods.primal_only`). ``buffers.metadata["fuse"]`` receives the denoiser,
+    the share of gradients used, the solver iterations, the guard counts and the held-out
+    choice (``held_out``).
 
     Raises:
-        ValueError: the buffers lack gradients, variances or half-buffers (named, with the
-            render option that makes them), or ``denoiser`` reads gradients.
+        ValueError: the buffers lack gradients, variances or half-buffers (the gradients'
+            included; named, with the render option that makes them), or ``denoiser`` reads
+            gradients.
     """
-    from gdpt.reconstruct.fuse import TRUST_RATIO, fuse_statistics
+    from gdpt.reconstruct.fuse import TRUST_RATIO, fuse_checked
 
     missing = [
         (name, option)
@@ -171,6 +176,7 @@ def fuse_method(
             ("dx", "gradients=True"),
             ("var_dx", "variance=True"),
             ("primal_a", "halves=True"),
+            ("dx_a", "gradients=True, halves=True"),
         )
         if getattr(buffers, name) is None
     ]
@@ -181,10 +187,14 @@ def fuse_method(
             + "; these buffers have none"
         )
     name, denoise = primal_only(denoiser)
-    image, info = fuse_statistics(
+    counts = buffers.metadata.get("gradient_half_spp", buffers.metadata.get("half_spp", (0, 0)))
+    image, info = fuse_checked(
         fusion_statistics_of(buffers, denoise),
         buffers.dx,
         buffers.dy,
+        ((buffers.dx_a, buffers.dy_a), (buffers.dx_b, buffers.dy_b)),
+        (buffers.primal_a, buffers.primal_b),
+        tuple(buffers.spp / n if n > 0 else math.inf for n in counts),
         trust_ratio=TRUST_RATIO if trust_ratio is None else trust_ratio,
     )
     buffers.metadata["fuse"] = {"denoiser": name, **dataclasses.asdict(info)}

@@ -25,6 +25,9 @@ from gdpt.reconstruct.channels import CHANNELS, HALVED
 #: Buffers every GradientBuffers has; the rest are optional.
 REQUIRED = ("primal",)
 
+#: The gradients of the two halves of the samples (the halves of ``primal_a``, ``primal_b``).
+GRADIENT_HALVES = ("dx_a", "dx_b", "dy_a", "dy_b")
+
 
 @dataclass
 class GradientBuffers:
@@ -44,6 +47,9 @@ class GradientBuffers:
         primal_a, primal_b, albedo_a, ..., depth_b: the primal and features of two
             independent halves of the samples (same shapes as the full buffers), or ``None``;
             ``metadata["half_spp"]`` holds their sample counts.
+        dx_a, dx_b, dy_a, dy_b: the gradients of the same two halves of the gradient samples
+            (``(H, W, 3)``), or ``None``; they count ``metadata["gradient_half_spp"]`` samples
+            when the primal was pooled (:func:`pool_primal`), else ``metadata["half_spp"]``.
         spp: samples per pixel behind the estimate.
         metadata: free-form JSON-serialisable render information (integrator, seed, timings...).
     """
@@ -65,6 +71,10 @@ class GradientBuffers:
     normal_b: torch.Tensor | None = None
     depth_a: torch.Tensor | None = None
     depth_b: torch.Tensor | None = None
+    dx_a: torch.Tensor | None = None
+    dx_b: torch.Tensor | None = None
+    dy_a: torch.Tensor | None = None
+    dy_b: torch.Tensor | None = None
     spp: int = 0
     metadata: dict[str, Any] = field(default_factory=dict)
 
@@ -91,6 +101,10 @@ class GradientBuffers:
     @property
     def has_halves(self) -> bool:
         return self.primal_a is not None and self.primal_b is not None
+
+    @property
+    def has_gradient_halves(self) -> bool:
+        return all(getattr(self, n) is not None for n in GRADIENT_HALVES)
 
     def half(self, which: str) -> GradientBuffers:
         """Half ``which`` (``'a'`` or ``'b'``) as buffers of its own: its primal and features
@@ -185,7 +199,7 @@ class GradientBuffers:
             raise ValueError(f"empty image: {h}x{w} (HxW)")
         if (self.dx is None) != (self.dy is None):
             raise ValueError("'dx' and 'dy' must be given together")
-        for name in HALVED:
+        for name in (*HALVED, "dx", "dy"):
             if (getattr(self, f"{name}_a") is None) != (getattr(self, f"{name}_b") is None):
                 raise ValueError(f"'{name}_a' and '{name}_b' must be given together")
 
@@ -200,9 +214,9 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
     """Pool an independent primal-only render into a gradient-domain render.
 
     The primal and the features become the sample-weighted means of both renders, an unbiased
-    estimate from ``gradient.spp + primal_only.spp`` samples; ``dx`` and ``dy`` stay those of
-    ``gradient``. Features that only ``primal_only`` has are taken from it as they are: the
-    plain pass can supply them alone, which spares the gradient pass their cost.
+    estimate from ``gradient.spp + primal_only.spp`` samples; ``dx``, ``dy`` and their halves
+    stay those of ``gradient``. Features that only ``primal_only`` has are taken from it as they
+    are: the plain pass can supply them alone, which spares the gradient pass their cost.
     ``var_primal`` (variance of the mean) pools as ``(n_g^2 v_g + n_p^2 v_p) / (n_g + n_p)^2``.
     This is the input of a reconstruction that spends part of its sampling time on plain path
     samples (about 1x a ``path`` sample) and part on gradient samples (2-3x), see
@@ -215,7 +229,9 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
 
     Returns:
         A new :class:`GradientBuffers` on ``gradient.device`` with ``spp = gradient.spp``
-        (the gradients' count) and ``metadata["primal_spp"]`` the pooled count;
+        (the gradients' count) and ``metadata["primal_spp"]`` the pooled count (with halves,
+        ``metadata["half_spp"]`` the pooled halves' counts and, with gradient halves,
+        ``metadata["gradient_half_spp"]`` the gradient halves' counts);
         ``metadata["primal_only"]`` holds the second render's metadata, and
         ``metadata["render_seconds"]`` (when both have one) is the sum of both.
 
@@ -275,6 +291,8 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
     metadata = {**gradient.metadata, "primal_spp": n_g + n_p, "primal_only": primal_only.metadata}
     if gradient.has_halves:
         metadata["half_spp"] = [g_a + p_a, g_b + p_b]
+        if gradient.has_gradient_halves:
+            metadata["gradient_half_spp"] = [g_a, g_b]
     seconds = [b.metadata.get("render_seconds") for b in (gradient, primal_only)]
     if None not in seconds:
         metadata["render_seconds"] = sum(seconds)

@@ -21,6 +21,10 @@ CHANNELS: dict[str, int] = {
     "normal_b": 3,
     "depth_a": 1,
     "depth_b": 1,
+    "dx_a": 3,
+    "dx_b": 3,
+    "dy_a": 3,
+    "dy_b": 3,
 }
 
 #: Buffers that have half-buffers (``<name>_a``, ``<name>_b``).

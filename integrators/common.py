@@ -18,12 +18,14 @@ and shifting afterwards needs no atomics and is deterministic.
 ``render()`` returns a ``TensorXf`` of shape ``(H, W, C)``; :meth:`GradientIntegratorBase.channels`
 names the channel ranges (``primal``, ``dx``, ``dy``, ``albedo``, ``normal``, ``depth``,
 ``var_primal``, ``var_dx``, ``var_dy``, and the half-buffers ``primal_a``, ``primal_b``,
-``albedo_a``, ...), computing only the buffers that were asked for.
+``albedo_a``, ..., ``dx_a``, ``dx_b``, ``dy_a``, ``dy_b``), computing only the buffers that were
+asked for.
 
 Half-buffers split the samples of a pixel by the parity of their index in the render (even:
 ``a``, odd: ``b``, whatever the passes):
-two independent estimates of the primal and the features from the same samples, at no extra
-tracing cost (the input of half-buffer error estimates such as NFOR's, Rousselle et al. 2016).
+two independent estimates of the primal, the features and the gradients from the same samples,
+at no extra tracing cost (the input of half-buffer error estimates such as NFOR's, Rousselle et
+al. 2016).
 """
 
 from __future__ import annotations
@@ -48,6 +50,8 @@ DEFAULT_SAMPLES_PER_PASS = 1 << 20
 
 #: Feature buffers and their channel counts, in output order (the halved buffers but the primal).
 _FEATURE_CHANNELS = tuple((name, CHANNELS[name]) for name in HALVED if name != "primal")
+#: The per-sample half-gradient sums ``g[k]`` (RIGHT, DOWN, LEFT, UP) behind ``dx``/``dy``.
+_GRADIENT_SUMS = ("g0", "g1", "g2", "g3")
 
 
 @dataclass
@@ -223,7 +227,8 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
     ``gradients`` (bool, true: trace offset paths; false = plain path tracing with features),
     ``features`` (bool, true), ``variance`` (bool, false),
     ``halves`` (bool, false: also output the primal and features of two independent halves of
-    the samples, ``primal_a``/``primal_b``, ...; at 1 spp half ``b`` has no sample and is 0),
+    the samples, ``primal_a``/``primal_b``, ..., with ``gradients`` also ``dx_a``/``dx_b``,
+    ``dy_a``/``dy_b``; at 1 spp half ``b`` has no sample and is 0),
     ``samples_per_pass`` (int, 2^20: samples traced per kernel launch),
     ``freeze`` (bool, true: replay the recorded kernels of a pass instead of tracing it again),
     ``shift_threshold`` (float, 0.001: microfacet roughness at or below which a glossy vertex
@@ -322,6 +327,8 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             out += [("primal_a", 3), ("primal_b", 3)]
             if self.features:
                 out += [(f"{n}_{h}", c) for n, c in _FEATURE_CHANNELS for h in "ab"]
+            if self.gradients:
+                out += [(f"{n}_{h}", 3) for n in ("dx", "dy") for h in "ab"]
         return out
 
     def aov_names(self) -> list[str]:
@@ -469,9 +476,9 @@ def pass_sums(
 
     Returns ``(sums, counts)``: ``sums`` maps ``primal``, ``g0``..``g3``, ``albedo``, ``normal``,
     ``depth``, with ``variance`` the squared luminances ``sq_primal``, ``sq_g0``.., and with
-    ``halves`` ``half_primal``, ``half_albedo``, .. (the sums over the pixel's samples whose
-    index in the whole render is even; ``first`` is the index of the pass's first sample) to
-    lists of per-pixel ``mi.Float`` channels; ``counts`` maps guard names to one-element
+    ``halves`` ``half_primal``, ``half_albedo``, .., ``half_g0``.. (the sums over the pixel's
+    samples whose index in the whole render is even; ``first`` is the index of the pass's first
+    sample) to lists of per-pixel ``mi.Float`` channels; ``counts`` maps guard names to one-element
     ``mi.UInt32`` totals (``sample_nonfinite``: samples whose buffer was not finite, which
     contribute 0 to that buffer, plus the integrator's own guards).
     """
@@ -492,7 +499,8 @@ def pass_sums(
     if halves:
         index = dr.arange(mi.UInt32, dr.width(values["primal"][0])) % spp + first
         even = index % 2 == 0
-        for name in ("primal", *(f for f, _ in _FEATURE_CHANNELS if f in values)):
+        halved = ("primal", *(f for f, _ in _FEATURE_CHANNELS), *_GRADIENT_SUMS)
+        for name in (n for n in halved if n in values):
             values[f"half_{name}"] = [dr.select(even, c, 0) for c in values[name]]
     guards = {"sample_nonfinite": bad, **s.guards}
     # One kernel for all outputs: evaluating them one by one (a reduction evaluates its input)
@@ -540,6 +548,8 @@ class _Accumulator:
             self.sums["half_primal"] = z(3)
             if features:
                 self.sums.update({f"half_{n}": z(c) for n, c in _FEATURE_CHANNELS})
+            if gradients:
+                self.sums.update({f"half_{n}": z(3) for n in _GRADIENT_SUMS})
 
     def add(self, sums: dict, counts: dict, spp: int, first: int = 0) -> None:
         """Add one pass's per-pixel sums and guard counts (from :func:`pass_sums`)."""
@@ -570,16 +580,14 @@ class _Accumulator:
             var = (mean_sq - mi.Float64(dr.square(lum_mean))) * (n / max(n - 1, 1))
             return mi.Float(dr.maximum(var, 0) / n)
 
+        def differences(g):  # forward differences from the four half-gradient means
+            return [
+                dr.select(right_ok, g[0][c] - shifted(g[2][c], 1, right_ok), 0) for c in range(3)
+            ], [dr.select(down_ok, g[1][c] - shifted(g[3][c], width, down_ok), 0) for c in range(3)]
+
         out = {"primal": mean["primal"]}
         if "g0" in mean:
-            out["dx"] = [
-                dr.select(right_ok, mean["g0"][c] - shifted(mean["g2"][c], 1, right_ok), 0)
-                for c in range(3)
-            ]
-            out["dy"] = [
-                dr.select(down_ok, mean["g1"][c] - shifted(mean["g3"][c], width, down_ok), 0)
-                for c in range(3)
-            ]
+            out["dx"], out["dy"] = differences([mean[n] for n in _GRADIENT_SUMS])
         for name in ("albedo", "normal", "depth"):
             if name in mean:
                 out[name] = mean[name]
@@ -600,6 +608,19 @@ class _Accumulator:
                     out[f"{name}_b"] = [  # zeros when half b has no sample (spp 1)
                         mi.Float((t - h) / max(n_b, 1)) for t, h in zip(total, half, strict=True)
                     ]
+            if "half_g0" in self.sums:
+                for which, n_h, part in (
+                    ("a", n_a, lambda t, h: h),
+                    ("b", max(n_b, 1), lambda t, h: t - h),
+                ):
+                    g = [
+                        [
+                            mi.Float(part(t, h) / n_h)
+                            for t, h in zip(self.sums[k], self.sums[f"half_{k}"], strict=True)
+                        ]
+                        for k in _GRADIENT_SUMS
+                    ]
+                    out[f"dx_{which}"], out[f"dy_{which}"] = differences(g)
 
         comps = [c for name, _ in channels for c in out[name]]
         n_ch = len(comps)

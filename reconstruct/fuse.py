@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import torch
 from torch.nn import functional as F
 
+from .held_out import apply, choose, held_out_terms
 from .poisson import solve_weighted_cg
 
 __all__ = [
@@ -44,10 +45,12 @@ __all__ = [
     "cross_half_error",
     "edge_aware_mean",
     "fuse",
+    "fuse_checked",
     "fuse_halves",
     "fuse_statistics",
     "fusion_statistics",
     "fusion_weights",
+    "half_statistics",
     "log_luminance",
     "predicted_gain",
 ]
@@ -76,6 +79,17 @@ CORRECTION_BOUND = 3.0
 #: Largest ratio of a gradient weight to the data weight of its pixels (keeps CG conditioned).
 MAX_WEIGHT_RATIO = 1e3
 
+#: :func:`fuse_checked`'s held-out choice (:func:`.held_out.choose`): the fusion is kept in the
+#: whole image where the image's held-out sum favours it by :data:`CHECK_IMAGE_MARGIN` standard
+#: errors, else in each :data:`CHECK_TILE` px tile whose sum favours it by :data:`CHECK_MARGIN`
+#: (standard errors from :data:`CHECK_BLOCK` px blocks). Chosen over per-image choices (margin 1
+#: or 2), ungated tiles and 16 px tiles (margin 1 or 2: up to 1.3x ``D`` where the halves are
+#: far noisier than ``D``'s error) on 8 scenes x 16-256 gradient spp (docs/gradients.md).
+CHECK_TILE = 32
+CHECK_MARGIN = 2.0
+CHECK_BLOCK = 8
+CHECK_IMAGE_MARGIN = 2.0
+
 
 @dataclass
 class FuseInfo:
@@ -90,12 +104,19 @@ class FuseInfo:
             ``weight_ratio_cap`` (gradient weights capped at :data:`MAX_WEIGHT_RATIO`),
             ``correction_bound`` (pixel-channels whose change was limited to
             :data:`CORRECTION_BOUND` standard errors).
+        held_out: the held-out choice between the fusion and ``D`` (:func:`fuse_checked`):
+            ``kept`` (share of the pixels where the fusion is kept), ``tile``, ``margin``,
+            ``image_margin``, ``statistic`` (the image's held-out sum in standard errors, < 0:
+            the fusion looks better), ``difference`` (its estimated relMSE difference per
+            pixel), ``nonfinite`` (held-out terms that were not finite, counted as 0); empty
+            when not checked.
     """
 
     trusted: float
     cg_iterations: int
     relative_residual: float
     guards: dict[str, int] = field(default_factory=dict)
+    held_out: dict[str, float] = field(default_factory=dict)
 
 
 def box_mean(x: torch.Tensor, radius: int) -> torch.Tensor:
@@ -345,6 +366,9 @@ class FusionStatistics:
             of ``D``, at least ``1e-12``).
         var_dx, var_dy: ``(H, W, 1)`` locally averaged gradient variances; ``inf`` where the
             render's variance is not finite (no information: the gradient gets zero weight).
+        denoised_halves: ``(D_a, D_b)``, the ``(H, W, C)`` denoises of the two halves, or
+            ``None``.
+        error_scale: :attr:`error` over the estimated error of a half's denoise.
     """
 
     denoised: torch.Tensor
@@ -352,6 +376,8 @@ class FusionStatistics:
     error_floor: float
     var_dx: torch.Tensor
     var_dy: torch.Tensor
+    denoised_halves: tuple[torch.Tensor, torch.Tensor] | None = None
+    error_scale: float = ERROR_SCALE
 
     def floored_error(self) -> torch.Tensor:
         """:attr:`error` raised to :attr:`error_floor`."""
@@ -403,7 +429,7 @@ def fusion_statistics(
     error = error_scale * edge_aware_mean(raw, guide, ERROR_RADIUS, GUIDE_SIGMA)
     v_x, v_y = (average_finite(v, guide, VARIANCE_RADIUS, GUIDE_SIGMA) for v in (var_dx, var_dy))
     floor = max(1e-4 * float(denoised.mean(-1).square().mean()), 1e-12)
-    return FusionStatistics(denoised, error, floor, v_x, v_y)
+    return FusionStatistics(denoised, error, floor, v_x, v_y, (denoised_a, denoised_b), error_scale)
 
 
 def fuse_statistics(
@@ -460,3 +486,92 @@ def fuse_halves(
         parts.__getitem__, primal_a, primal_b, var_dx, var_dy, error_scale=error_scale
     )
     return fuse_statistics(statistics, dx, dy, trust_ratio=trust_ratio)
+
+
+def half_statistics(
+    statistics: FusionStatistics, which: int, variance_scale: float
+) -> FusionStatistics:
+    """The statistics of a fusion of half ``which`` (0: ``a``, 1: ``b``) alone: its denoise,
+    the error of a half's denoise, the gradient variances times ``variance_scale`` (the whole
+    render's gradient samples over the half's).
+
+    Raises:
+        ValueError: ``statistics`` has no :attr:`~FusionStatistics.denoised_halves`.
+    """
+    s = statistics
+    if s.denoised_halves is None:
+        raise ValueError("half_statistics: these statistics have no half denoises")
+    return FusionStatistics(
+        s.denoised_halves[which],
+        s.error / s.error_scale,
+        s.error_floor,
+        s.var_dx * variance_scale,
+        s.var_dy * variance_scale,
+    )
+
+
+def fuse_checked(
+    statistics: FusionStatistics,
+    dx: torch.Tensor,
+    dy: torch.Tensor,
+    gradient_halves: tuple[tuple[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
+    primal_halves: tuple[torch.Tensor, torch.Tensor],
+    variance_scales: tuple[float, float],
+    *,
+    trust_ratio: float = TRUST_RATIO,
+    tile: int = CHECK_TILE,
+    margin: float = CHECK_MARGIN,
+    block: int = CHECK_BLOCK,
+    image_margin: float | None = CHECK_IMAGE_MARGIN,
+) -> tuple[torch.Tensor, FuseInfo]:
+    """:func:`fuse_statistics`, kept only where held-out data say it beats ``D``.
+
+    Each half's fusion ``F_h`` (:func:`half_statistics`, the half's gradients) and denoise
+    ``D_h`` are compared against the other half's primal (:func:`.held_out.held_out_terms`,
+    relMSE weights from ``D``); the whole render's fusion is kept where the sum is below
+    ``-margin`` standard errors (:func:`.held_out.choose`: per ``tile``, or the whole image
+    where it passes ``image_margin``), else ``D``. Assumes the choice between the half fusions
+    carries over to the whole render's (both have the same statistics, at twice the samples).
+    The half fusions' weights use statistics of the whole render (smoothed over windows): a
+    second-order dependence on the held-out half.
+
+    Args:
+        statistics: :func:`fusion_statistics` of the render (with its half denoises).
+        dx, dy: ``(H, W, C)`` the render's gradients.
+        gradient_halves: ``((dx_a, dy_a), (dx_b, dy_b))`` the halves' gradients.
+        primal_halves: ``(p_a, p_b)`` the halves' noisy primals ``(H, W, C)``.
+        variance_scales: per half, the render's gradient samples over the half's (``inf``: a
+            half without samples; its fusion is its denoise and ``D`` is kept).
+        trust_ratio: see :func:`fusion_weights`.
+        tile, margin, block, image_margin: see :func:`.held_out.choose`.
+
+    Returns:
+        As :func:`fuse`; :attr:`FuseInfo.held_out` says what was kept.
+    """
+    image, info = fuse_statistics(statistics, dx, dy, trust_ratio=trust_ratio)
+    fused_halves = [
+        fuse_statistics(half_statistics(statistics, h, scale), gx, gy, trust_ratio=trust_ratio)[0]
+        for h, ((gx, gy), scale) in enumerate(zip(gradient_halves, variance_scales, strict=True))
+    ]
+    d_a, d_b = statistics.denoised_halves
+    terms, nonfinite = held_out_terms(
+        fused_halves[0],
+        d_a,
+        fused_halves[1],
+        d_b,
+        *primal_halves,
+        statistics.denoised.mean(-1, keepdim=True),
+    )
+    choice = choose(
+        terms,
+        tile=tile,
+        margin=margin,
+        block=block,
+        image_margin=image_margin,
+        nonfinite=nonfinite,
+    )
+    info.held_out = {
+        name: getattr(choice, name)
+        for name in ("kept", "tile", "margin", "image_margin", "statistic", "difference")
+    } | {"nonfinite": choice.nonfinite}
+    return apply(image, statistics.denoised, choice), info

@@ -172,8 +172,8 @@ def _add_render_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--halves",
         action="store_true",
-        help="also store the primal and features of two independent halves of the samples "
-        "(read by nfor and fuse)",
+        help="also store the primal, features and gradients of two independent halves of the "
+        "samples (read by nfor and fuse)",
     )
     parser.add_argument("--half", action="store_true", help="store half floats")
     parser.add_argument("--force", action="store_true", help="overwrite an existing output")

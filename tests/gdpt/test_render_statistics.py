@@ -140,3 +140,46 @@ def test_halves_split_by_the_render_wide_sample_index_whatever_the_passes(spp, p
     assert (n_a, n_b) == ((spp + 1) // 2, spp // 2)
     pooled = (n_a * b.primal_a + n_b * b.primal_b) / spp
     torch.testing.assert_close(pooled, b.primal, atol=1e-5, rtol=1e-5)
+
+
+def test_gradient_halves_average_to_the_gradients_and_fuse_reports_its_held_out_choice():
+    scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
+    b = gdpt.render(scene, spp=4, primal_spp=4, variance=True, halves=True)
+    assert b.metadata["gradient_half_spp"] == [2, 2] and b.metadata["half_spp"] == [4, 4]
+    torch.testing.assert_close(0.5 * (b.dx_a + b.dx_b), b.dx, atol=1e-6, rtol=0)
+    torch.testing.assert_close(0.5 * (b.dy_a + b.dy_b), b.dy, atol=1e-6, rtol=0)
+    assert not torch.equal(b.dx_a, b.dx_b)  # two independent halves
+    gdpt.reconstruct_image(b, "fuse")
+    held_out = b.metadata["fuse"]["held_out"]
+    keys = {"kept", "tile", "margin", "image_margin", "statistic", "difference", "nonfinite"}
+    assert set(held_out) == keys
+    assert 0.0 <= held_out["kept"] <= 1.0 and held_out["nonfinite"] == 0
+    without = b.replace(dx_a=None, dx_b=None, dy_a=None, dy_b=None)
+    with pytest.raises(ValueError, match=r"'dx_a' \(render with gradients=True, halves=True\)"):
+        gdpt.reconstruct_image(without, "fuse")
+
+
+def fisher_z(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Fisher z of the per-pixel correlation of ``a`` and ``b`` ``(runs, H, W)`` across runs
+    (pixels where either is constant left out)."""
+    ca, cb = a - a.mean(0), b - b.mean(0)
+    denom = np.sqrt((ca**2).sum(0) * (cb**2).sum(0))
+    ok = denom > 0
+    r = (ca * cb).sum(0)[ok] / denom[ok]
+    return np.arctanh(np.clip(r, -0.999999, 0.999999)) * np.sqrt(RUNS - 3)
+
+
+@pytest.mark.slow  # 64 renders: about 2.5 min on 2 loaded cores
+@pytest.mark.parametrize("name", ["dx", "dy"])
+def test_gradient_halves_are_independent_of_the_other_half(runs, name):
+    """``fuse``'s held-out check needs half ``a``'s gradients independent of half ``b``'s
+    primal (and gradients); the same half's primal shares its paths, which the test sees."""
+    inner = (
+        (slice(None), slice(None), slice(0, -1)) if name == "dx" else (slice(None), slice(0, -1))
+    )
+    g_a, g_b = (luminance(runs[f"{name}_{h}"])[inner] for h in "ab")
+    p_a, p_b = (luminance(runs[f"primal_{h}"])[inner] for h in "ab")
+    for other in (p_b, g_b):
+        assert np.mean(np.abs(fisher_z(g_a, other)) > 3.29) < 0.02
+    assert np.mean(np.abs(fisher_z(g_a, p_a)) > 3.29) > 0.1  # same paths: correlated
+    np.testing.assert_allclose((runs[f"{name}_a"] + runs[f"{name}_b"]) / 2, runs[name], atol=1e-5)
