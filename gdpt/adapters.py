@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from gdpt import checkpoints, oidn_native
+from gdpt.buffers import gradient_half_count
 from gdpt.oidn import oidn_denoise
 
 if TYPE_CHECKING:
@@ -187,7 +188,7 @@ def fuse_method(
             + "; these buffers have none"
         )
     name, denoise = primal_only(denoiser)
-    counts = buffers.metadata.get("gradient_half_spp", buffers.metadata.get("half_spp", (0, 0)))
+    counts = gradient_half_count(buffers)
     image, info = fuse_checked(
         fusion_statistics_of(buffers, denoise),
         buffers.dx,

@@ -299,6 +299,13 @@ def pool_primal(gradient: GradientBuffers, primal_only: GradientBuffers) -> Grad
     return gradient.replace(**pooled, metadata=metadata)
 
 
+def gradient_half_count(buffers: GradientBuffers) -> tuple[int, int]:
+    """Samples per pixel behind the gradient halves ``dx_a``/``dy_a`` and ``dx_b``/``dy_b``:
+    ``metadata["gradient_half_spp"]`` of a pooled or merged render, else ``half_spp``."""
+    counts = buffers.metadata.get("gradient_half_spp", buffers.metadata.get("half_spp", (0, 0)))
+    return int(counts[0]), int(counts[1])
+
+
 def primal_count(buffers: GradientBuffers) -> int:
     """Samples per pixel behind ``buffers.primal``: the pooled count of a pooled render
     (``metadata["primal_spp"]``), else ``spp``."""
@@ -313,7 +320,8 @@ def merge_renders(renders: Sequence[GradientBuffers]) -> GradientBuffers:
     over the renders with gradients (``spp`` samples each); a variance of a mean pools as
     ``sum(w_i^2 v_i)``. A buffer some render lacks is left out, except that gradients come
     from the renders that have them; the half-buffers pool half by half
-    (``metadata["half_spp"]``) when every render has them.
+    (``metadata["half_spp"]``) when every render has them, and the gradient halves likewise
+    over the renders with gradients (``metadata["gradient_half_spp"]``).
 
     Args:
         renders: at least one render, same size and device, seeds independent.
@@ -364,6 +372,13 @@ def merge_renders(renders: Sequence[GradientBuffers]) -> GradientBuffers:
         metadata["half_spp"] = [sum(h[0] for h in half_spp), sum(h[1] for h in half_spp)]
     else:
         metadata.pop("half_spp", None)
+    metadata.pop("gradient_half_spp", None)
+    if gradient and all(r.has_gradient_halves for r in gradient):
+        half_spp = [gradient_half_count(r) for r in gradient]
+        for name in ("dx", "dy"):
+            for side, which in enumerate("ab"):
+                mean(gradient, [max(h[side], 0) for h in half_spp], f"{name}_{which}")
+        metadata["gradient_half_spp"] = [sum(h[0] for h in half_spp), sum(h[1] for h in half_spp)]
     seconds = [r.metadata.get("render_seconds") for r in renders]
     if None not in seconds:
         metadata["render_seconds"] = sum(seconds)

@@ -268,3 +268,21 @@ def test_merged_renders_are_the_sample_weighted_mean():
         [gradient.replace(dx=None, dy=None, var_dx=None, var_dy=None), plain]
     )
     assert plain_only.spp == 4 and not plain_only.has_gradients
+
+
+def test_merged_gradient_renders_pool_their_gradient_halves_by_count():
+    """The gradient route merges the pilot's and the main render's gradient halves (what
+    ``fuse``'s held-out check reads), each weighted by its gradient half count."""
+    from gdpt.buffers import GradientBuffers, merge_renders
+
+    def render(value: float, halves: tuple[int, int]) -> GradientBuffers:
+        image = torch.full((2, 3, 3), value)
+        names = ("primal", "dx", "dy", "primal_a", "primal_b", "dx_a", "dx_b", "dy_a", "dy_b")
+        return GradientBuffers(
+            **dict.fromkeys(names, image), spp=sum(halves), metadata={"half_spp": list(halves)}
+        )
+
+    merged = merge_renders([render(1.0, (1, 1)), render(4.0, (3, 1))])
+    assert merged.metadata["gradient_half_spp"] == [4, 2]
+    assert torch.allclose(merged.dx_a, torch.full((2, 3, 3), 3.25))  # (1 * 1 + 3 * 4) / 4
+    assert torch.allclose(merged.dy_b, torch.full((2, 3, 3), 2.5))  # (1 * 1 + 1 * 4) / 2
