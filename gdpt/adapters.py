@@ -15,7 +15,6 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from gdpt import checkpoints, oidn_native
-from gdpt.buffers import gradient_half_count
 from gdpt.oidn import oidn_denoise
 
 if TYPE_CHECKING:
@@ -188,6 +187,8 @@ def fuse_method(
             + "; these buffers have none"
         )
     name, denoise = primal_only(denoiser)
+    from gdpt.buffers import gradient_half_count  # (torch: not at import, for gdpt --help)
+
     counts = gradient_half_count(buffers)
     image, info = fuse_checked(
         fusion_statistics_of(buffers, denoise),
