@@ -31,7 +31,9 @@ cancels). At equal time the gradient route's primal has ``sample_ratio = (1 + f)
 the plain route's samples, so it is taken when ``r_main < sample_ratio^beta``
 (:func:`decide`), and only where the pilot saw ``fuse`` beat ``D`` by :data:`SIGNIFICANCE`
 standard errors (Kettunen et al. 2019, Fig. 5: noisy gradients hurt). Both pilot renders go
-into the final image (:func:`render_route`, :func:`gdpt.buffers.merge_renders`); below
+into the final image (:func:`render_route`, :func:`gdpt.buffers.merge_renders`), and what the
+pilot cost beyond the samples either route keeps (the gradient samples' extra cost on the plain
+route, the statistics' time on both) is charged to the main render in plain samples; below
 :func:`pilot_threshold` plain spp no pilot fits and the route is plain. Measurements:
 ``docs/gradients.md``.
 """
@@ -126,7 +128,9 @@ class RouteChoice:
         reason: one line for the CLI and the metadata.
         decay: measured exponent ``beta`` of the denoiser's error decay (1 without a pilot).
         pilot: the pilot's sample counts (``gradient_spp``, ``primal_spp``, ``held_out_spp``,
-            ``cost_spp``: its cost in plain samples) and its :class:`PilotEvidence`; empty
+            ``cost_spp``: its cost in plain samples: ``gradient_spp * cost_ratio`` plus its
+            plain samples plus the statistics' seconds over the held-out render's seconds per
+            sample) and its :class:`PilotEvidence`; empty
             without a pilot.
     """
 
@@ -316,8 +320,8 @@ def predict(
         f"{ratio:.2f}^{decay:.2f} at equal time (a gradient sample costs {cost_ratio:.1f} plain "
         "ones)"
     )
-    if not significant:
-        reason = f"{seen}: no significant gain; plain route"
+    if not significant:  # even where gradient samples cost no more than plain ones
+        route, reason = "plain", f"{seen}: no significant gain; plain route"
     return route, gain, decay, reason
 
 
@@ -374,9 +378,8 @@ def run_pilot(
         halves=True,
     )
     renders = [pilot, held_out]
-    cost = g * cost_ratio + pooled + held_out_spp
     counts = {"gradient_spp": g, "primal_spp": pooled, "held_out_spp": held_out_spp}
-    counts["cost_spp"] = cost
+    counts["cost_spp"] = g * cost_ratio + pooled + held_out_spp
     if float(pilot.primal.abs().max()) == 0.0:
         seconds = time.perf_counter() - start
         _, ratio = decide(1.0, cost_ratio, factor)
@@ -385,9 +388,10 @@ def run_pilot(
             "plain", denoiser, 1.0, ratio, cost_ratio, seconds, reason, pilot=counts
         )
         return choice, renders
-    main_gradient = g + gradient_spp_for(spp - cost, cost_ratio)
+    main_gradient = g + gradient_spp_for(spp - counts["cost_spp"], cost_ratio)
     main_primal = primal_count(pilot) + held_out_spp + main_gradient - g
     main_primal += round(factor * (main_gradient - g))
+    measure_start = time.perf_counter()
     evidence = measure(
         pilot.centre_crop(PILOT_WINDOW),
         held_out.centre_crop(PILOT_WINDOW),
@@ -395,6 +399,8 @@ def run_pilot(
         main_primal=main_primal,
         main_gradient=main_gradient,
     )
+    seconds_per_spp = held_out.metadata["render_seconds"] / held_out_spp
+    counts["cost_spp"] += (time.perf_counter() - measure_start) / max(seconds_per_spp, 1e-9)
     route, gain, decay, reason = predict(evidence, cost_ratio, factor, main_primal / spp)
     if evidence.nonfinite:
         reason += f" ({evidence.nonfinite} pixels with non-finite statistics left out)"
@@ -442,18 +448,17 @@ def render_route(
     """The main render of ``choice`` at the cost of ``spp`` plain samples per pixel, merged
     with the ``pilot``'s renders (:func:`gdpt.buffers.merge_renders`).
 
-    The plain route renders ``spp`` minus the pilot's primal and held-out samples, so the
-    image holds exactly ``spp`` plain-route samples (the pilot's gradients left out); the
-    gradient route renders what the cost left after the pilot buys (:func:`route_sampling`),
-    and keeps the pilot's gradients. ``props`` as for :func:`gdpt.render` (they override the
-    route's sampling).
+    Either route renders what is left of the cost of ``spp`` plain samples after the pilot's
+    ``cost_spp`` (at least 1 sample, :func:`route_sampling`): the plain route keeps the pilot's
+    primal and held-out samples (its gradients left out), so its image holds ``spp`` minus what
+    looking cost beyond them; the gradient route keeps the pilot's gradients too. ``props`` as
+    for :func:`gdpt.render` (they override the route's sampling).
     """
     if not pilot:
         sampling = route_sampling(choice, spp)
         return rendering.render(scene, seed=seed, **{**sampling, **props})
     if choice.route == "plain":
-        rest = spp - sum(primal_count(r) for r in pilot)
-        sampling = route_sampling(choice, rest)
+        sampling = route_sampling(choice, max(1, round(spp - choice.pilot["cost_spp"])))
         main = rendering.render(scene, seed=seed, **{**sampling, **props})
         plain = [r.replace(dx=None, dy=None, var_dx=None, var_dy=None) for r in pilot]
         keep = set(main.present())

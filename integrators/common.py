@@ -513,14 +513,18 @@ def pass_sums(
 
 
 def plan_passes(n_pixels: int, spp: int, samples_per_pass: int) -> list[int]:
-    """Split ``spp`` into passes of at most ``samples_per_pass`` samples (at least 1 spp each)."""
+    """Split ``spp`` into passes of at most ``samples_per_pass`` samples (at least 1 spp each):
+    full passes of ``P = samples_per_pass // n_pixels`` spp, the rest in powers of two, largest
+    first. A frozen pass records once per pass size, so any ``spp`` on a film replays from at
+    most ``log2(P) + 2`` recordings (a remainder of its own would record anew for every new
+    ``spp``)."""
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
-    per_pass = max(1, min(spp, samples_per_pass // max(n_pixels, 1)))
+    per_pass = max(1, samples_per_pass // max(n_pixels, 1))
     if n_pixels * per_pass > 2**32:
         raise ValueError(f"image of {n_pixels} pixels is too large for one pass")
     full, rest = divmod(spp, per_pass)
-    return [per_pass] * full + ([rest] if rest else [])
+    return [per_pass] * full + [1 << k for k in reversed(range(rest.bit_length())) if rest >> k & 1]
 
 
 class _Accumulator:

@@ -58,13 +58,15 @@ def load_scene(source: Any, *, box_filter: bool = False, long_side: int | None =
     Args:
         source: ``mi.Scene``, scene dict, XML path, ``builtin:NAME`` or ``random:SEED[:VIEW]``.
         box_filter (bool): XML only: replace the film's pixel filter by a box filter.
-        long_side (int | None): rescale the film to this many pixels on its long side (XML:
-            aspect ratio kept; ``builtin:``/``random:``: a square film of this size).
+        long_side (int | None): rescale the film to this many pixels on its long side (XML
+            and dicts: aspect ratio kept; ``builtin:``/``random:``: a square film of this
+            size); not for a loaded ``mi.Scene``.
 
     Raises:
         FileNotFoundError: the XML file does not exist.
-        ValueError: Mitsuba cannot load the scene (the message names the file), or an unknown
-            ``builtin:``/``random:`` specification.
+        ValueError: Mitsuba cannot load the scene (the message names the file), an unknown
+            ``builtin:``/``random:`` specification, or ``box_filter``/``long_side`` for a
+            source they cannot change.
     """
     return read_scene(source, box_filter=box_filter, long_side=long_side).scene
 
@@ -101,9 +103,16 @@ def read_scene(
     import mitsuba as mi
 
     if isinstance(source, mi.Scene):
+        if box_filter or long_side:
+            raise ValueError(
+                "box_filter and long_side change a scene before it loads; pass the scene's "
+                "dict or XML path instead of a loaded mi.Scene"
+            )
         return LoadedScene(source)
     if isinstance(source, dict):
-        return _from_dict(source)
+        if box_filter:
+            raise ValueError("box_filter is for XML scenes; set the dict's film rfilter instead")
+        return _from_dict(_resized(source, long_side) if long_side else source)
     if isinstance(source, str) and source.startswith(GENERATED_PREFIXES):
         return _from_dict(generated_scene(source, long_side), source)
     return _from_xml(Path(os.fspath(source)), box_filter=box_filter, long_side=long_side)
@@ -141,6 +150,21 @@ def _from_dict(scene_dict: dict[str, Any], label: str = "scene dict") -> LoadedS
     size = (film["width"], film["height"]) if "width" in film and "height" in film else None
     depth = scene_dict.get("integrator", {}).get("max_depth")
     return LoadedScene(mi.load_dict(scene_dict), size, depth, rfilter)
+
+
+def _resized(scene_dict: dict[str, Any], long_side: int) -> dict[str, Any]:
+    """A copy of ``scene_dict`` whose film has ``long_side`` pixels on its long side (aspect
+    kept); the film must give ``width`` and ``height``."""
+    film = scene_dict.get("sensor", {}).get("film", {})
+    if "width" not in film or "height" not in film:
+        raise ValueError(
+            "long_side needs the scene dict's sensor film to give 'width' and 'height'"
+        )
+    width, height = int(film["width"]), int(film["height"])
+    scale = long_side / max(width, height)
+    size = {"width": max(1, round(width * scale)), "height": max(1, round(height * scale))}
+    sensor = {**scene_dict["sensor"], "film": {**film, **size}}
+    return {**scene_dict, "sensor": sensor}
 
 
 def _xml_value(element: ET.Element | None, defaults: dict[str, str]) -> str | None:

@@ -58,10 +58,35 @@ def test_auto_records_its_choice_and_renders_what_the_route_reads():
         "plain",
     )
     assert result.timings["pilot"] > 0 and torch.isfinite(result.image).all()
-    if result.route.route == "plain":
-        assert not result.buffers.has_gradients and result.buffers.spp == spp
+    if result.route.route == "plain":  # the pilot's samples and what is left of spp
+        pilot = result.route.pilot
+        kept = pilot["gradient_spp"] + pilot["primal_spp"] + pilot["held_out_spp"]
+        rest = max(1, round(spp - pilot["cost_spp"]))
+        assert not result.buffers.has_gradients and result.buffers.spp == kept + rest
     with pytest.raises(ValueError, match="pilot_spp must be >= 2"):
         route.choose_route(scene, spp=1000, pilot_spp=1)
+
+
+def test_the_pilots_time_is_charged_to_the_main_render(monkeypatch):
+    """Equal time: what the pilot costs beyond the samples the image keeps (here statistics
+    that take a second, far more than the warm render of 200 spp) is taken from the main
+    render, which is left with one sample; uncharged, it would render the rest of ``spp``."""
+    import time
+
+    def slow_measure(*args, **kwargs):
+        time.sleep(1.0)
+        return route.PilotEvidence(
+            error=1.0, error_half=2.0, delta=0.0, delta_se=1.0, model_pilot=1.0, model_main=1.0
+        )  # no gain seen: the plain route
+
+    scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
+    gdpt.render_and_denoise(scene, spp=200)  # warm: the pilot's renders replay their passes
+    monkeypatch.setattr(route, "measure", slow_measure)
+    result = gdpt.render_and_denoise(scene, spp=200)
+    pilot = result.route.pilot
+    assert result.route.route == "plain" and pilot["cost_spp"] > 200
+    kept = pilot["gradient_spp"] + pilot["primal_spp"] + pilot["held_out_spp"]
+    assert result.buffers.spp == kept + 1
 
 
 def test_no_pilot_below_its_share_of_the_render(monkeypatch):
@@ -286,3 +311,13 @@ def test_merged_gradient_renders_pool_their_gradient_halves_by_count():
     assert merged.metadata["gradient_half_spp"] == [4, 2]
     assert torch.allclose(merged.dx_a, torch.full((2, 3, 3), 3.25))  # (1 * 1 + 3 * 4) / 4
     assert torch.allclose(merged.dy_b, torch.full((2, 3, 3), 2.5))  # (1 * 1 + 1 * 4) / 2
+
+
+def test_no_significant_gain_means_the_plain_route_even_when_gradients_cost_nothing():
+    """A pilot that saw no gain takes the plain route even where the gradient route's primal
+    would hold as many samples (cost ratio 1, sample ratio >= 1: nothing to lose, nothing
+    seen to win)."""
+    unseen = _evidence(delta=0.0, delta_se=1.0)
+    for ratio in (1.0, 1.2):
+        chosen, gain, _, reason = route.predict(unseen, cost_ratio=1.0, sample_ratio=ratio)
+        assert chosen == "plain" and gain == 1.0 and "no significant gain" in reason

@@ -214,3 +214,18 @@ def test_random_views_share_content():
     sensors = [_canonical(s["sensor"]) for s in views]
     assert len({repr(s) for s in sensors}) == 4
     assert _canonical(views[2]) == _canonical(scenes.random_scene(3, resolution=(16, 16), view=2))
+
+
+def test_long_side_resizes_a_scene_dict_and_refuses_a_loaded_scene():
+    """``load_scene(dict, long_side=N)`` resizes the dict's film (aspect kept) instead of
+    ignoring the request; a loaded ``mi.Scene`` cannot be resized and says so."""
+    import gdpt
+
+    wide = scenes.builtin_scene("diffuse-box", resolution=(64, 32))
+    film = gdpt.load_scene(wide, long_side=16).sensors()[0].film()
+    assert list(film.crop_size()) == [16, 8]
+    assert wide["sensor"]["film"]["width"] == 64  # the caller's dict is left alone
+    with pytest.raises(ValueError, match="loaded mi.Scene"):
+        gdpt.load_scene(gdpt.load_scene(wide), long_side=16)
+    with pytest.raises(ValueError, match="'width' and 'height'"):
+        gdpt.load_scene({"type": "scene", "sensor": {"type": "perspective"}}, long_side=16)
