@@ -30,6 +30,7 @@ import torch
 from method_cost import PLAIN, measure, parse_size
 
 import gdpt
+from gdpt.machine import cpu_name
 from gdpt.methods import METHODS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,16 +58,6 @@ def seconds_cell(value: float) -> str:
 def ratio_cell(value: float) -> str:
     """A render cost relative to a plain path sample: ``2.7x``."""
     return f"{value:.1f}x"
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def table_rows(results: dict[str, dict[str, dict[str, float]]]) -> list[list[str]]:
