@@ -28,7 +28,6 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -37,6 +36,9 @@ import torch
 import torch.nn.functional as F
 from gdpt.reconstruct.dense_unet import CONFIGS, build_model, parameter_count
 from gdpt.reconstruct.dense_unet_reconstructor import DenseUNetReconstructor
+from poisson import git_commit
+
+from gdpt.machine import cpu_name
 
 
 def _time(fn: Callable[[], object]) -> float:
@@ -95,30 +97,6 @@ def oidn_task(buffers: dict[str, torch.Tensor]) -> Callable[[], object]:
     )
     high = mitsuba_oidn.Quality.High
     return lambda: mitsuba_oidn.denoise(color, albedo, normal, hdr=True, quality=high)
-
-
-def _git_commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            cwd=Path(__file__).parent,
-            check=False,
-        )
-        return out.stdout.strip() or "unknown"
-    except OSError:
-        return "unknown"
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def main() -> None:
@@ -215,10 +193,10 @@ def main() -> None:
             "benchmark": "dense_unet_inference",
             "metadata": {
                 "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
-                "commit": _git_commit(),
+                "commit": git_commit(),
                 "torch": torch.__version__,
                 "python": platform.python_version(),
-                "cpu": _cpu_model(),
+                "cpu": cpu_name(),
                 "threads": torch.get_num_threads(),
                 "load_average_before": load_before,
                 "load_average_after": os.getloadavg(),

@@ -6,10 +6,11 @@ OIDN alone (the ``oidn`` method), the primal-only network ``D``, the two half-bu
 the statistics (cross-half error, edge-aware averages), the solve (weighted CG + trust region),
 and the whole ``fuse`` method. Each stage runs once untimed (weight loading, torch's first-call
 set-up), then ``--repeats`` times; medians are printed, with the ratio to OIDN alone. Rendering
-is not timed here (see ``benchmarks/method_cost.py``). On a shared machine use
-``OMP_NUM_THREADS=1``; the script prints the thread count and the load average::
+is not timed here (see ``benchmarks/method_cost.py``). On a shared machine use one thread
+(``--threads 1``: torch's and Dr.Jit's, whose pool runs OIDN, as ``benchmarks/cost_table.py``
+does); the script prints the thread counts and the load average::
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/fuse_stages.py [--sizes 128x128 1280x720]
+    .venv/bin/python benchmarks/fuse_stages.py --threads 1 [--sizes 128x128 1280x720]
 """
 
 from __future__ import annotations
@@ -83,15 +84,29 @@ def main() -> None:
     parser.add_argument("--sizes", nargs="+", default=["128x128", "1280x720"])
     parser.add_argument("--spp", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--threads", type=int, help="torch and Dr.Jit threads (default: their own defaults)"
+    )
     args = parser.parse_args()
+    if args.threads is not None and args.threads < 1:
+        parser.error("--threads must be >= 1")
     variant = gdpt.set_variant()
+    import drjit as dr
+
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+        dr.set_thread_count(args.threads)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"variant {variant}, torch threads {torch.get_num_threads()}, load {load:.1f}")
+    print(
+        f"variant {variant}, threads: torch {torch.get_num_threads()}, "
+        f"Dr.Jit {dr.thread_count()}; load {load:.1f}"
+    )
     for size in args.sizes:
         width, height = (int(v) for v in size.split("x"))
         times = stages(width, height, args.spp, args.repeats)
         base = times["oidn alone"]
-        print(f"\n{width}x{height} (seconds, ratio to OIDN alone)")
+        load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+        print(f"\n{width}x{height} (seconds, ratio to OIDN alone; load {load:.1f} at end)")
         for name, seconds in times.items():
             print(f"  {name:<22} {seconds:8.3f}  {seconds / base:6.2f}x")
 

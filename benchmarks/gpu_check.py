@@ -21,13 +21,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 from pathlib import Path
 
 import torch
 from method_cost import PLAIN, measure, median_seconds, parse_size
 
 import gdpt
+from gdpt.machine import cpu_name
 from gdpt.methods import METHODS
 
 
@@ -74,8 +74,7 @@ def main() -> None:
     from gdpt.backend import torch_device
 
     device = torch_device()
-    cpu = platform.processor() or platform.machine()
-    name = torch.cuda.get_device_name(device) if device.type == "cuda" else cpu
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_name()
     width, height = args.size
     print(f"builtin:cbox-demo {width}x{height}, {args.spp} spp, {variant} on {device} ({name})")
     print(f"kernel compilation excluded (one untimed run first); median of {args.repeats}")

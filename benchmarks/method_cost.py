@@ -34,7 +34,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -42,6 +41,7 @@ from pathlib import Path
 import torch
 
 import gdpt
+from gdpt.machine import cpu_name
 from gdpt.methods import METHODS, register_checkpoint
 from gdpt.scenes.loading import generated_scene
 
@@ -168,7 +168,7 @@ def main() -> None:
             cells.append(f"{row['render_per_spp']:.4f} | {ratio:.2f} | {row['reconstruct']:.3f}")
         print(f"| {name} | {' | '.join(cells)} |")
     print(
-        f"\nmachine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+        f"\nmachine: {cpu_name()}, {os.cpu_count()} CPUs, "
         f"load average at end {os.getloadavg()[0]:.2f}; spp {args.spp}, "
         f"median of {args.repeats}"
     )

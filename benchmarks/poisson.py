@@ -28,6 +28,8 @@ import numpy as np
 import torch
 from gdpt.reconstruct import poisson
 
+from gdpt.machine import cpu_name
+
 
 def make_gpt_like(
     height: int, width: int, *, seed: int = 0
@@ -83,16 +85,6 @@ def time_runs(fn: Callable[[], Any], repeats: int) -> tuple[list[float], Any]:
 def summary(times: list[float]) -> dict[str, float]:
     q = np.percentile(times, [25, 50, 75])
     return {"median_s": float(q[1]), "iqr_s": float(q[2] - q[0]), "min_s": float(min(times))}
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def git_commit() -> str | None:
@@ -165,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     speedup = rows["l1"]["median_s"] / rows["fast"]["median_s"]
     print(
         f"Screened Poisson, {args.width}x{args.height} RGB, alpha={alpha}, "
-        f"torch {torch.__version__}, {torch.get_num_threads()} threads, {cpu_model()}, "
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads, {cpu_name()}, "
         f"median of {args.repeats} runs after 1 warm-up (load avg before/after: "
         f"{load_before} / {load_after})\n"
     )
@@ -202,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
             "numpy": np.__version__,
             "python": sys.version.split()[0],
             "platform": platform.platform(),
-            "cpu": cpu_model(),
+            "cpu": cpu_name(),
             "threads": torch.get_num_threads(),
             "device": "cpu",
             "commit": git_commit(),

@@ -21,10 +21,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import time
 from pathlib import Path
+
+from gdpt.machine import cpu_name
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
 SCENES = [
@@ -129,7 +130,7 @@ def main() -> None:
     if args.json:
         meta = {
             "variant": variant,
-            "machine": platform.processor() or platform.machine(),
+            "machine": cpu_name(),
             "args": {k: str(v) for k, v in vars(args).items()},
         }
         args.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shlex
@@ -116,3 +117,80 @@ def test_readme_costs_are_the_cost_tables():
         if costs.get(method, {}).get(column) != row[column]
     ]
     assert not differ, differ
+
+
+COST_TABLE = ROOT / "docs" / "cost-table.json"
+#: A cost figure copied from the cost table is a link to it whose title names the cell:
+#: ``[1.5 s](cost-table.md "oidn: reconstruct, 1280x720")``; a ratio of two methods' cells:
+#: ``[256x](cost-table.md "nfor / oidn: reconstruct, 128x128")``; a render cost relative to a
+#: plain path sample (the table's own ratio): ``[5.4x](cost-table.md "fuse: render / sample,
+#: 128x128")``.
+_CITED = re.compile(r'\[([^\]]*)\]\(([^)\s]*cost-table\.md)(?:\s+"([^"]*)")?\)')
+_FIGURE = re.compile(r"(\d+(?:\.\d+)?) ?(s|ms|x)")
+_CELL = re.compile(r"([\w-]+)(?: / ([\w-]+))?: (reconstruct|render / sample), (\d+x\d+)")
+
+
+def _cell_value(record: dict, title: str) -> tuple[float, bool]:
+    """The value of the cell ``title`` names in the cost table's ``record`` (seconds, or a
+    ratio), and whether it is a ratio."""
+    cell = _CELL.fullmatch(title)
+    assert cell, f"{title!r} is not 'METHOD[ / METHOD]: reconstruct|render / sample, WxH'"
+    first, second, quantity, size = cell.groups()
+    rows = record["results"][size]
+    if quantity == "render / sample":
+        plain = next(iter(rows))  # the plain path-tracing row, the table's own denominator
+        return rows[first]["render_per_spp"] / rows[second or plain]["render_per_spp"], True
+    if second:
+        return rows[first]["reconstruct"] / rows[second]["reconstruct"], True
+    return rows[first]["reconstruct"], False
+
+
+def _cited_figures() -> list[tuple[str, str, str]]:
+    """``(where, figure, title)`` for every link to the cost table in the README and ``docs/``
+    whose text is a number (a link may span lines)."""
+    pages = [README, *sorted(p for p in (ROOT / "docs").glob("*.md") if p.stem != "cost-table")]
+    cited = []
+    for page in pages:
+        text = page.read_text()
+        for link in _CITED.finditer(text):
+            figure, target, title = (" ".join(group.split()) for group in link.groups(""))
+            if _FIGURE.fullmatch(figure):
+                where = f"{page.relative_to(ROOT)}:{text.count(chr(10), 0, link.start()) + 1}"
+                assert (page.parent / target).resolve() == COST_TABLE.with_suffix(".md"), where
+                cited.append((where, figure, title))
+    return cited
+
+
+def test_cost_figures_citing_the_cost_table_are_its_values():
+    """A figure that links to ``docs/cost-table.md`` names its cell in the link's title and
+    equals the cell's value in ``docs/cost-table.json`` to the digits it is written with: one
+    run, one condition (other cost figures state their own run and command)."""
+    record = json.loads(COST_TABLE.read_text())
+    cited = _cited_figures()
+    assert len(cited) >= 10, cited  # the guard guards something
+    wrong = []
+    for where, figure, title in cited:
+        if not title:
+            wrong.append(f"{where}: {figure} links to the cost table, no title names its cell")
+            continue
+        number, unit = _FIGURE.fullmatch(figure).groups()
+        value, ratio = _cell_value(record, title)
+        if ratio != (unit == "x"):
+            wrong.append(f"{where}: {figure} for {title!r}: a ratio is written Nx, seconds N s")
+            continue
+        value *= 1000 if unit == "ms" else 1
+        decimals = len(number.partition(".")[2])
+        if abs(value - float(number)) > 0.5 * 10**-decimals + 1e-12:
+            wrong.append(f"{where}: {figure} for {title!r}: the table has {value:.{decimals}f}")
+    assert not wrong, wrong
+
+
+def test_readme_states_the_cost_tables_condition():
+    """The condition line of the README's methods table (the line after its start marker) is
+    that of the cost table's run."""
+    record = json.loads(COST_TABLE.read_text())
+    block = README.read_text().split("<!-- methods-table:", 1)[1]
+    condition = block.splitlines()[1]
+    assert f"**{record['condition']}**" in condition, condition
+    for part in (record["machine"], record["threads"], record["date"], *record["skipped"]):
+        assert part in condition, (part, condition)

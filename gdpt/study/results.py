@@ -19,6 +19,7 @@ import torch
 
 from gdpt.deprecated import EVAL_METHOD_ALIASES
 from gdpt.io.atomic import atomic_write
+from gdpt.machine import cpu_name
 from gdpt.study.config import EvaluateConfig
 
 RESULTS_FORMAT = "gdpt-evaluate/1"
@@ -40,14 +41,6 @@ _RESUME_KEYS = (
 # ---------------------------------------------------------------------------------- the study
 def machine_info() -> dict[str, Any]:
     """CPU model, core counts, memory, OS, load average (a shared machine skews timings)."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     memory = None
     try:
         for line in Path("/proc/meminfo").read_text().splitlines():
@@ -57,7 +50,7 @@ def machine_info() -> dict[str, Any]:
         pass
     affinity = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
     return {
-        "cpu": cpu,
+        "cpu": cpu_name(),
         "logical_cores": os.cpu_count(),
         "usable_cores": affinity,
         "memory_gib": memory,

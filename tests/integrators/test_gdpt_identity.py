@@ -40,6 +40,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gdpt.machine import cpu_name
+
 DATA = Path(__file__).resolve().parent / "data" / "gdpt_identity.json"
 RESOLUTION, SPP, SEED = (16, 16), 2, 7
 #: Integrator settings of every case: every output on, roulette from depth 2.
@@ -109,7 +111,7 @@ def _platform() -> str:
     import mitsuba as mi
 
     return (
-        f"{platform.machine()} '{_cpu_name()}' ({_vector_isa()}), mitsuba {mi.__version__}, "
+        f"{platform.machine()} '{cpu_name()}' ({_vector_isa()}), mitsuba {mi.__version__}, "
         f"drjit {dr.__version__}"
     )
 
@@ -128,16 +130,6 @@ def _vector_isa() -> str:
         if isa in flags:
             return isa
     return "unknown ISA"
-
-
-def _cpu_name() -> str:
-    """The CPU's model name (Linux), else the processor string Python reports."""
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.exists():
-        for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    return platform.processor()
 
 
 @cache
