@@ -8,7 +8,10 @@ Two routes fill the same render time; ``spp`` counts the plain route's samples:
 * ``plain``: plain path samples (features on), reconstructed by the primal-only denoiser ``D``
   (:func:`gdpt.adapters.plain_denoiser`).
 
-The pilot (:func:`run_pilot`) is two independent renders: ``A``, the gradient route's input at
+The pilot (:func:`run_pilot`) is two independent renders: ``B`` first (below), whose seconds per
+sample predict the render's time, so that a pilot whose statistics would cost more than
+:data:`STATISTICS_SHARE` of it (as measured by this process's last pilot) stops there, and
+``A``, the gradient route's input at
 ``g`` gradient spp (:func:`pilot_size`: at least ``pilot_spp``; its gradient samples, the only
 part the plain route cannot use, cost at most :data:`PILOT_SHARE` of the render), and ``B``,
 plain samples, :data:`HELD_OUT_SHARE` of the render. ``B`` is held out: for any image ``X``
@@ -81,6 +84,16 @@ SIGNIFICANCE = 1.645
 #: Side of the tiles whose means give the standard error of the pilot's measured difference
 #: (pixels; neighbouring pixels of a denoise are correlated, tiles much less).
 PILOT_TILE = 16
+
+#: Largest share of the main render's time that the pilot's statistics may take: a pilot whose
+#: statistics took longer (per window pixel, :data:`_STATISTICS_SECONDS_PER_PIXEL`) than this
+#: share of the render's predicted time (its held-out render's seconds per sample times
+#: ``spp``) does not look again; the plain route, its held-out samples kept.
+STATISTICS_SHARE = 0.02
+
+#: The statistics' seconds per window pixel of this process's last pilot, per denoiser: a
+#: measured machine constant (three denoises and a ``fuse`` of the window), not a setting.
+_STATISTICS_SECONDS_PER_PIXEL: dict[str, float] = {}
 
 #: relMSE's ``eps`` (:func:`gdpt.metrics.relmse`).
 RELMSE_EPS = 1e-3
@@ -361,13 +374,6 @@ def run_pilot(
         for k, v in props.items()
         if k not in ("variance", "halves", "gradients", "features", "primal_spp")
     }
-    pilot = rendering.render(
-        scene, spp=g, seed=seed, **{**props, **methods.METHODS["fuse"].sampling(g)}
-    )
-    t_gradient = pilot.metadata["render_seconds"] - pilot.metadata["primal_only"]["render_seconds"]
-    t_plain = pilot.metadata["primal_only"]["render_seconds"]
-    cost_ratio = (t_gradient / g) / max(t_plain / pooled, 1e-9)
-    cost_ratio = min(max(cost_ratio, COST_RATIO_RANGE[0]), COST_RATIO_RANGE[1])
     denoiser, denoise = methods.primal_only()
     held_out = rendering.render(
         scene,
@@ -377,6 +383,29 @@ def run_pilot(
         variance=True,
         halves=True,
     )
+    seconds_per_spp = max(held_out.metadata["render_seconds"] / held_out_spp, 1e-9)
+    window = min(held_out.height, PILOT_WINDOW) * min(held_out.width, PILOT_WINDOW)
+    looking = _STATISTICS_SECONDS_PER_PIXEL.get(denoiser, 0.0) * window
+    if looking > STATISTICS_SHARE * spp * seconds_per_spp:
+        _, ratio = decide(1.0, DEFAULT_COST_RATIO, factor)
+        reason = (
+            f"looking would cost ~{looking:.2f} s of statistics, more than {STATISTICS_SHARE:.0%} "
+            f"of the render's ~{spp * seconds_per_spp:.2f} s; plain route"
+        )
+        counts = {"gradient_spp": 0, "primal_spp": 0, "held_out_spp": held_out_spp}
+        counts["cost_spp"] = held_out_spp
+        seconds = time.perf_counter() - start
+        choice = RouteChoice(
+            "plain", denoiser, 1.0, ratio, DEFAULT_COST_RATIO, seconds, reason, pilot=counts
+        )
+        return choice, [held_out]
+    pilot = rendering.render(
+        scene, spp=g, seed=seed, **{**props, **methods.METHODS["fuse"].sampling(g)}
+    )
+    t_gradient = pilot.metadata["render_seconds"] - pilot.metadata["primal_only"]["render_seconds"]
+    t_plain = pilot.metadata["primal_only"]["render_seconds"]
+    cost_ratio = (t_gradient / g) / max(t_plain / pooled, 1e-9)
+    cost_ratio = min(max(cost_ratio, COST_RATIO_RANGE[0]), COST_RATIO_RANGE[1])
     renders = [pilot, held_out]
     counts = {"gradient_spp": g, "primal_spp": pooled, "held_out_spp": held_out_spp}
     counts["cost_spp"] = g * cost_ratio + pooled + held_out_spp
@@ -399,8 +428,9 @@ def run_pilot(
         main_primal=main_primal,
         main_gradient=main_gradient,
     )
-    seconds_per_spp = held_out.metadata["render_seconds"] / held_out_spp
-    counts["cost_spp"] += (time.perf_counter() - measure_start) / max(seconds_per_spp, 1e-9)
+    statistics_seconds = time.perf_counter() - measure_start
+    _STATISTICS_SECONDS_PER_PIXEL[denoiser] = statistics_seconds / window
+    counts["cost_spp"] += statistics_seconds / seconds_per_spp
     route, gain, decay, reason = predict(evidence, cost_ratio, factor, main_primal / spp)
     if evidence.nonfinite:
         reason += f" ({evidence.nonfinite} pixels with non-finite statistics left out)"

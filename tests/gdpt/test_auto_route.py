@@ -18,6 +18,12 @@ from gdpt.study.results import replicate_seed
 pytestmark = pytest.mark.usefixtures("variant", "single_thread")
 
 
+@pytest.fixture(autouse=True)
+def _no_remembered_statistics_cost(monkeypatch):
+    """Each test starts without a measured statistics cost (a pilot always looks first)."""
+    monkeypatch.setattr(route, "_STATISTICS_SECONDS_PER_PIXEL", {})
+
+
 @pytest.mark.parametrize(
     "gain, cost, expected",
     [(0.5, 2.0, "gradient"), (0.9, 2.0, "plain"), (0.9, 1.0, "gradient"), (1.0, 1.0, "plain")],
@@ -82,6 +88,7 @@ def test_the_pilots_time_is_charged_to_the_main_render(monkeypatch):
     scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
     gdpt.render_and_denoise(scene, spp=200)  # warm: the pilot's renders replay their passes
     monkeypatch.setattr(route, "measure", slow_measure)
+    monkeypatch.setattr(route, "STATISTICS_SHARE", 1e9)  # it looks, whatever looking costs
     result = gdpt.render_and_denoise(scene, spp=200)
     pilot = result.route.pilot
     assert result.route.route == "plain" and pilot["cost_spp"] > 200
@@ -321,3 +328,32 @@ def test_no_significant_gain_means_the_plain_route_even_when_gradients_cost_noth
     for ratio in (1.0, 1.2):
         chosen, gain, _, reason = route.predict(unseen, cost_ratio=1.0, sample_ratio=ratio)
         assert chosen == "plain" and gain == 1.0 and "no significant gain" in reason
+
+
+def test_a_pilot_does_not_look_where_its_statistics_would_cost_more_than_their_share(
+    monkeypatch,
+):
+    """Once a pilot measured what its statistics cost, a render too short to pay that share
+    renders only the held-out samples (kept in the image), takes the plain route and says
+    why; a long enough render looks again."""
+    calls = []
+    render = gdpt.rendering.render
+
+    def counting(*args, **kwargs):
+        calls.append(kwargs.get("gradients", True))
+        return render(*args, **kwargs)
+
+    monkeypatch.setattr(gdpt.rendering, "render", counting)
+    scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
+    route.choose_route(scene, spp=200, seed=1)  # looks: learns what looking costs
+    assert route._STATISTICS_SECONDS_PER_PIXEL
+    calls.clear()
+    monkeypatch.setattr(route, "_STATISTICS_SECONDS_PER_PIXEL", {"oidn-tuned": 1.0, "oidn": 1.0})
+    choice, renders = route.run_pilot(scene, spp=200, seed=1)
+    assert choice.route == "plain" and "looking would cost" in choice.reason
+    assert calls == [False] and len(renders) == 1  # the held-out render only
+    assert choice.pilot["cost_spp"] == choice.pilot["held_out_spp"]
+    monkeypatch.setattr(route, "STATISTICS_SHARE", 1e9)
+    calls.clear()
+    route.run_pilot(scene, spp=200, seed=1)
+    assert len(calls) == 2
