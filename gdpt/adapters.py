@@ -48,7 +48,9 @@ def poisson_method(
     buffers: GradientBuffers, *, method: str, alpha: float, **options: Any
 ) -> torch.Tensor:
     """Screened Poisson reconstruction from ``primal``, ``dx`` and ``dy``
-    (:func:`gdpt.reconstruct.poisson.solve` with ``solver=method``).
+    (:func:`gdpt.reconstruct.poisson.solve` with ``solver=method``); untraced gradients
+    (``buffers.gradient_mask``) are missing constraints, without the solvers' warning about
+    non-finite inputs (which still comes for the other inputs).
 
     Raises:
         ValueError: the buffers have no ``dx``/``dy``.
@@ -59,14 +61,35 @@ def poisson_method(
         )
     from gdpt.reconstruct.poisson import solve
 
-    return solve(buffers.primal, buffers.dx, buffers.dy, solver=method, alpha=alpha, **options)
+    mask = buffers.gradient_mask
+    if mask is None:
+        return solve(buffers.primal, buffers.dx, buffers.dy, solver=method, alpha=alpha, **options)
+    from gdpt.buffers import fill_untraced
+    from gdpt.reconstruct.poisson import NonFiniteInputWarning
+
+    filled = fill_untraced(buffers, math.nan, math.nan)
+    with warnings.catch_warnings():
+        if _finite_where(buffers, mask):
+            warnings.simplefilter("ignore", NonFiniteInputWarning)
+        return solve(filled.primal, filled.dx, filled.dy, solver=method, alpha=alpha, **options)
+
+
+def _finite_where(buffers: GradientBuffers, mask: torch.Tensor) -> bool:
+    """Whether the primal and the traced gradients (``mask``, ``(H, W, 2)``) are finite."""
+    import torch
+
+    traced_dx = torch.isfinite(buffers.dx).all(-1) | ~mask[..., 0]
+    traced_dy = torch.isfinite(buffers.dy).all(-1) | ~mask[..., 1]
+    return bool(torch.isfinite(buffers.primal).all() & traced_dx.all() & traced_dy.all())
 
 
 def network_method(
     buffers: GradientBuffers, *, name: str, alpha: float, model: str | None = None, **_: Any
 ) -> torch.Tensor:
     """Neural reconstruction with the checkpoint of ``name`` (or ``model``;
-    :func:`gdpt.checkpoints.model_path`); ``alpha`` does not apply.
+    :func:`gdpt.checkpoints.model_path`); ``alpha`` does not apply. A network cannot leave an
+    input out: an untraced gradient (``buffers.gradient_mask``) reaches it as the primal's own
+    forward difference there, which tells it nothing the primal does not.
 
     Raises:
         MissingBuffersError: the buffers lack one the model's card lists (named, with the
@@ -96,9 +119,24 @@ def network_method(
             f"primal_spp={factor:g} x spp, or 'gdpt render --primal-spp')",
             stacklevel=3,
         )
+    if buffers.gradient_mask is not None:
+        buffers = _primal_differences_where_untraced(buffers)
     reconstructor = checkpoints.load_reconstructor(path)
     image = oidn_native.reconstruct(reconstructor, buffers)  # OIDN's kernels where they apply
     return reconstructor(buffers) if image is None else image
+
+
+def _primal_differences_where_untraced(buffers: GradientBuffers) -> GradientBuffers:
+    """:func:`gdpt.buffers.fill_untraced` with the primal's forward differences."""
+    import torch
+
+    from gdpt.buffers import fill_untraced
+
+    p = buffers.primal
+    dx, dy = torch.zeros_like(p), torch.zeros_like(p)
+    dx[:, :-1] = p[:, 1:] - p[:, :-1]
+    dy[:-1] = p[1:] - p[:-1]
+    return fill_untraced(buffers, dx, dy)
 
 
 def oidn_method(buffers: GradientBuffers, *, alpha: float, **options: Any) -> torch.Tensor:
@@ -161,7 +199,8 @@ def fuse_method(
     ``primal_only(denoiser)`` returns the denoiser's name and function
     (:func:`gdpt.methods.primal_only`). ``buffers.metadata["fuse"]`` receives the denoiser,
     the share of gradients used, the solver iterations, the guard counts and the held-out
-    choice (``held_out``).
+    choice (``held_out``). Untraced gradients (``buffers.gradient_mask``) get zero weight
+    (:func:`gdpt.buffers.fill_untraced`: infinite variance).
 
     Raises:
         ValueError: the buffers lack gradients, variances or half-buffers (the gradients'
@@ -187,8 +226,9 @@ def fuse_method(
             + "; these buffers have none"
         )
     name, denoise = primal_only(denoiser)
-    from gdpt.buffers import gradient_half_count  # (torch: not at import, for gdpt --help)
+    from gdpt.buffers import fill_untraced, gradient_half_count  # (torch: not at import)
 
+    buffers = fill_untraced(buffers, 0.0, 0.0)
     counts = gradient_half_count(buffers)
     image, info = fuse_checked(
         fusion_statistics_of(buffers, denoise),

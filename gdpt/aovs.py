@@ -36,7 +36,8 @@ def buffers_from_aovs(
         GradientBuffers: float32 HWC views of ``tensor`` on its device (an ``llvm_*``
         variant: CPU; ``cuda_*``: the GPU, zero-copy through DLPack), with ``spp`` and
         ``metadata`` (integrator, max depth, variant, guard counts, half-buffer sample counts
-        with ``halves``, and the seed).
+        with ``halves``, and the seed) and, after a render with a gradient mask, the
+        ``gradient_mask`` of the gradients it traced.
 
     Raises:
         TypeError: ``integrator`` is not a ``gdpt`` / ``gdpt_rr`` integrator.
@@ -75,6 +76,11 @@ def buffers_from_aovs(
     if integrator.halves:
         metadata["half_spp"] = list(integrator.half_spp)
     spp = int(sum(integrator.half_spp)) if spp is None else int(spp)
+    mask = integrator.rendered_gradient_mask
+    if mask is not None and integrator.gradients:
+        from gdpt.integrators.common import traced_gradients
+
+        views["gradient_mask"] = torch.from_numpy(traced_gradients(mask)).to(tensor.device)
     return GradientBuffers(**views, spp=spp, metadata=metadata)
 
 

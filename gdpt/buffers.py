@@ -50,6 +50,12 @@ class GradientBuffers:
         dx_a, dx_b, dy_a, dy_b: the gradients of the same two halves of the gradient samples
             (``(H, W, 3)``), or ``None``; they count ``metadata["gradient_half_spp"]`` samples
             when the primal was pooled (:func:`pool_primal`), else ``metadata["half_spp"]``.
+        gradient_mask: ``(H, W, 2)`` bool, on the buffers' device: which gradients were traced
+            (``[..., 0]``: ``dx``, ``[..., 1]``: ``dy``; the last column's ``dx`` and last row's
+            ``dy`` are False), or ``None``: all of them (a render without a gradient mask,
+            ``gdpt.render(..., gradient_mask=M)``). An untraced gradient is 0 in ``dx``/``dy``
+            and their halves and ``inf`` in ``var_dx``/``var_dy``: no measurement, never read
+            (:func:`fill_untraced`). Ignored where ``dx``/``dy`` are ``None``.
         spp: samples per pixel behind the estimate.
         metadata: free-form JSON-serialisable render information (integrator, seed, timings...).
     """
@@ -75,6 +81,7 @@ class GradientBuffers:
     dx_b: torch.Tensor | None = None
     dy_a: torch.Tensor | None = None
     dy_b: torch.Tensor | None = None
+    gradient_mask: torch.Tensor | None = None
     spp: int = 0
     metadata: dict[str, Any] = field(default_factory=dict)
 
@@ -153,6 +160,8 @@ class GradientBuffers:
     def to(self, device: torch.device | str) -> GradientBuffers:
         """A copy with every buffer on ``device``."""
         moved = {n: t.to(device) for n, t in self.items()}
+        if self.gradient_mask is not None:
+            moved["gradient_mask"] = self.gradient_mask.to(device)
         return dataclasses.replace(self, **moved)
 
     def replace(self, **changes: Any) -> GradientBuffers:
@@ -165,7 +174,12 @@ class GradientBuffers:
         if self.height <= size and self.width <= size:
             return self
         y0, x0 = max(0, (self.height - size) // 2), max(0, (self.width - size) // 2)
-        return self.replace(**{n: t[y0 : y0 + size, x0 : x0 + size] for n, t in self.items()})
+        crop = {n: t[y0 : y0 + size, x0 : x0 + size] for n, t in self.items()}
+        if self.gradient_mask is not None:
+            crop["gradient_mask"] = self.gradient_mask[y0 : y0 + size, x0 : x0 + size].clone()
+            crop["gradient_mask"][:, -1, 0] = False  # (the crop's last column has no dx)
+            crop["gradient_mask"][-1, :, 1] = False
+        return self.replace(**crop)
 
     # ------------------------------------------------------------------ validation
     def validate(self) -> None:
@@ -202,6 +216,15 @@ class GradientBuffers:
         for name in (*HALVED, "dx", "dy"):
             if (getattr(self, f"{name}_a") is None) != (getattr(self, f"{name}_b") is None):
                 raise ValueError(f"'{name}_a' and '{name}_b' must be given together")
+        mask = self.gradient_mask
+        if mask is not None:
+            expected = f"a bool tensor of shape (H, W, 2) = ({h}, {w}, 2) on {device}"
+            if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
+                raise TypeError(f"'gradient_mask' must be {expected}, got {type(mask).__name__}")
+            if tuple(mask.shape) != (h, w, 2) or mask.device != device:
+                raise ValueError(
+                    f"'gradient_mask' must be {expected}, got {tuple(mask.shape)} on {mask.device}"
+                )
 
 
 #: Buffers that are per-pixel sample means and can be pooled across renders of one scene.
@@ -333,7 +356,8 @@ def merge_renders(renders: Sequence[GradientBuffers]) -> GradientBuffers:
         and ``render_seconds`` summed where every render has one.
 
     Raises:
-        ValueError: no renders, or their sizes or devices differ.
+        ValueError: no renders, their sizes or devices differ, or the renders with gradients
+            have different ``gradient_mask`` (``None`` included).
     """
     if not renders:
         raise ValueError("merge_renders: no renders")
@@ -343,6 +367,14 @@ def merge_renders(renders: Sequence[GradientBuffers]) -> GradientBuffers:
     counts = [primal_count(r) for r in renders]
     gradient = [r for r in renders if r.has_gradients]
     fields: dict[str, torch.Tensor] = {}
+    masks = [r.gradient_mask for r in gradient]
+    if any(m is not None for m in masks):
+        if any(m is None or not torch.equal(m, masks[0]) for m in masks):
+            raise ValueError(
+                "merge_renders: the renders with gradients traced different gradients "
+                "(gradient_mask); merge renders of one gradient mask"
+            )
+        fields["gradient_mask"] = masks[0]
 
     def mean(group: Sequence[GradientBuffers], weights: Sequence[float], name: str) -> None:
         if group and all(getattr(r, name) is not None for r in group) and sum(weights) > 0:
@@ -389,3 +421,27 @@ def merge_renders(renders: Sequence[GradientBuffers]) -> GradientBuffers:
         metadata.pop("primal_spp", None)
         spp = sum(counts)
     return GradientBuffers(**fields, spp=spp, metadata=metadata)
+
+
+def fill_untraced(
+    buffers: GradientBuffers, dx: float | torch.Tensor, dy: float | torch.Tensor
+) -> GradientBuffers:
+    """``buffers`` with every untraced gradient (``gradient_mask`` False) replaced: ``dx``/``dy``
+    and their halves by ``dx``/``dy`` (a number or a tensor broadcastable to ``(H, W, 3)``),
+    ``var_dx``/``var_dy`` by ``inf``; the mask dropped. ``buffers`` itself when every gradient
+    was traced or there are none. How a reader skips untraced gradients: NaN for the Poisson
+    solvers (missing constraints), 0 with infinite variance for ``fuse`` (zero weight)."""
+    mask = buffers.gradient_mask
+    if mask is None or not buffers.has_gradients:
+        return buffers
+    traced = {"dx": mask[..., 0:1], "dy": mask[..., 1:2]}
+    fills = {"dx": dx, "dy": dy}
+    changes: dict[str, Any] = {"gradient_mask": None}
+    for axis in ("dx", "dy"):
+        for name in (axis, f"{axis}_a", f"{axis}_b"):
+            if (t := getattr(buffers, name)) is not None:
+                fill = torch.as_tensor(fills[axis], dtype=t.dtype, device=t.device)
+                changes[name] = torch.where(traced[axis], t, fill)
+        if (v := getattr(buffers, f"var_{axis}")) is not None:
+            changes[f"var_{axis}"] = torch.where(traced[axis], v, torch.inf)
+    return buffers.replace(**changes)

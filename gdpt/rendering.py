@@ -68,6 +68,7 @@ def render(
     integrator: str | Any | None = None,
     progress: bool = False,
     primal_spp: int = 0,
+    gradient_mask: Any = None,
     **props: Any,
 ) -> GradientBuffers:
     """Render primal, gradients and features of ``scene``.
@@ -88,6 +89,16 @@ def render(
             features then come from the plain samples alone: the gradient pass runs with
             ``features=False`` (features cost 5-20% of a gradient sample). Needs an
             integrator with gradients.
+        gradient_mask: ``None`` (offsets everywhere) or an ``(H, W)`` bool torch tensor or
+            numpy array over the film's (crop) pixels, no tiles: the samples of a masked pixel
+            trace the four offset paths, the others plain paths, each group on its own
+            compacted wavefront (work shrinks with the mask). The primal, features, variances
+            and halves cover every pixel. A gradient is traced iff both of its pixels are
+            masked (``gdpt.integrators.common.traced_gradients``); the others are marked in
+            ``buffers.gradient_mask`` (0, infinite variance). An all-True mask renders exactly
+            the render without one; an all-False one renders with ``gradients=False`` (no
+            ``dx``/``dy``; ``metadata["gradient_mask"]["reason"]`` says so).
+            ``metadata["gradient_mask"]["share"]`` is the share of masked pixels.
         **props: integrator properties when one is created (``max_depth``, ``gradients``,
             ``features``, ``variance``, ...).
 
@@ -98,8 +109,9 @@ def render(
         each numerical guard of the integrator fired) filled in.
 
     Raises:
-        ValueError: ``spp < 1``, ``primal_spp < 0``, or ``primal_spp`` with an integrator
-            whose gradients are off.
+        ValueError: ``spp < 1``, ``primal_spp < 0``, ``primal_spp`` or ``gradient_mask``
+            with an integrator whose gradients are off, or a ``gradient_mask`` that is not a
+            bool ``(H, W)`` tensor or array of the film's size (named).
     """
     from gdpt.integrators.common import GradientIntegratorBase
 
@@ -121,6 +133,9 @@ def render(
             f"primal_spp={primal_spp} pools plain path samples into a gradient render, but "
             f"this {integrator.plugin_name} integrator has gradients=false"
         )
+    mask = None if gradient_mask is None else _pixel_mask(gradient_mask, scene, integrator)
+    if mask is not None and not mask.any():
+        return _render_without_gradients(integrator, scene, spp, seed, progress, primal_spp)
 
     bar = None
     if progress:
@@ -129,8 +144,9 @@ def render(
         bar = tqdm(total=spp + primal_spp, unit="spp", desc="render", leave=False)
     try:
         if primal_spp:
+            gradient = _twin(integrator, scene, features=False)
             buffers = pool_primal(
-                _render_one(_twin(integrator, scene, features=False), scene, spp, seed, bar),
+                _render_one(gradient, scene, spp, seed, bar, mask=mask),
                 _render_one(
                     _twin(integrator, scene, gradients=False),
                     scene,
@@ -141,10 +157,52 @@ def render(
                 ),
             )
         else:
-            buffers = _render_one(integrator, scene, spp, seed, bar)
+            buffers = _render_one(integrator, scene, spp, seed, bar, mask=mask)
     finally:
         if bar is not None:
             bar.close()
+    if mask is not None:
+        buffers.metadata["gradient_mask"] = {"share": float(mask.mean())}
+    return buffers
+
+
+def _pixel_mask(mask: Any, scene: Any, integrator: Any):
+    """``gradient_mask`` of :func:`render` as a bool numpy ``(H, W)`` array, checked against the
+    film of ``scene``'s first sensor and the integrator before anything is rendered."""
+    import numpy as np
+    import torch
+
+    width, height = (int(v) for v in scene.sensors()[0].film().crop_size())
+    expected = f"a bool torch tensor or numpy array of shape (H, W) = ({height}, {width})"
+    if not integrator.gradients:
+        raise ValueError(
+            f"gradient_mask ({expected}) selects where offsets are traced, but this "
+            f"{integrator.plugin_name} integrator has gradients=false"
+        )
+    if isinstance(mask, torch.Tensor):
+        if mask.dtype != torch.bool:
+            raise ValueError(f"gradient_mask must be {expected}, got a {mask.dtype} tensor")
+        mask = mask.detach().cpu().numpy()
+    elif not isinstance(mask, np.ndarray) or mask.dtype != np.bool_:
+        dtype = getattr(mask, "dtype", None)
+        raise ValueError(
+            f"gradient_mask must be {expected}, got {type(mask).__name__}"
+            + (f" of {dtype}" if dtype is not None else "")
+        )
+    if mask.shape != (height, width):
+        raise ValueError(f"gradient_mask must be {expected}, got shape {tuple(mask.shape)}")
+    return mask
+
+
+def _render_without_gradients(integrator, scene, spp: int, seed: int, progress, primal_spp: int):
+    """The render of an all-False gradient mask: ``spp`` (+ ``primal_spp``) plain samples
+    (``gradients=False``, seed ``seed``), the reason in ``metadata["gradient_mask"]``."""
+    plain = _twin(integrator, scene, gradients=False)
+    buffers = render(scene, spp=spp + primal_spp, seed=seed, integrator=plain, progress=progress)
+    buffers.metadata["gradient_mask"] = {
+        "share": 0.0,
+        "reason": "the gradient mask is empty: rendered without gradients (gradients=False)",
+    }
     return buffers
 
 
@@ -158,22 +216,26 @@ def _twin(integrator: Any, scene: Any, **changes: Any) -> Any:
     return shared_integrator(scene, props.pop("type"), **props)
 
 
-def _render_one(integrator, scene, spp: int, seed: int, bar, start: int = 0) -> GradientBuffers:
+def _render_one(
+    integrator, scene, spp: int, seed: int, bar, start: int = 0, mask=None
+) -> GradientBuffers:
     """One ``integrator.render`` as zero-copy :class:`GradientBuffers` (``bar``: an optional
-    tqdm bar advanced from ``start``)."""
+    tqdm bar advanced from ``start``; ``mask``: the integrator's ``gradient_mask`` for it)."""
     import drjit as dr
 
     if bar is not None:
         integrator.pass_callback = lambda done, total: bar.update(start + done - bar.n)
+    integrator.gradient_mask = mask
     try:
         begin = time.perf_counter()
         out = integrator.render(scene, seed=seed, spp=spp)
         dr.eval(out)
         dr.sync_thread()
         seconds = time.perf_counter() - begin
+        buffers = buffers_from_aovs(out, integrator, seed=seed, spp=spp)
     finally:
         integrator.pass_callback = None
+        integrator.gradient_mask = None
 
-    buffers = buffers_from_aovs(out, integrator, seed=seed, spp=spp)
     buffers.metadata["render_seconds"] = seconds
     return buffers

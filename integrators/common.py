@@ -21,6 +21,15 @@ names the channel ranges (``primal``, ``dx``, ``dy``, ``albedo``, ``normal``, ``
 ``albedo_a``, ..., ``dx_a``, ``dx_b``, ``dy_a``, ``dy_b``), computing only the buffers that were
 asked for.
 
+Gradient mask: with :attr:`GradientIntegratorBase.gradient_mask` (an ``(H, W)`` bool numpy
+array, film pixels, no tiles: per pixel) a pass traces the masked pixels' samples with their
+four offsets and the other pixels' samples as plain paths (one base ray, no offsets), each group
+launched on its own compacted wavefront (its pixels' samples only) and scattered back into the
+per-pixel sums, so the offset work shrinks with the mask. A gradient ``dx[y, x]`` needs both
+MIS halves, ``g_RIGHT`` of ``(x, y)`` and ``g_LEFT`` of ``(x + 1, y)``: it is traced iff both
+pixels are masked (:func:`traced_gradients`); an untraced one is 0 with infinite ``var_dx`` /
+``var_dy`` and in its halves 0, never read as a measurement.
+
 Half-buffers split the samples of a pixel by the parity of their index in the render (even:
 ``a``, odd: ``b``, whatever the passes):
 two independent estimates of the primal, the features and the gradients from the same samples,
@@ -35,6 +44,7 @@ from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from .channels import CHANNELS, HALVED
 
@@ -47,6 +57,10 @@ DEFAULT_SHIFT_THRESHOLD = 0.001
 
 #: Default number of path samples traced per kernel launch (bounds memory and kernel size).
 DEFAULT_SAMPLES_PER_PASS = 1 << 20
+
+#: Mixed into a pass's seed for the samplers of the plain paths of a masked render (their samples
+#: independent of the masked pixels' samples).
+_PLAIN_SEED = 0x27D4EB2F
 
 #: Feature buffers and their channel counts, in output order (the halved buffers but the primal).
 _FEATURE_CHANNELS = tuple((name, CHANNELS[name]) for name in HALVED if name != "primal")
@@ -233,6 +247,10 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
     ``freeze`` (bool, true: replay the recorded kernels of a pass instead of tracing it again),
     ``shift_threshold`` (float, 0.001: microfacet roughness at or below which a glossy vertex
     counts as near-specular; used by ``gdpt``, ignored by ``gdpt_rr``).
+
+    Attribute ``gradient_mask`` (not a property: Mitsuba's properties hold no per-pixel array):
+    ``None`` (offsets everywhere) or an ``(H, W)`` bool numpy array of the film's crop, set
+    before ``render()``; see the module docstring.
     """
 
     def __init__(self, props: mi.Properties):
@@ -284,6 +302,12 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         self.guard_counts: dict[str, int] = {}
         #: Samples per pixel behind the half-buffers ``(a, b)`` of the last ``render()``.
         self.half_spp: tuple[int, int] = (0, 0)
+        #: ``None`` or an ``(H, W)`` bool numpy array: the pixels whose samples trace offsets
+        #: (needs ``gradients``); read by ``render()``.
+        self.gradient_mask: np.ndarray | None = None
+        #: The pixel mask the last ``render()`` used: ``None`` when every pixel traced offsets
+        #: (no mask, an all-True one, or ``gradients`` off).
+        self.rendered_gradient_mask: np.ndarray | None = None
 
     plugin_name = "gradient integrator"
 
@@ -365,24 +389,46 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         width, height = (int(v) for v in film.crop_size())
         n_pix = width * height
         passes = plan_passes(n_pix, spp, self.samples_per_pass)
+        mask = self._pixel_mask(width, height)
+        self.rendered_gradient_mask = mask
+        flat = None if mask is None else mask.reshape(-1)
 
         acc = _Accumulator(n_pix, self.gradients, self.features, self.variance, self.halves)
         self.guard_counts = acc.guard_counts
         trace = self._frozen_pass if self.freeze else self._trace_pass
         key = (*self._pass_key(), width, height, *(int(v) for v in film.crop_offset()))
+        if mask is not None:  # (pixel indices, offsets, seed salt) of the two wavefronts
+            groups = [
+                (mi.UInt32(np.flatnonzero(m).astype(np.uint32)), offsets, salt)
+                for m, offsets, salt in ((flat, True, 0), (~flat, False, _PLAIN_SEED))
+                if m.any()
+            ]
         done = 0
         for index, spp_pass in enumerate(passes):
             pass_seed = (int(seed) * 0x9E3779B1 + index) & 0xFFFFFFFF
-            # The primary rays are traced outside the frozen pass (Mitsuba 3.9's thinlens
-            # camera does not expose all of its variables to dr.freeze; the rays are cheap),
-            # with their own sampler: a sampler passed in would be written back after the
-            # loop, which re-runs the loop for the sampler's final state.
-            ray_sampler = _pass_sampler(sensor, spp_pass, pass_seed ^ _RAY_SEED, n_pix)
-            rays, weights = self._primary_rays(sensor, ray_sampler, spp_pass)
-            path_seed = dr.opaque(mi.UInt32, pass_seed)
-            first = dr.opaque(mi.UInt32, done)  # the pass's first sample index (halves' parity)
-            sums, counts = trace(scene, sensor, path_seed, first, rays, weights, spp_pass, key)
-            del rays, weights, ray_sampler
+            if mask is None:
+                sums, counts = self._pass(
+                    trace, scene, sensor, pass_seed, done, spp_pass, key, None, self.gradients
+                )
+            else:
+                parts = [
+                    (
+                        pixels,
+                        *self._pass(
+                            trace,
+                            scene,
+                            sensor,
+                            pass_seed ^ salt,
+                            done,
+                            spp_pass,
+                            (*key, offsets, dr.width(pixels)),
+                            pixels,
+                            offsets,
+                        ),
+                    )
+                    for pixels, offsets, salt in groups
+                ]
+                sums, counts = _scatter_parts(parts, n_pix)
             acc.add(sums, counts, spp_pass, done)
             done += spp_pass
             if self.pass_callback is not None:
@@ -396,7 +442,47 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
                 RuntimeWarning,
                 stacklevel=2,
             )
-        return acc.finish(width, height, self.channels())
+        traced = None if mask is None else traced_gradients(mask)
+        return acc.finish(width, height, self.channels(), traced)
+
+    def _pixel_mask(self, width: int, height: int) -> np.ndarray | None:
+        """A copy of :attr:`gradient_mask` checked against the film; ``None`` for no mask or an
+        all-True one (the render without a mask, bit for bit).
+
+        Raises:
+            ValueError: a mask with ``gradients`` off, or not a bool ``(height, width)`` array.
+        """
+        mask = self.gradient_mask
+        if mask is None:
+            return None
+        expected = f"a bool numpy array of shape (H, W) = ({height}, {width})"
+        if not self.gradients:
+            raise ValueError(f"{self.plugin_name}: gradient_mask ({expected}) needs gradients=true")
+        if not isinstance(mask, np.ndarray) or mask.dtype != np.bool_:
+            raise ValueError(
+                f"{self.plugin_name}: gradient_mask must be {expected}, got "
+                f"{type(mask).__name__} of {getattr(mask, 'dtype', None)}"
+            )
+        if mask.shape != (height, width):
+            raise ValueError(
+                f"{self.plugin_name}: gradient_mask must be {expected}, got shape {mask.shape}"
+            )
+        return None if mask.all() else mask.copy()
+
+    def _pass(self, trace, scene, sensor, seed: int, done: int, spp: int, key, pixels, offsets):
+        """One pass of ``spp`` samples per pixel of ``pixels`` (``mi.UInt32`` film pixel
+        indices; ``None``: every pixel), with the four offset rays if ``offsets``: the per-pixel
+        sums and guard counts of :func:`pass_sums`, in the order of ``pixels``."""
+        n_pix = int(dr.prod(sensor.film().crop_size())) if pixels is None else dr.width(pixels)
+        # The primary rays are traced outside the frozen pass (Mitsuba 3.9's thinlens
+        # camera does not expose all of its variables to dr.freeze; the rays are cheap),
+        # with their own sampler: a sampler passed in would be written back after the
+        # loop, which re-runs the loop for the sampler's final state.
+        ray_sampler = _pass_sampler(sensor, spp, seed ^ _RAY_SEED, n_pix)
+        rays, weights = self._primary_rays(sensor, ray_sampler, spp, pixels, offsets)
+        path_seed = dr.opaque(mi.UInt32, seed)
+        first = dr.opaque(mi.UInt32, done)  # the pass's first sample index (halves' parity)
+        return trace(scene, sensor, path_seed, first, rays, weights, spp, key)
 
     def _trace_pass(
         self, scene, sensor, seed: mi.UInt32, first: mi.UInt32, rays, weights, spp: int, key
@@ -431,12 +517,19 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         """Python-side state :meth:`prepare` derived from the scene (default: none)."""
         return ()
 
-    def _primary_rays(self, sensor: mi.Sensor, sampler: mi.Sampler, spp: int):
-        """Base ray and the four offset rays (same sub-pixel, aperture and time samples)."""
+    def _primary_rays(
+        self, sensor: mi.Sensor, sampler: mi.Sampler, spp: int, pixels=None, offsets=True
+    ):
+        """Base ray and, with ``offsets``, the four offset rays (same sub-pixel, aperture and
+        time samples) of ``spp`` samples per pixel of ``pixels`` (``None``: every pixel)."""
         film = sensor.film()
         size = film.crop_size()
-        idx = dr.arange(mi.UInt32, dr.prod(size) * spp)
-        idx //= dr.opaque(mi.UInt32, spp)
+        if pixels is None:
+            idx = dr.arange(mi.UInt32, dr.prod(size) * spp)
+            idx //= dr.opaque(mi.UInt32, spp)
+        else:
+            idx = dr.arange(mi.UInt32, dr.width(pixels) * spp) // dr.opaque(mi.UInt32, spp)
+            idx = dr.gather(mi.UInt32, pixels, idx)
         pos = mi.Vector2u(idx % size[0], idx // size[0]) + film.crop_offset()
         pos_f = mi.Vector2f(pos) + sampler.next_2d()
         scale = dr.rcp(mi.ScalarVector2f(size))
@@ -446,7 +539,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         if sensor.shutter_open_time() > 0:
             time += sampler.next_1d() * sensor.shutter_open_time()
         wavelength = sampler.next_1d() if mi.is_spectral else mi.Float(0.5)
-        shifts = [(0, 0)] + (list(SHIFTS) if self.gradients else [])
+        shifts = [(0, 0)] + (list(SHIFTS) if offsets else [])
         rays, weights = [], []
         for sx, sy in shifts:
             p = dr.fma(pos_f + mi.Vector2f(sx, sy), scale, offset)
@@ -512,6 +605,36 @@ def pass_sums(
     return sums, counts
 
 
+def traced_gradients(mask: np.ndarray) -> np.ndarray:
+    """Which gradients a render with the pixel mask ``mask`` (``(H, W)`` bool) traces:
+    ``(H, W, 2)`` bool, ``[..., 0]`` for ``dx``, ``[..., 1]`` for ``dy``. ``dx[y, x]`` is
+    traced iff pixels ``(x, y)`` and ``(x + 1, y)`` are both masked (its two MIS halves start
+    there), ``dy[y, x]`` iff ``(x, y)`` and ``(x, y + 1)`` are; the last column's ``dx`` and the
+    last row's ``dy`` (no gradient) are False."""
+    out = np.zeros((*mask.shape, 2), dtype=bool)
+    out[:, :-1, 0] = mask[:, :-1] & mask[:, 1:]
+    out[:-1, :, 1] = mask[:-1] & mask[1:]
+    return out
+
+
+def _scatter_parts(parts: list, n_pix: int) -> tuple[dict, dict]:
+    """The per-pixel sums of the wavefronts of a masked pass (``(pixels, sums, counts)`` from
+    :func:`pass_sums`, ``pixels`` the film pixel of each sum) as sums over all ``n_pix`` pixels
+    (0 where a wavefront has no such sum, e.g. the gradient sums of plain paths), and the
+    guard counts added up."""
+    sums: dict = {}
+    counts: dict = {}
+    for pixels, part_sums, part_counts in parts:
+        for name, comps in part_sums.items():
+            full = sums.setdefault(name, [dr.zeros(mi.Float, n_pix) for _ in comps])
+            for dst, c in zip(full, comps, strict=True):
+                dr.scatter(dst, c, pixels)
+        for name, c in part_counts.items():
+            counts[name] = counts[name] + c if name in counts else c
+    dr.eval(sums, counts)
+    return sums, counts
+
+
 def plan_passes(n_pixels: int, spp: int, samples_per_pass: int) -> list[int]:
     """Split ``spp`` into passes of at most ``samples_per_pass`` samples (at least 1 spp each):
     full passes of ``P = samples_per_pass // n_pixels`` spp, the rest in powers of two, largest
@@ -558,7 +681,7 @@ class _Accumulator:
     def add(self, sums: dict, counts: dict, spp: int, first: int = 0) -> None:
         """Add one pass's per-pixel sums and guard counts (from :func:`pass_sums`)."""
         for name, acc in self.sums.items():
-            for i, c in enumerate(sums[name]):
+            for i, c in enumerate(sums.get(name, ())):  # (none: a masked pass traced no offsets)
                 acc[i] += mi.Float64(c)
         dr.eval(self.sums)
         for k, c in counts.items():
@@ -566,7 +689,10 @@ class _Accumulator:
         self.n += spp
         self.n_a += (first + spp + 1) // 2 - (first + 1) // 2  # even indices in the pass
 
-    def finish(self, width: int, height: int, channels) -> mi.TensorXf:
+    def finish(self, width: int, height: int, channels, traced=None) -> mi.TensorXf:
+        """The ``(height, width, C)`` tensor of ``channels``; ``traced``: ``None`` or the
+        :func:`traced_gradients` of a masked render (untraced gradients 0, their variance
+        infinite)."""
         n = self.n
         mean = {k: [mi.Float(c / n) for c in v] for k, v in self.sums.items()}
         idx = dr.arange(mi.UInt32, width * height)
@@ -574,6 +700,11 @@ class _Accumulator:
         y = idx // width
         right_ok = x + 1 < width
         down_ok = y + 1 < height
+        # the gradients that exist and were traced (right_ok, down_ok without a mask)
+        has_dx, has_dy = right_ok, down_ok
+        if traced is not None:
+            has_dx = mi.Bool(np.ascontiguousarray(traced[..., 0]).reshape(-1))
+            has_dy = mi.Bool(np.ascontiguousarray(traced[..., 1]).reshape(-1))
 
         def shifted(arr, step, ok):
             return dr.gather(mi.Float, arr, idx + step, ok)
@@ -586,8 +717,8 @@ class _Accumulator:
 
         def differences(g):  # forward differences from the four half-gradient means
             return [
-                dr.select(right_ok, g[0][c] - shifted(g[2][c], 1, right_ok), 0) for c in range(3)
-            ], [dr.select(down_ok, g[1][c] - shifted(g[3][c], width, down_ok), 0) for c in range(3)]
+                dr.select(has_dx, g[0][c] - shifted(g[2][c], 1, right_ok), 0) for c in range(3)
+            ], [dr.select(has_dy, g[1][c] - shifted(g[3][c], width, down_ok), 0) for c in range(3)]
 
         out = {"primal": mean["primal"]}
         if "g0" in mean:
@@ -600,8 +731,13 @@ class _Accumulator:
             out["var_primal"] = [var_of_mean("sq_primal", lum("primal"))]
             if "g0" in mean:
                 v = [var_of_mean(f"sq_g{k}", lum(f"g{k}")) for k in range(4)]
-                out["var_dx"] = [dr.select(right_ok, v[0] + shifted(v[2], 1, right_ok), 0)]
-                out["var_dy"] = [dr.select(down_ok, v[1] + shifted(v[3], width, down_ok), 0)]
+                # untraced (a masked render): infinite, no information
+                missing_x = dr.select(right_ok, dr.inf, 0.0)
+                missing_y = dr.select(down_ok, dr.inf, 0.0)
+                var_x = v[0] + shifted(v[2], 1, right_ok)
+                var_y = v[1] + shifted(v[3], width, down_ok)
+                out["var_dx"] = [dr.select(has_dx, var_x, mi.Float(missing_x))]
+                out["var_dy"] = [dr.select(has_dy, var_y, mi.Float(missing_y))]
 
         if self.halves:
             n_a, n_b = self.n_a, n - self.n_a
@@ -649,5 +785,6 @@ __all__ = [
     "safe_div",
     "plan_passes",
     "pass_sums",
+    "traced_gradients",
     "camera_transform",
 ]

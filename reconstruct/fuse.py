@@ -260,7 +260,8 @@ def fuse(
     Args:
         denoised: ``(H, W, C)`` float32 primal-only denoiser output ``D``.
         dx, dy: ``(H, W, C)`` forward-difference estimates (last column / row unused).
-        var_dx, var_dy: ``(H, W, 1)`` variances of their means (``inf``: unusable).
+        var_dx, var_dy: ``(H, W, 1)`` variances of their means (``inf``: unusable; such a
+            gradient, like any of zero weight, is not read).
         error: ``(H, W, 1)`` squared-error estimate of ``D`` (e.g. :func:`cross_half_error`).
         trust_ratio: see :func:`fusion_weights` (``0``: return ``D``).
         error_floor: see :func:`fusion_weights`; > 0.
@@ -294,6 +295,8 @@ def fuse(
     )
     if trusted == 0.0:
         return denoised.clone(), FuseInfo(0.0, 0, 0.0, guards)
+    # a gradient of zero weight (untrusted, infinite variance: not traced) is not read
+    dx, dy = torch.where(w_x > 0, dx, 0.0), torch.where(w_y > 0, dy, 0.0)
     image, info = solve_weighted_cg(
         denoised,
         dx,

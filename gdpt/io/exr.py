@@ -6,7 +6,9 @@ channels follow the usual ``layer.channel`` naming, so any EXR viewer can browse
     primal.R primal.G primal.B   dx.R dx.G dx.B   dy.R dy.G dy.B   albedo.R albedo.G albedo.B
     normal.X normal.Y normal.Z   depth.Y   var_primal.Y   var_dx.Y   var_dy.Y
 
-Absent (``None``) buffers have no channels. The header carries ``gdpt.spp`` (int),
+Absent (``None``) buffers have no channels. Gradients a masked render did not trace
+(``buffers.gradient_mask``) are stored as NaN, with infinite variance: missing for every reader
+(the mask itself is not stored). The header carries ``gdpt.spp`` (int),
 ``gdpt.metadata`` (the metadata dict as a JSON string), ``gdpt.version`` (the gdpt version that
 wrote the file) and ``gdpt.formatVersion`` (:data:`FORMAT_VERSION`). Pixels are stored as 32-bit
 float (lossless round trip) or 16-bit half, both ZIP-compressed. The readers refuse a file of a
@@ -28,7 +30,7 @@ import numpy as np
 import OpenEXR
 import torch
 
-from gdpt.buffers import CHANNELS, REQUIRED, GradientBuffers
+from gdpt.buffers import CHANNELS, REQUIRED, GradientBuffers, fill_untraced
 from gdpt.io.atomic import atomic_path
 from gdpt.version import __version__
 
@@ -83,7 +85,7 @@ def save_buffers(
     header = _gdpt_header(buffers.metadata)
     header[_KEY_SPP] = int(buffers.spp)
     channels: dict[str, np.ndarray] = {}
-    for name, tensor in buffers.items():
+    for name, tensor in fill_untraced(buffers, torch.nan, torch.nan).items():
         channels.update(_split_channels(channel_names(name), tensor, half))
     return _write_exr(Path(path), header, channels, force)
 
