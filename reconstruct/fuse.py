@@ -141,19 +141,24 @@ def edge_aware_mean(
     """
     if radius <= 0:
         return x
-    k = 2 * radius + 1
     h, w = x.shape[:2]
-
-    def windows(t: torch.Tensor) -> torch.Tensor:  # (H, W, C) -> (C, k*k, H*W), zero padded
-        t = t.permute(2, 0, 1).unsqueeze(0)
-        return F.unfold(t, k, padding=radius).view(t.shape[1], k * k, h * w)
-
-    inside = windows(torch.ones_like(guide))
-    g = windows(guide)
-    centre = guide.reshape(1, 1, h * w)
-    weight = inside * torch.exp(-(g - centre).square() / (2.0 * sigma * sigma))
-    out = (windows(x) * weight).sum(1) / weight.sum(1)
-    return out.view(x.shape[2], h, w).permute(1, 2, 0)
+    total = x.clone()
+    weight = torch.ones_like(guide)
+    scale = -0.5 / (sigma * sigma)
+    # Each pair of pixels p, q = p + (oy, ox) once: the weight is symmetric, so it is added
+    # at both ends (one pass per offset over the image, no (k^2, H, W) window tensor).
+    for oy in range(min(radius, h - 1) + 1):
+        for ox in range(-min(radius, w - 1), min(radius, w - 1) + 1):
+            if oy == 0 and ox <= 0:
+                continue
+            p = (slice(0, h - oy), slice(max(0, -ox), w - max(0, ox)))
+            q = (slice(oy, h), slice(max(0, ox), w - max(0, -ox)))
+            pair = (guide[q] - guide[p]).square_().mul_(scale).exp_()
+            weight[p] += pair
+            weight[q] += pair
+            total[p].addcmul_(pair, x[q])
+            total[q].addcmul_(pair, x[p])
+    return total.div_(weight)
 
 
 def log_luminance(image: torch.Tensor, eps: float = 1e-2) -> torch.Tensor:

@@ -158,6 +158,25 @@ def test_edge_aware_mean_does_not_mix_across_guide_edges():
     assert float(F.box_mean(x, 2)[:, 3].min()) > 10  # a plain box does mix
 
 
+@pytest.mark.parametrize(("h", "w", "c", "radius"), [(9, 13, 1, 2), (5, 4, 3, 4), (1, 6, 2, 3)])
+def test_edge_aware_mean_is_the_weighted_window_mean(h, w, c, radius):
+    """Against the definition, pixel by pixel: neighbours inside the image only (windows
+    larger than the image included), weights from the guide difference."""
+    x = torch.rand(h, w, c, generator=GEN)
+    guide = torch.rand(h, w, 1, generator=GEN)
+    out = F.edge_aware_mean(x, guide, radius, 0.3)
+    expected = torch.empty_like(x)
+    for i in range(h):
+        for j in range(w):
+            num, den = torch.zeros(c), 0.0
+            for k in range(max(0, i - radius), min(h, i + radius + 1)):
+                for m in range(max(0, j - radius), min(w, j + radius + 1)):
+                    wgt = float(torch.exp(-((guide[k, m, 0] - guide[i, j, 0]) ** 2) / 0.18))
+                    num, den = num + wgt * x[k, m], den + wgt
+            expected[i, j] = num / den
+    torch.testing.assert_close(out, expected, rtol=1e-5, atol=1e-6)
+
+
 def test_predicted_gain_is_one_without_trusted_gradients_and_below_with_them():
     img = smooth_image()
     error = torch.full(img.shape[:2] + (1,), 1e-3)
