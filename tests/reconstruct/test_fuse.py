@@ -212,3 +212,20 @@ def test_nonfinite_variance_is_no_information(bad):
     torch.testing.assert_close(stats.var_dx[finite], torch.full_like(stats.var_dx[finite], 1e-4))
     _, info = F.fuse_statistics(stats, dx, dy)
     assert info.guards["variance_nonfinite"] == 2
+
+
+def test_the_solves_stop_at_their_iteration_cap():
+    """``fuse_statistics`` and ``fuse_checked`` run at most ``iterations`` CG iterations
+    (default :data:`SOLVE_ITERATIONS`) where the solve has not converged."""
+    img = smooth_image(64, 64)
+    dx, dy = forward(img)
+    var = torch.full(img.shape[:2] + (1,), 1e-9)
+    # D off by a ramp that only exact gradients fix: a long-range correction, slow for CG
+    d = img + 0.3 * torch.linspace(0, 1, 64).view(1, 64, 1)
+    parts = {"full": d, "a": d + 0.01, "b": d - 0.01}
+    stats = F.fusion_statistics(parts.__getitem__, d + 0.01, d - 0.01, var, var.clone())
+    assert F.fuse_statistics(stats, dx, dy)[1].cg_iterations == F.SOLVE_ITERATIONS
+    assert F.fuse_statistics(stats, dx, dy, iterations=4)[1].cg_iterations == 4
+    halves = ((dx, dy), (dx, dy))
+    _, info = F.fuse_checked(stats, dx, dy, halves, (img, img), (2.0, 2.0), iterations=5)
+    assert info.cg_iterations == 5
