@@ -1,30 +1,35 @@
 """What ``fuse`` costs per stage, at 128x128 and 1280x720, against OIDN alone.
 
 Renders the built-in ``cbox-demo`` once per size as ``fuse`` reads it (``--spp`` gradient
-samples, 2.5 pooled plain samples each, variances and halves), then times on those buffers:
-OIDN alone (the ``oidn`` method), the primal-only network ``D``, the two half-buffer denoises,
-the statistics (cross-half error, edge-aware averages), the solve (weighted CG + trust region),
-and the whole ``fuse`` method. Each stage runs once untimed (weight loading, torch's first-call
+samples, 2.5 pooled plain samples each, variances and halves), then times on those buffers, in
+the order ``fuse`` runs them: OIDN alone (the ``oidn`` method, the anchor), the primal-only
+network ``D``, the two half-buffer denoises, the statistics (cross-half error, edge-aware
+averages: :func:`gdpt.reconstruct.fuse.fusion_statistics` on denoises already made), the solve
+of the whole render (weighted CG + trust region), the two half renders' solves and the held-out
+choice (the rest of :func:`~gdpt.reconstruct.fuse.fuse_checked`), and the whole ``fuse``
+method. Per size and thread count (``torch.set_num_threads`` and ``drjit.set_thread_count``:
+OIDN runs on Dr.Jit's pool) each stage runs once untimed (weight loading, torch's first-call
 set-up), then ``--repeats`` times; medians are printed, with the ratio to OIDN alone. Rendering
-is not timed here (see ``benchmarks/method_cost.py``). On a shared machine use one thread
-(``--threads 1``: torch's and Dr.Jit's, whose pool runs OIDN, as ``benchmarks/cost_table.py``
-does); the script prints the thread counts and the load average::
+is not timed here (see ``benchmarks/method_cost.py``). The script prints the load average::
 
-    .venv/bin/python benchmarks/fuse_stages.py --threads 1 [--sizes 128x128 1280x720]
+    .venv/bin/python benchmarks/fuse_stages.py [--sizes 128x128 1280x720] [--threads 1 2]
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import statistics
 import time
 
+import drjit as dr
 import torch
 from gdpt.reconstruct import fuse as F
 
 import gdpt
 from gdpt.adapters import plain_denoiser
+from gdpt.buffers import gradient_half_count
 from gdpt.scenes import builtin_scene
 
 
@@ -40,30 +45,29 @@ def median_seconds(fn, repeats: int) -> float:
     return statistics.median(times)
 
 
-def stages(width: int, height: int, spp: int, repeats: int) -> dict[str, float]:
-    scene = gdpt.load_scene(builtin_scene("cbox-demo", resolution=(width, height)))
-    b = gdpt.render(scene, spp=spp, primal_spp=round(2.5 * spp), variance=True, halves=True)
+def stages(b: gdpt.GradientBuffers, repeats: int) -> dict[str, float]:
+    """Median seconds of each stage of ``fuse`` on the render ``b``."""
     plain, half_a, half_b = b.replace(dx=None, dy=None), b.half("a"), b.half("b")
     den = plain_denoiser()
     d = gdpt.reconstruct_image(plain, den)
-    d_a, d_b = gdpt.reconstruct_image(half_a, den), gdpt.reconstruct_image(half_b, den)
-    guide = F.log_luminance(d)
+    parts = {
+        "full": d,
+        "a": gdpt.reconstruct_image(half_a, den),
+        "b": gdpt.reconstruct_image(half_b, den),
+    }
 
     def statistics_stage():
-        raw = F.cross_half_error(d_a, d_b, b.primal_a, b.primal_b, radius=0)
-        F.edge_aware_mean(raw, guide, F.ERROR_RADIUS, F.GUIDE_SIGMA)
-        F.edge_aware_mean(b.var_dx, guide, F.VARIANCE_RADIUS, F.GUIDE_SIGMA)
-        F.edge_aware_mean(b.var_dy, guide, F.VARIANCE_RADIUS, F.GUIDE_SIGMA)
+        return F.fusion_statistics(parts.__getitem__, b.primal_a, b.primal_b, b.var_dx, b.var_dy)
 
-    error = F.ERROR_SCALE * F.edge_aware_mean(
-        F.cross_half_error(d_a, d_b, b.primal_a, b.primal_b, radius=0),
-        guide,
-        F.ERROR_RADIUS,
-        F.GUIDE_SIGMA,
+    stats = statistics_stage()
+    counts = gradient_half_count(b)
+    scales = tuple(b.spp / n if n > 0 else math.inf for n in counts)
+    halves = ((b.dx_a, b.dy_a), (b.dx_b, b.dy_b))
+    solve = median_seconds(lambda: F.fuse_statistics(stats, b.dx, b.dy), repeats)
+    checked = median_seconds(
+        lambda: F.fuse_checked(stats, b.dx, b.dy, halves, (b.primal_a, b.primal_b), scales),
+        repeats,
     )
-    v_x = F.edge_aware_mean(b.var_dx, guide, F.VARIANCE_RADIUS, F.GUIDE_SIGMA)
-    v_y = F.edge_aware_mean(b.var_dy, guide, F.VARIANCE_RADIUS, F.GUIDE_SIGMA)
-    floor = max(1e-4 * float(d.mean(-1).square().mean()), 1e-12)
     return {
         "oidn alone": median_seconds(lambda: gdpt.reconstruct_image(plain, "oidn"), repeats),
         f"D ({den})": median_seconds(lambda: gdpt.reconstruct_image(plain, den), repeats),
@@ -72,9 +76,8 @@ def stages(width: int, height: int, spp: int, repeats: int) -> dict[str, float]:
             repeats,
         ),
         "statistics": median_seconds(statistics_stage, repeats),
-        "solve": median_seconds(
-            lambda: F.fuse(d, b.dx, b.dy, v_x, v_y, error, error_floor=floor), repeats
-        ),
+        "solve": solve,
+        "half solves + choice": checked - solve,
         "fuse (all)": median_seconds(lambda: gdpt.reconstruct_image(b, "fuse"), repeats),
     }
 
@@ -82,33 +85,28 @@ def stages(width: int, height: int, spp: int, repeats: int) -> dict[str, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", default=["128x128", "1280x720"])
+    parser.add_argument("--threads", nargs="+", type=int, default=[1, 2])
     parser.add_argument("--spp", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument(
-        "--threads", type=int, help="torch and Dr.Jit threads (default: their own defaults)"
-    )
     args = parser.parse_args()
-    if args.threads is not None and args.threads < 1:
-        parser.error("--threads must be >= 1")
     variant = gdpt.set_variant()
-    import drjit as dr
-
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
-        dr.set_thread_count(args.threads)
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(
-        f"variant {variant}, threads: torch {torch.get_num_threads()}, "
-        f"Dr.Jit {dr.thread_count()}; load {load:.1f}"
-    )
+    print(f"variant {variant}, load average {os.getloadavg()[0]:.1f}")
     for size in args.sizes:
         width, height = (int(v) for v in size.split("x"))
-        times = stages(width, height, args.spp, args.repeats)
-        base = times["oidn alone"]
-        load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-        print(f"\n{width}x{height} (seconds, ratio to OIDN alone; load {load:.1f} at end)")
-        for name, seconds in times.items():
-            print(f"  {name:<22} {seconds:8.3f}  {seconds / base:6.2f}x")
+        scene = gdpt.load_scene(builtin_scene("cbox-demo", resolution=(width, height)))
+        b = gdpt.render(
+            scene, spp=args.spp, primal_spp=round(2.5 * args.spp), variance=True, halves=True
+        )
+        for threads in args.threads:
+            torch.set_num_threads(threads)
+            dr.set_thread_count(threads)
+            times = stages(b, args.repeats)
+            base = times["oidn alone"]
+            load = os.getloadavg()[0]
+            print(f"\n{width}x{height}, {threads} threads, load average {load:.1f}")
+            print("(seconds, ratio to OIDN alone)")
+            for name, seconds in times.items():
+                print(f"  {name:<22} {seconds:8.3f}  {seconds / base:6.2f}x")
 
 
 if __name__ == "__main__":

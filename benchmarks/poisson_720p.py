@@ -2,7 +2,8 @@
 
 Times the exact L2 solve, the accelerated L1 preset ``"fast"`` (Jacobi-preconditioned CG) and
 its multigrid variant ``"fast-multigrid"`` (defined here: multigrid-preconditioned CG, 2
-iterations per late round), interleaved (one run of each per round, the rounds repeated), and
+iterations per late round) and, with ``--schedules``, cuts of ``"fast"``'s schedule
+(:data:`SCHEDULES`), interleaved (one run of each per round, the rounds repeated), and
 reports the median time over the rounds after one excluded warm-up round (torch runs eagerly
 here: the warm-up only fills caches and allocator pools). The final L1 energy of each solver is
 given relative to the reference preset ``"l1"`` (20 IRLS rounds x 50 plain CG iterations),
@@ -39,6 +40,29 @@ FAST_MULTIGRID = dataclasses.replace(
 )
 
 
+#: ``"fast"``'s schedule cut (``--schedules``): fewer late iterations, a looser early stop, fewer
+#: rounds with the same last regulariser, and multigrid variants.
+_FAST = poisson.L1_PRESETS["fast"]
+SCHEDULES = {
+    "fast-late8": dataclasses.replace(_FAST, name="fast-late8", late_cg_iters=8),
+    "fast-rtol0.2": dataclasses.replace(_FAST, name="fast-rtol0.2", cg_rtol=0.2),
+    "fast-16-rounds": dataclasses.replace(
+        _FAST, name="fast-16-rounds", rounds=16, reg_decay=0.5 ** (18 / 14), late_round=8
+    ),
+    "fast-16-rounds-late8": dataclasses.replace(
+        _FAST,
+        name="fast-16-rounds-late8",
+        rounds=16,
+        reg_decay=0.5 ** (18 / 14),
+        late_round=8,
+        late_cg_iters=8,
+    ),
+    "fast-multigrid-late3": dataclasses.replace(
+        FAST_MULTIGRID, name="fast-multigrid-late3", late_cg_iters=3
+    ),
+}
+
+
 def inputs(sizes: list[str], buffers: list[Path]) -> list[tuple[str, tuple[torch.Tensor, ...]]]:
     out = []
     for size in sizes:
@@ -60,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--buffers", nargs="*", type=Path, default=[], help="gdpt.save_buffers files")
     ap.add_argument("--threads", nargs="+", type=int, default=[1, 2])
     ap.add_argument("--repeats", type=int, default=5, help="timed rounds (median)")
+    ap.add_argument("--schedules", action="store_true", help="also the SCHEDULES variants")
     args = ap.parse_args(argv)
 
     solvers = {
@@ -69,12 +94,20 @@ def main(argv: list[str] | None = None) -> int:
             p, dx, dy, preset=FAST_MULTIGRID, return_info=True
         ),
     }
+    if args.schedules:
+        for key, preset in SCHEDULES.items():
+            solvers[key] = lambda p, dx, dy, preset=preset: poisson.solve_l1(
+                p, dx, dy, preset=preset, return_info=True
+            )
     print(
         f"torch {torch.__version__}, median of {args.repeats} interleaved rounds after 1 "
         f"excluded warm-up round; load average before: {load_average()}\n"
     )
-    print("| input | threads | solver | median [s] | time / `fast` | L1 energy / `l1` |")
-    print("|---|---:|---|---:|---:|---:|")
+    print(
+        "| input | threads | solver | median [s] | time / `fast` | L1 energy / `l1` "
+        "| CG iterations |"
+    )
+    print("|---|---:|---|---:|---:|---:|---:|")
     for name, (p, dx, dy) in inputs(args.sizes, args.buffers):
         x = poisson.solve_l1(p, dx, dy, preset="l1")
         e_ref = poisson.l1_energy(x, p, dx, dy)
@@ -82,19 +115,21 @@ def main(argv: list[str] | None = None) -> int:
             torch.set_num_threads(threads)
             times: dict[str, list[float]] = {k: [] for k in solvers}
             energy: dict[str, float] = {}
+            iterations: dict[str, int] = {}
             for rnd in range(args.repeats + 1):
                 for key, fn in solvers.items():
                     t0 = time.perf_counter()
-                    x, _ = fn(p, dx, dy)
+                    x, info = fn(p, dx, dy)
                     if rnd > 0:
                         times[key].append(time.perf_counter() - t0)
                     energy[key] = poisson.l1_energy(x, p, dx, dy)
+                    iterations[key] = info.cg_iterations
             base = statistics.median(times["fast"])
             for key in solvers:
                 med = statistics.median(times[key])
                 print(
                     f"| {name} | {threads} | {key} | {med:.3f} | {med / base:.2f} | "
-                    f"{energy[key] / e_ref:.5f} |",
+                    f"{energy[key] / e_ref:.6f} | {iterations[key]} |",
                     flush=True,
                 )
     print(f"\nload average after: {load_average()}")

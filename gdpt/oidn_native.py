@@ -118,6 +118,9 @@ def _finite(images: dict[str, torch.Tensor]) -> tuple[dict[str, torch.Tensor], i
     count = 0
     out = {}
     for name, t in images.items():
+        if bool(torch.isfinite(t.sum())):  # one pass: a NaN or inf makes the sum non-finite
+            out[name] = t
+            continue
         bad = int((~torch.isfinite(t)).sum())
         count += bad
         out[name] = torch.nan_to_num(t, nan=0.0, posinf=0.0, neginf=0.0) if bad else t

@@ -79,6 +79,13 @@ CORRECTION_BOUND = 3.0
 #: Largest ratio of a gradient weight to the data weight of its pixels (keeps CG conditioned).
 MAX_WEIGHT_RATIO = 1e3
 
+#: Conjugate-gradient iterations of a fusion solve (Jacobi-preconditioned, from ``D``). CG
+#: stopped early makes the local part of the correction and leaves the long-range part, where
+#: integrated gradient noise piles up (early stopping as regularisation): 30 iterations, not 100
+#: (which most 128 px solves of cornell-box and veach-mis reached) gave 0.87-0.97x the relMSE
+#: of the fused image on those, and equal on sponza and living-room-2 (docs/gradients.md).
+SOLVE_ITERATIONS = 30
+
 #: :func:`fuse_checked`'s held-out choice (:func:`.held_out.choose`): the fusion is kept in the
 #: whole image where the image's held-out sum favours it by :data:`CHECK_IMAGE_MARGIN` standard
 #: errors, else in each :data:`CHECK_TILE` px tile whose sum favours it by :data:`CHECK_MARGIN`
@@ -141,19 +148,24 @@ def edge_aware_mean(
     """
     if radius <= 0:
         return x
-    k = 2 * radius + 1
     h, w = x.shape[:2]
-
-    def windows(t: torch.Tensor) -> torch.Tensor:  # (H, W, C) -> (C, k*k, H*W), zero padded
-        t = t.permute(2, 0, 1).unsqueeze(0)
-        return F.unfold(t, k, padding=radius).view(t.shape[1], k * k, h * w)
-
-    inside = windows(torch.ones_like(guide))
-    g = windows(guide)
-    centre = guide.reshape(1, 1, h * w)
-    weight = inside * torch.exp(-(g - centre).square() / (2.0 * sigma * sigma))
-    out = (windows(x) * weight).sum(1) / weight.sum(1)
-    return out.view(x.shape[2], h, w).permute(1, 2, 0)
+    total = x.clone()
+    weight = torch.ones_like(guide)
+    scale = -0.5 / (sigma * sigma)
+    # Each pair of pixels p, q = p + (oy, ox) once: the weight is symmetric, so it is added
+    # at both ends (one pass per offset over the image, no (k^2, H, W) window tensor).
+    for oy in range(min(radius, h - 1) + 1):
+        for ox in range(-min(radius, w - 1), min(radius, w - 1) + 1):
+            if oy == 0 and ox <= 0:
+                continue
+            p = (slice(0, h - oy), slice(max(0, -ox), w - max(0, ox)))
+            q = (slice(oy, h), slice(max(0, ox), w - max(0, -ox)))
+            pair = (guide[q] - guide[p]).square_().mul_(scale).exp_()
+            weight[p] += pair
+            weight[q] += pair
+            total[p].addcmul_(pair, x[q])
+            total[q].addcmul_(pair, x[p])
+    return total.div_(weight)
 
 
 def log_luminance(image: torch.Tensor, eps: float = 1e-2) -> torch.Tensor:
@@ -252,7 +264,7 @@ def fuse(
     *,
     trust_ratio: float = 1.0,
     error_floor: float = 1e-8,
-    max_iter: int = 100,
+    max_iter: int = SOLVE_ITERATIONS,
     tol: float = 1e-3,
 ) -> tuple[torch.Tensor, FuseInfo]:
     """Fuse a denoised image with sampled gradients (the energy of the module docstring).
@@ -441,9 +453,10 @@ def fuse_statistics(
     dy: torch.Tensor,
     *,
     trust_ratio: float = TRUST_RATIO,
+    iterations: int = SOLVE_ITERATIONS,
 ) -> tuple[torch.Tensor, FuseInfo]:
     """:func:`fuse` of ``dx``, ``dy`` ``(H, W, C)`` with the denoise and weights of
-    ``statistics``; returns as :func:`fuse`."""
+    ``statistics``, at most ``iterations`` CG iterations; returns as :func:`fuse`."""
     s = statistics
     return fuse(
         s.denoised,
@@ -454,6 +467,7 @@ def fuse_statistics(
         s.error,
         trust_ratio=trust_ratio,
         error_floor=s.error_floor,
+        max_iter=iterations,
     )
 
 
@@ -526,6 +540,7 @@ def fuse_checked(
     margin: float = CHECK_MARGIN,
     block: int = CHECK_BLOCK,
     image_margin: float | None = CHECK_IMAGE_MARGIN,
+    iterations: int = SOLVE_ITERATIONS,
 ) -> tuple[torch.Tensor, FuseInfo]:
     """:func:`fuse_statistics`, kept only where held-out data say it beats ``D``.
 
@@ -547,13 +562,15 @@ def fuse_checked(
             half without samples; its fusion is its denoise and ``D`` is kept).
         trust_ratio: see :func:`fusion_weights`.
         tile, margin, block, image_margin: see :func:`.held_out.choose`.
+        iterations: CG iterations of each of the three solves (at most).
 
     Returns:
         As :func:`fuse`; :attr:`FuseInfo.held_out` says what was kept.
     """
-    image, info = fuse_statistics(statistics, dx, dy, trust_ratio=trust_ratio)
+    options = {"trust_ratio": trust_ratio, "iterations": iterations}
+    image, info = fuse_statistics(statistics, dx, dy, **options)
     fused_halves = [
-        fuse_statistics(half_statistics(statistics, h, scale), gx, gy, trust_ratio=trust_ratio)[0]
+        fuse_statistics(half_statistics(statistics, h, scale), gx, gy, **options)[0]
         for h, ((gx, gy), scale) in enumerate(zip(gradient_halves, variance_scales, strict=True))
     ]
     d_a, d_b = statistics.denoised_halves

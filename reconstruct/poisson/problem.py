@@ -168,11 +168,12 @@ def prepare(
     gx = to_bchw(dx, dtype, squeeze)[..., :-1]
     gy = to_bchw(dy, dtype, squeeze)[..., :-1, :]
 
-    fp, fx, fy = _finite_mask(p), _finite_mask(gx), _finite_mask(gy)
+    # one pass per buffer where all is finite (a NaN or inf makes the sum non-finite)
+    finite = all(bool(torch.isfinite(t.sum())) for t in (p, gx, gy))
+    fp, fx, fy = (None, None, None) if finite else (_finite_mask(t) for t in (p, gx, gy))
     n_missing = {
-        "primal": int((~fp).sum()),
-        "dx": int((~fx).sum()),
-        "dy": int((~fy).sum()),
+        name: 0 if m is None else int((~m).sum())
+        for name, m in (("primal", fp), ("dx", fx), ("dy", fy))
     }
     mp = mx = my = None
     if any(n_missing.values()):

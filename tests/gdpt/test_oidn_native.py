@@ -8,6 +8,7 @@ import copy
 import subprocess
 import sys
 import textwrap
+import warnings
 
 import mitsuba_oidn
 import pytest
@@ -205,6 +206,19 @@ def test_non_finite_pixels_are_counted_and_the_output_is_finite(random_buffers):
         image = reconstruct_image(dirty, "oidn")
     assert torch.isfinite(image).all() and image.shape == clean.shape
     assert torch.isnan(primal[0, 0]).all()  # the caller's buffers are not changed
+
+
+def test_finite_values_whose_sum_overflows_are_not_counted(random_buffers):
+    """The finiteness check sums first; a finite image whose float32 sum overflows is still
+    counted value by value (none replaced, no warning)."""
+    buffers = random_buffers(16, 16, names=OIDN_INPUTS, seed=4)
+    primal = buffers.primal.clone()
+    primal[:4] = 3e38
+    assert not torch.isfinite(primal.sum())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        image = reconstruct_image(buffers.replace(primal=primal), "oidn")
+    assert torch.isfinite(image).all()
 
 
 def test_nothing_imports_pyoidn():

@@ -158,6 +158,25 @@ def test_edge_aware_mean_does_not_mix_across_guide_edges():
     assert float(F.box_mean(x, 2)[:, 3].min()) > 10  # a plain box does mix
 
 
+@pytest.mark.parametrize(("h", "w", "c", "radius"), [(9, 13, 1, 2), (5, 4, 3, 4), (1, 6, 2, 3)])
+def test_edge_aware_mean_is_the_weighted_window_mean(h, w, c, radius):
+    """Against the definition, pixel by pixel: neighbours inside the image only (windows
+    larger than the image included), weights from the guide difference."""
+    x = torch.rand(h, w, c, generator=GEN)
+    guide = torch.rand(h, w, 1, generator=GEN)
+    out = F.edge_aware_mean(x, guide, radius, 0.3)
+    expected = torch.empty_like(x)
+    for i in range(h):
+        for j in range(w):
+            num, den = torch.zeros(c), 0.0
+            for k in range(max(0, i - radius), min(h, i + radius + 1)):
+                for m in range(max(0, j - radius), min(w, j + radius + 1)):
+                    wgt = float(torch.exp(-((guide[k, m, 0] - guide[i, j, 0]) ** 2) / 0.18))
+                    num, den = num + wgt * x[k, m], den + wgt
+            expected[i, j] = num / den
+    torch.testing.assert_close(out, expected, rtol=1e-5, atol=1e-6)
+
+
 def test_predicted_gain_is_one_without_trusted_gradients_and_below_with_them():
     img = smooth_image()
     error = torch.full(img.shape[:2] + (1,), 1e-3)
@@ -193,3 +212,20 @@ def test_nonfinite_variance_is_no_information(bad):
     torch.testing.assert_close(stats.var_dx[finite], torch.full_like(stats.var_dx[finite], 1e-4))
     _, info = F.fuse_statistics(stats, dx, dy)
     assert info.guards["variance_nonfinite"] == 2
+
+
+def test_the_solves_stop_at_their_iteration_cap():
+    """``fuse_statistics`` and ``fuse_checked`` run at most ``iterations`` CG iterations
+    (default :data:`SOLVE_ITERATIONS`) where the solve has not converged."""
+    img = smooth_image(64, 64)
+    dx, dy = forward(img)
+    var = torch.full(img.shape[:2] + (1,), 1e-9)
+    # D off by a ramp that only exact gradients fix: a long-range correction, slow for CG
+    d = img + 0.3 * torch.linspace(0, 1, 64).view(1, 64, 1)
+    parts = {"full": d, "a": d + 0.01, "b": d - 0.01}
+    stats = F.fusion_statistics(parts.__getitem__, d + 0.01, d - 0.01, var, var.clone())
+    assert F.fuse_statistics(stats, dx, dy)[1].cg_iterations == F.SOLVE_ITERATIONS
+    assert F.fuse_statistics(stats, dx, dy, iterations=4)[1].cg_iterations == 4
+    halves = ((dx, dy), (dx, dy))
+    _, info = F.fuse_checked(stats, dx, dy, halves, (img, img), (2.0, 2.0), iterations=5)
+    assert info.cg_iterations == 5

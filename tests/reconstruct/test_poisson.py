@@ -541,6 +541,18 @@ def test_nonfinite_everywhere_never_returns_nan(method: str) -> None:
     assert torch.isfinite(x).all()
 
 
+def test_finite_inputs_whose_sum_overflows_are_not_missing() -> None:
+    """The finiteness check sums first; finite float32 values whose sum overflows are still
+    checked value by value: nothing missing, no warning."""
+    _, p, dx, dy = rand_problem(6, 7, seed=23)
+    p[:2] = 3e38
+    assert not torch.isfinite(p.sum())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", poisson.NonFiniteInputWarning)
+        _, info = poisson.solve_l2(p, dx, dy, return_info=True)
+    assert info.n_missing == {"primal": 0, "dx": 0, "dy": 0}
+
+
 def test_missing_single_pixel_filled_from_gradients_l1() -> None:
     img, p, dx, dy = rand_problem(12, 12, seed=22)
     p[6, 6] = math.inf
