@@ -31,16 +31,12 @@ STUDY = ["evaluate", "--scenes", "random:3", "--resolution", "16", "--budgets", 
 STUDY += ["--reference-spp", "4", "--methods", "pt", "--quick", "--no-progress"]
 
 
-def _sigint_default() -> None:
-    """In the child: Ctrl-C at its default, also where the test run itself ignores it (a
-    non-interactive shell starts background jobs with SIGINT ignored, and children inherit
-    that)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
-@pytest.fixture
+@pytest.fixture(autouse=True)
 def sigint_default():
-    """Python's own Ctrl-C handler in this process for the test (see :func:`_sigint_default`)."""
+    """Python's own Ctrl-C handler in this process during each test, also where the test run
+    itself ignores SIGINT (a non-interactive shell starts background jobs so): the children it
+    starts then get SIGINT at its default too (exec resets a caught signal, not an ignored one).
+    """
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     yield
     signal.signal(signal.SIGINT, previous)
@@ -52,7 +48,6 @@ def gdpt_process(*args: str) -> subprocess.Popen:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        preexec_fn=_sigint_default,
     )
 
 
@@ -76,7 +71,6 @@ def run_again(args: list[str]) -> subprocess.CompletedProcess:
         capture_output=True,
         text=True,
         timeout=300,
-        preexec_fn=_sigint_default,
     )
 
 
@@ -105,7 +99,7 @@ def test_a_keyboard_interrupt_is_found_in_an_exception_chain():
     assert not caused_by_interrupt(RuntimeError("out of memory"))
 
 
-def test_a_ctrl_c_inside_a_deferred_block_is_raised_at_its_end(sigint_default):
+def test_a_ctrl_c_inside_a_deferred_block_is_raised_at_its_end():
     finished = []
     with pytest.raises(KeyboardInterrupt), interrupts_deferred():
         os.kill(os.getpid(), signal.SIGINT)  # (as Mitsuba's module set-up would receive it)
