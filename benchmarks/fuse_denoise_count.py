@@ -30,7 +30,7 @@ import math
 from pathlib import Path
 
 import torch
-from fuse_safety import geomean, load, reference
+from fuse_safety import fuse_input, geomean, load, reference
 from gdpt.reconstruct import fuse as F
 from gdpt.reconstruct import held_out
 
@@ -110,15 +110,7 @@ def main() -> None:
         for spp in args.spp:
             rows = {c: [] for c in columns + extra}
             for seed in range(args.seeds):
-                b = gdpt.render(
-                    scene,
-                    spp=spp,
-                    seed=seed + 1,
-                    primal_spp=round(2.5 * spp),
-                    variance=True,
-                    halves=True,
-                    max_depth=depth,
-                )
+                b = fuse_input(scene, spp, seed + 1, depth)
                 stats = fusion_statistics_of(b, denoise)
                 d = stats.denoised
                 d_a, d_b = stats.denoised_halves

@@ -30,7 +30,7 @@ from gdpt.reconstruct import fuse, held_out
 
 import gdpt
 from gdpt.adapters import fusion_statistics_of
-from gdpt.methods import primal_only
+from gdpt.methods import METHODS, primal_only
 from gdpt.metrics import relmse
 from gdpt.scenes.loading import DEFAULT_MAX_DEPTH, read_scene
 from gdpt.scenes.procedural import RandomSceneConfig, random_scene
@@ -92,6 +92,12 @@ DESIGNS = {
 }
 
 
+def fuse_input(scene, spp: int, seed: int, depth: int) -> gdpt.GradientBuffers:
+    """What ``fuse`` reads, rendered at ``spp`` gradient samples (its pooled plain samples,
+    variances and halves: ``METHODS["fuse"].sampling``)."""
+    return gdpt.render(scene, spp=spp, seed=seed, max_depth=depth, **METHODS["fuse"].sampling(spp))
+
+
 def candidates(b: gdpt.GradientBuffers, denoise):
     """``(D, F_old, F_new, terms, nonfinite, info)`` of one render: its denoise, the unchecked
     fusion, ``fuse`` as shipped, and the held-out terms the designs choose from."""
@@ -150,15 +156,7 @@ def main() -> None:
             ratios = {c: [] for c in columns}
             kept = []
             for seed in range(args.seeds):
-                b = gdpt.render(
-                    scene,
-                    spp=spp,
-                    seed=seed + 1,
-                    primal_spp=round(2.5 * spp),
-                    variance=True,
-                    halves=True,
-                    max_depth=depth,
-                )
+                b = fuse_input(scene, spp, seed + 1, depth)
                 d, old, new, terms, nonfinite, info = candidates(b, denoise)
                 if args.save:
                     args.save.mkdir(parents=True, exist_ok=True)

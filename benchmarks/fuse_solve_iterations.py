@@ -18,7 +18,7 @@ import argparse
 import math
 from pathlib import Path
 
-from fuse_safety import geomean, load, reference
+from fuse_safety import fuse_input, geomean, load, reference
 from gdpt.reconstruct import fuse as F
 
 import gdpt
@@ -48,15 +48,7 @@ def main() -> None:
             ratios = {n: [] for n in args.iterations}
             used = []
             for seed in range(args.seeds):
-                b = gdpt.render(
-                    scene,
-                    spp=spp,
-                    seed=seed + 1,
-                    primal_spp=round(2.5 * spp),
-                    variance=True,
-                    halves=True,
-                    max_depth=depth,
-                )
+                b = fuse_input(scene, spp, seed + 1, depth)
                 stats = fusion_statistics_of(b, denoise)
                 counts = b.metadata["gradient_half_spp"]
                 scales = tuple(b.spp / n if n > 0 else math.inf for n in counts)
