@@ -25,7 +25,10 @@ Gradient mask: with :attr:`GradientIntegratorBase.gradient_mask` (an ``(H, W)`` 
 array, film pixels, no tiles: per pixel) a pass traces the masked pixels' samples with their
 four offsets and the other pixels' samples as plain paths (one base ray, no offsets), each group
 launched on its own compacted wavefront (its pixels' samples only) and scattered back into the
-per-pixel sums, so the offset work shrinks with the mask. A gradient ``dx[y, x]`` needs both
+per-pixel sums, so the offset work shrinks with the mask. A wavefront's pixel count is rounded up
+to a multiple of 1/:data:`WAVEFRONT_BUCKETS` of the film's (the extra lanes repeat a pixel, run
+inactive and are never scattered): a frozen pass records once per bucket, so renders whose masks
+differ (a pilot's mask per seed) replay each other's recordings. A gradient ``dx[y, x]`` needs both
 MIS halves, ``g_RIGHT`` of ``(x, y)`` and ``g_LEFT`` of ``(x + 1, y)``: it is traced iff both
 pixels are masked (:func:`traced_gradients`); an untraced one is 0 with infinite ``var_dx`` /
 ``var_dy`` and in its halves 0, never read as a measurement.
@@ -61,6 +64,10 @@ DEFAULT_SAMPLES_PER_PASS = 1 << 20
 #: Mixed into a pass's seed for the samplers of the plain paths of a masked render (their samples
 #: independent of the masked pixels' samples).
 _PLAIN_SEED = 0x27D4EB2F
+
+#: A masked render's wavefronts are padded to a multiple of ``ceil(pixels / WAVEFRONT_BUCKETS)``
+#: pixels (at most that many idle lanes each; the frozen pass records once per padded size).
+WAVEFRONT_BUCKETS = 16
 
 #: Feature buffers and their channel counts, in output order (the halved buffers but the primal).
 _FEATURE_CHANNELS = tuple((name, CHANNELS[name]) for name in HALVED if name != "primal")
@@ -289,9 +296,9 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         # sizes, spp per pass or settings (the key) and for scenes of another layout. Those
         # recordings are expected (a timing study renders dozens of sample counts per scene),
         # so Dr.Jit's re-tracing warning (after 10 by default, "indicates a problem") is off;
-        # tests/gdpt/test_rendering.py checks that a repeated render replays. The 16 most
+        # tests/gdpt/test_rendering.py checks that a repeated render replays. The 32 most
         # recently used recordings are kept.
-        self._frozen_pass = dr.freeze(self._trace_pass, limit=16, warn_after=2**31 - 1)
+        self._frozen_pass = dr.freeze(self._trace_pass, limit=32, warn_after=2**31 - 1)
         #: Optional ``callable(spp_done, spp_total)`` called after every pass (progress bars).
         self.pass_callback = None
         #: How often each numerical guard fired in the last ``render()``: ``sample_nonfinite``
@@ -397,9 +404,10 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         self.guard_counts = acc.guard_counts
         trace = self._frozen_pass if self.freeze else self._trace_pass
         key = (*self._pass_key(), width, height, *(int(v) for v in film.crop_offset()))
-        if mask is not None:  # (pixel indices, offsets, seed salt) of the two wavefronts
+        if mask is not None:  # (padded pixel indices, pixels, offsets, seed salt) per wavefront
+            quantum = -(-n_pix // WAVEFRONT_BUCKETS)
             groups = [
-                (mi.UInt32(np.flatnonzero(m).astype(np.uint32)), offsets, salt)
+                (_padded(np.flatnonzero(m), quantum), int(m.sum()), offsets, salt)
                 for m, offsets, salt in ((flat, True, 0), (~flat, False, _PLAIN_SEED))
                 if m.any()
             ]
@@ -414,6 +422,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
                 parts = [
                     (
                         pixels,
+                        count,
                         *self._pass(
                             trace,
                             scene,
@@ -424,9 +433,10 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
                             (*key, offsets, dr.width(pixels)),
                             pixels,
                             offsets,
+                            count,
                         ),
                     )
-                    for pixels, offsets, salt in groups
+                    for pixels, count, offsets, salt in groups
                 ]
                 sums, counts = _scatter_parts(parts, n_pix)
             acc.add(sums, counts, spp_pass, done)
@@ -469,10 +479,13 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             )
         return None if mask.all() else mask.copy()
 
-    def _pass(self, trace, scene, sensor, seed: int, done: int, spp: int, key, pixels, offsets):
+    def _pass(
+        self, trace, scene, sensor, seed: int, done: int, spp: int, key, pixels, offsets, count=0
+    ):
         """One pass of ``spp`` samples per pixel of ``pixels`` (``mi.UInt32`` film pixel
         indices; ``None``: every pixel), with the four offset rays if ``offsets``: the per-pixel
-        sums and guard counts of :func:`pass_sums`, in the order of ``pixels``."""
+        sums and guard counts of :func:`pass_sums`, in the order of ``pixels``; only the first
+        ``count`` pixels of ``pixels`` are traced (the rest is padding: inactive, sums 0)."""
         n_pix = int(dr.prod(sensor.film().crop_size())) if pixels is None else dr.width(pixels)
         # The primary rays are traced outside the frozen pass (Mitsuba 3.9's thinlens
         # camera does not expose all of its variables to dr.freeze; the rays are cheap),
@@ -482,21 +495,25 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         rays, weights = self._primary_rays(sensor, ray_sampler, spp, pixels, offsets)
         path_seed = dr.opaque(mi.UInt32, seed)
         first = dr.opaque(mi.UInt32, done)  # the pass's first sample index (halves' parity)
-        return trace(scene, sensor, path_seed, first, rays, weights, spp, key)
+        # (an opaque lane count: padded wavefronts of one size share a recording)
+        lanes = None if pixels is None else dr.opaque(mi.UInt32, count * spp)
+        return trace(scene, sensor, path_seed, first, rays, weights, spp, key, lanes)
 
     def _trace_pass(
-        self, scene, sensor, seed: mi.UInt32, first: mi.UInt32, rays, weights, spp: int, key
+        self, scene, sensor, seed: mi.UInt32, first: mi.UInt32, rays, weights, spp: int, key, lanes
     ):
         """One pass of ``spp`` samples per pixel from the primary ``rays`` (base and offsets,
         with their ``weights``), the path sampler seeded with ``seed``: per-pixel sums and the
-        pass's guard counts (:func:`pass_sums`).
+        pass's guard counts (:func:`pass_sums`); ``lanes`` (``mi.UInt32`` or ``None``: all): the
+        samples traced, the first ones (the others are padding, inactive).
 
         ``key`` (settings, film size and offset, see :meth:`_pass_key`) is unused here: as an
         argument of the frozen ``_frozen_pass`` it makes a change of any of them record anew.
         """
         n_pix = dr.width(rays[0].d) // spp
         sampler = _pass_sampler(sensor, spp, seed, n_pix)
-        samples = self.sample_paths(scene, sensor, sampler, rays, weights, mi.Bool(True))
+        active = mi.Bool(True) if lanes is None else dr.arange(mi.UInt32, n_pix * spp) < lanes
+        samples = self.sample_paths(scene, sensor, sampler, rays, weights, active)
         return pass_sums(samples, spp, self.variance, self.halves, first)
 
     def _pass_key(self) -> tuple:
@@ -617,18 +634,28 @@ def traced_gradients(mask: np.ndarray) -> np.ndarray:
     return out
 
 
+def _padded(indices: np.ndarray, quantum: int) -> mi.UInt32:
+    """The film pixel indices ``indices`` (non-empty) padded with copies of the last one to a
+    multiple of ``quantum`` (a wavefront size shared by masks of similar pixel counts)."""
+    width = -(-len(indices) // quantum) * quantum
+    out = np.full(width, indices[-1], dtype=np.uint32)
+    out[: len(indices)] = indices
+    return mi.UInt32(out)
+
+
 def _scatter_parts(parts: list, n_pix: int) -> tuple[dict, dict]:
-    """The per-pixel sums of the wavefronts of a masked pass (``(pixels, sums, counts)`` from
-    :func:`pass_sums`, ``pixels`` the film pixel of each sum) as sums over all ``n_pix`` pixels
-    (0 where a wavefront has no such sum, e.g. the gradient sums of plain paths), and the
-    guard counts added up."""
+    """The per-pixel sums of the wavefronts of a masked pass (``(pixels, count, sums, counts)``,
+    ``sums`` from :func:`pass_sums`, ``pixels`` the film pixel of each sum, only the first
+    ``count`` traced) as sums over all ``n_pix`` pixels (0 where a wavefront has no such sum,
+    e.g. the gradient sums of plain paths), and the guard counts added up."""
     sums: dict = {}
     counts: dict = {}
-    for pixels, part_sums, part_counts in parts:
+    for pixels, count, part_sums, part_counts in parts:
+        traced = dr.arange(mi.UInt32, dr.width(pixels)) < count
         for name, comps in part_sums.items():
             full = sums.setdefault(name, [dr.zeros(mi.Float, n_pix) for _ in comps])
             for dst, c in zip(full, comps, strict=True):
-                dr.scatter(dst, c, pixels)
+                dr.scatter(dst, c, pixels, traced)
         for name, c in part_counts.items():
             counts[name] = counts[name] + c if name in counts else c
     dr.eval(sums, counts)

@@ -115,7 +115,8 @@ def test_untraced_gradients_are_marked_by_the_border_rule(scene):
 
 def test_offsets_are_traced_on_a_compacted_wavefront(scene):
     """The masked pixels' samples run the path loop with the four offsets on a wavefront of
-    their own; the other pixels' samples without offsets on another."""
+    their own; the other pixels' samples without offsets on another; each padded to a multiple
+    of 1/16 of the film's pixels."""
     integrator = make_integrator("gdpt", freeze=False, **PROPS)
     launches = []
     trace = integrator.sample_paths
@@ -130,12 +131,15 @@ def test_offsets_are_traced_on_a_compacted_wavefront(scene):
     mask = _mask()
     render(scene, spp=4, seed=1, integrator=integrator, gradient_mask=mask)  # one pass
     n = int(mask.sum())
-    assert sorted(launches) == [(1, (SIZE * SIZE - n) * 4), (5, n * 4)]
+    padded = lambda k: -(-k // 16) * 16  # noqa: E731
+    assert n % 16 and padded(n) < SIZE * SIZE  # (the mask needs padding)
+    assert sorted(launches) == [(1, padded(SIZE * SIZE - n) * 4), (5, padded(n) * 4)]
 
 
 def test_masked_renders_replay_their_recording(scene):
-    """A second render with a mask of the same pixel count replays the first's recording and
-    equals tracing without ``dr.freeze``; another count records anew."""
+    """A second render with a mask of the same pixel count, or of another count in the same
+    1/16 of the film (the wavefronts' padded size), replays the first's recording and equals
+    tracing without ``dr.freeze``; a count in another 1/16 records anew."""
     props = dict(max_depth=3, features=False)
     render(scene, spp=2, seed=3, gradient_mask=_mask(), **props)
     integrator = shared_integrator(scene, "gdpt", **props)
@@ -153,7 +157,10 @@ def test_masked_renders_replay_their_recording(scene):
     assert _digests(replayed) == _digests(traced)
     assert torch.equal(replayed.gradient_mask, traced.gradient_mask)
     other = _mask()
-    other[0, 0] = True
+    other[0, 0] = True  # 67 pixels: padded to 80 as 66 (the rest: 189 and 190 to 192)
+    render(scene, spp=2, seed=4, gradient_mask=other, **props)
+    assert integrator._frozen_pass.n_recordings == recordings
+    other[15] = True  # 82 pixels: padded to 96
     render(scene, spp=2, seed=4, gradient_mask=other, **props)
     assert integrator._frozen_pass.n_recordings > recordings
 
