@@ -287,3 +287,51 @@ EVAL_METHODS.register(
         configuration=plain_route_configuration,
     ),
 )
+
+
+def masked_fuse(design: str) -> RunFunction:
+    """``run`` of ``gdpt+fuse-masked`` (``design`` of :func:`gdpt.gradient_mask.pilot_mask`):
+    :func:`gdpt.gradient_mask.render_masked` (the pilot, its mask and the masked render of
+    ``spp`` gradient samples in the mask) reconstructed by ``fuse``, all of it timed as the
+    render except the final reconstruction (kernel compilation excluded)."""
+
+    def run(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+        from gdpt.gradient_mask import render_masked
+
+        if reason := DENOISERS["fuse"].check():
+            raise MethodUnavailable(reason)
+        _drain_compile_seconds()
+        start = time.perf_counter()
+        buffers = render_masked(
+            scene.scene, spp=spp, seed=seed, design=design, max_depth=scene.max_depth
+        )
+        middle = time.perf_counter()
+        compile_seconds = _drain_compile_seconds()
+        image = reconstruct_image(buffers, method="fuse")
+        image = image.detach().to("cpu", torch.float32).contiguous()
+        end = time.perf_counter()
+        render_seconds = max(0.0, middle - start - compile_seconds)
+        return MethodResult(
+            image=image,
+            seconds=render_seconds + (end - middle),
+            render_seconds=render_seconds,
+            reconstruct_seconds=end - middle,
+            compile_seconds=compile_seconds,
+            route={"pilot_mask": buffers.metadata["pilot_mask"]},
+        )
+
+    run.__name__ = run.__qualname__ = f"masked_fuse_{design}"
+    return run
+
+
+for _design, _label in (("trust", "fuse's trust rule"), ("variance", "gradient/primal variance")):
+    EVAL_METHODS.register(
+        f"gdpt+fuse-masked-{_design}",
+        EvalMethod(
+            f"gdpt+fuse-masked-{_design}",
+            f"a gradient pilot's {_label} per 16 px tile masks the offsets of the rest of the "
+            "samples, + fuse (gdpt.gradient_mask); the pilot timed",
+            masked_fuse(_design),
+            DENOISERS["fuse"].check,
+        ),
+    )
