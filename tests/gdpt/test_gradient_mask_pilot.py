@@ -176,3 +176,18 @@ def test_study_method_times_the_pilot_and_calibrates_on_its_own(scene, monkeypat
     slowed = method.run(study_scene, spp=4, seed=1)
     assert slowed.seconds >= fast.seconds + 0.9 and slowed.render_seconds >= 1.0
     assert slowed.route["pilot_mask"]["mask_seconds"] >= 1.0
+
+
+@pytest.mark.parametrize(("primal_spp", "masked"), [(16, True), (4, False)])
+def test_variance_ratio_is_per_sample(primal_spp, masked):
+    """Equal variances of the means, but the primal pools 4x the gradient samples: per sample
+    the gradients are 4x less noisy (ratio 0.25, masked); unpooled the ratio is 1 (not)."""
+    pilot = _pilot()
+    var = torch.full((SIZE, SIZE, 1), 1e-3)
+    pilot = pilot.replace(
+        var_primal=var, var_dx=var.clone(), var_dy=var.clone(),
+        metadata={**pilot.metadata, "primal_spp": primal_spp},
+    )  # fmt: skip
+    ratio = gm.variance_ratio(pilot, 8)
+    assert torch.allclose(ratio, torch.full_like(ratio, 4 / primal_spp))
+    assert bool(gm.pilot_mask(pilot, design="variance", tile=8).all()) is masked
