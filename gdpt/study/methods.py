@@ -20,6 +20,11 @@ Registered methods:
   gradients (shipped; the ablation).
 * ``gdpt+fuse``: pooled gradient-domain samples + variance-weighted fusion of the gradients
   around the primal-only network (:mod:`gdpt.reconstruct.fuse`).
+* ``gdpt+fuse-masked-variance``: ``gdpt+fuse`` with offsets only in the 16 px tiles where a
+  gradient pilot's per-sample gradient/primal variance ratio is low
+  (:func:`gdpt.gradient_mask.render_masked`, the pilot's samples merged in, all of it timed;
+  its own cost calibration). Measured at equal time and not kept as a route
+  (``docs/gradients.md``); :func:`masked_fuse` makes the method of another design.
 * ``auto``: ``render_and_denoise``'s default (:mod:`gdpt.auto_route`: a pilot render's choice
   between plain path tracing + the primal-only denoiser and ``gdpt+fuse``); all of it timed, on
   the cost calibration of its plain route (``pt+`` that denoiser).
@@ -290,7 +295,7 @@ EVAL_METHODS.register(
 
 
 def masked_fuse(design: str) -> RunFunction:
-    """``run`` of ``gdpt+fuse-masked`` (``design`` of :func:`gdpt.gradient_mask.pilot_mask`):
+    """``run`` of ``gdpt+fuse-masked-DESIGN`` (``design`` of :func:`gdpt.gradient_mask.pilot_mask`):
     :func:`gdpt.gradient_mask.render_masked` (the pilot, its mask and the masked render of
     ``spp`` gradient samples in the mask) reconstructed by ``fuse``, all of it timed as the
     render except the final reconstruction (kernel compilation excluded)."""
@@ -324,14 +329,14 @@ def masked_fuse(design: str) -> RunFunction:
     return run
 
 
-for _design, _label in (("trust", "fuse's trust rule"), ("variance", "gradient/primal variance")):
-    EVAL_METHODS.register(
-        f"gdpt+fuse-masked-{_design}",
-        EvalMethod(
-            f"gdpt+fuse-masked-{_design}",
-            f"a gradient pilot's {_label} per 16 px tile masks the offsets of the rest of the "
-            "samples, + fuse (gdpt.gradient_mask); the pilot timed",
-            masked_fuse(_design),
-            DENOISERS["fuse"].check,
-        ),
-    )
+EVAL_METHODS.register(
+    "gdpt+fuse-masked-variance",
+    EvalMethod(
+        "gdpt+fuse-masked-variance",
+        "a gradient pilot's gradient/primal variance ratio per 16 px tile masks the offsets of "
+        "the rest of the samples, + fuse (gdpt.gradient_mask; measured, not a default); the "
+        "pilot timed",
+        masked_fuse("variance"),
+        DENOISERS["fuse"].check,
+    ),
+)
