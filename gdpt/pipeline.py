@@ -70,7 +70,8 @@ def render_and_denoise(
         seed (int): random seed.
         alpha (float): screened-Poisson data weight.
         progress (bool): progress bar while rendering.
-        **props: integrator properties, as in :func:`render`. ``gradients`` and ``features``
+        **props: integrator properties, as in :func:`render` (with ``gradient_mask`` for a
+            method that reads gradients). ``gradients`` and ``features``
             default to what ``method`` reads (:meth:`gdpt.methods.Method.sampling`): the
             Poisson methods skip the features, ``oidn-tuned`` the offset paths, and a network
             trained on pooled inputs gets its plain path samples (``primal_spp``).
@@ -79,11 +80,20 @@ def render_and_denoise(
         RenderResult: the image ``(H, W, 3)``, the buffers and the timings.
 
     Raises:
-        ValueError: unknown ``method``, or ``props`` turn off a buffer the method needs.
+        ValueError: unknown ``method``, ``props`` turn off a buffer the method needs, or a
+            ``gradient_mask`` (:func:`render`) with ``"auto"`` or a method without gradients.
     """
     method = METHODS.resolve(method, stacklevel=2)  # a deprecated name warns once, here
     if method != "auto":
         METHODS.check([method])
+    if props.get("gradient_mask") is not None and (
+        method == "auto" or not METHODS[method].gradients
+    ):
+        raise ValueError(
+            f"gradient_mask selects where offsets are traced; method {method!r} "
+            + ("chooses its own route" if method == "auto" else "reads no gradients")
+            + ": give a method that reads gradients (e.g. 'fuse')"
+        )
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
     choice, timings = None, {}

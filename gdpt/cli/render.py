@@ -126,6 +126,14 @@ def _add_scene_arguments(parser: argparse.ArgumentParser) -> None:
         help="rescale the film to this many pixels on its long side (XML: aspect ratio kept; "
         "builtin:/random: square)",
     )
+    parser.add_argument(
+        "--gradient-mask",
+        type=Path,
+        metavar="IMAGE",
+        help="PNG or EXR of the film's size: offset paths only for the pixels set in it (any "
+        "channel above half its range), plain paths elsewhere (gdpt.render's gradient_mask); "
+        "needs gradients",
+    )
 
 
 def _load_scene(args: argparse.Namespace) -> tuple[object, int]:
@@ -154,6 +162,18 @@ def _load_scene(args: argparse.Namespace) -> tuple[object, int]:
     for line in [*loaded.notes, note]:
         print(f"{args.scene}: {line}")
     return loaded.scene, depth
+
+
+def _gradient_mask(args: argparse.Namespace, reason: str | None):
+    """``--gradient-mask`` read (:func:`gdpt.io.images.load_mask`), or ``None``; ``reason``:
+    why this command's render has no gradients (``None``: it has)."""
+    if args.gradient_mask is None:
+        return None
+    if reason is not None:
+        raise UsageError(f"--gradient-mask selects where offsets are traced, but {reason}")
+    from gdpt.io.images import load_mask
+
+    return load_mask(args.gradient_mask)
 
 
 def _add_render_arguments(parser: argparse.ArgumentParser) -> None:
@@ -187,6 +207,7 @@ def _run_render(args: argparse.Namespace) -> int:
     if args.output.suffix.lower() != ".exr":
         raise UsageError(f"output must be an .exr file, got '{args.output}'")
     check_writable(args.output, force=args.force)
+    mask = _gradient_mask(args, "--no-gradients is set" if args.no_gradients else None)
     scene, max_depth = _load_scene(args)
     buffers = render(
         scene,
@@ -199,6 +220,7 @@ def _run_render(args: argparse.Namespace) -> int:
         variance=args.variance,
         halves=args.halves,
         primal_spp=args.primal_spp,
+        gradient_mask=mask,
     )
     args.output.parent.mkdir(parents=True, exist_ok=True)
     save_buffers(args.output, buffers, half=args.half, force=args.force)
@@ -259,6 +281,11 @@ def _run_render_and_denoise(args: argparse.Namespace) -> int:
     for path in (args.output, preview_path(args.output), args.save_buffers):
         if path is not None:  # fail before the render
             check_writable(path, force=args.force)
+    if args.method == "auto":
+        mask = _gradient_mask(args, "--method auto chooses its own route (give e.g. fuse)")
+    else:
+        no_gradients = f"--method {args.method} reads no gradients"
+        mask = _gradient_mask(args, None if METHODS[args.method].gradients else no_gradients)
     scene, max_depth = _load_scene(args)
 
     result = render_and_denoise(
@@ -270,6 +297,7 @@ def _run_render_and_denoise(args: argparse.Namespace) -> int:
         progress=True,
         integrator=args.integrator,
         max_depth=max_depth,
+        **({} if mask is None else {"gradient_mask": mask}),
     )
     metadata = {
         "scene": args.scene,

@@ -81,6 +81,36 @@ def save_png(
     return Path(path)
 
 
+def load_mask(path: PathLike) -> np.ndarray:
+    """A pixel mask from an image: ``(H, W)`` bool, set where any colour channel is above half
+    its range (PNG: 1, 8 or 16 bit, grey, palette or RGB, alpha ignored; EXR: channels ``R``,
+    ``G``, ``B`` above 0.5).
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: not a ``.png`` or ``.exr`` file, or an unreadable one.
+    """
+    from gdpt.io.exr import load_image
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".png", ".exr"):
+        raise ValueError(
+            f"{path}: a mask must be a .png or .exr image, got '{suffix or path.name}'"
+        )
+    if not path.is_file():
+        raise FileNotFoundError(f"mask file not found: {path}")
+    if suffix == ".exr":
+        return (load_image(path) > 0.5).any(-1).numpy()
+    with Image.open(path) as image:
+        if image.mode.startswith("I"):  # 16- or 32-bit grey (a 16-bit PNG)
+            pixels, half = np.asarray(image).astype(np.int64), 65535 / 2
+        else:  # 1-bit, grey, palette, RGB(A): as 8-bit RGB, alpha dropped
+            pixels, half = np.asarray(image.convert("RGB")), 255 / 2
+    above = pixels > half
+    return above if above.ndim == 2 else above.any(-1)
+
+
 def preview_path(exr_path: PathLike) -> Path:
     """The PNG preview that belongs next to an EXR: ``out/x.exr`` -> ``out/x.png``."""
     return Path(exr_path).with_suffix(".png")

@@ -20,6 +20,11 @@ Registered methods:
   gradients (shipped; the ablation).
 * ``gdpt+fuse``: pooled gradient-domain samples + variance-weighted fusion of the gradients
   around the primal-only network (:mod:`gdpt.reconstruct.fuse`).
+* ``gdpt+fuse-masked-variance``: ``gdpt+fuse`` with offsets only in the 16 px tiles where a
+  gradient pilot's per-sample gradient/primal variance ratio is low
+  (:func:`gdpt.gradient_mask.render_masked`, the pilot's samples merged in, all of it timed;
+  its own cost calibration). Measured at equal time and not kept as a route
+  (``docs/gradients.md``); :func:`masked_fuse` makes the method of another design.
 * ``auto``: ``render_and_denoise``'s default (:mod:`gdpt.auto_route`: a pilot render's choice
   between plain path tracing + the primal-only denoiser and ``gdpt+fuse``); all of it timed, on
   the cost calibration of its plain route (``pt+`` that denoiser).
@@ -285,5 +290,53 @@ EVAL_METHODS.register(
         auto_route,
         lambda: DENOISERS["oidn"].check() and DENOISERS["oidn-tuned"].check(),
         configuration=plain_route_configuration,
+    ),
+)
+
+
+def masked_fuse(design: str) -> RunFunction:
+    """``run`` of ``gdpt+fuse-masked-DESIGN`` (``design`` of :func:`gdpt.gradient_mask.pilot_mask`):
+    :func:`gdpt.gradient_mask.render_masked` (the pilot, its mask and the masked render of
+    ``spp`` gradient samples in the mask) reconstructed by ``fuse``, all of it timed as the
+    render except the final reconstruction (kernel compilation excluded)."""
+
+    def run(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+        from gdpt.gradient_mask import render_masked
+
+        if reason := DENOISERS["fuse"].check():
+            raise MethodUnavailable(reason)
+        _drain_compile_seconds()
+        start = time.perf_counter()
+        buffers = render_masked(
+            scene.scene, spp=spp, seed=seed, design=design, max_depth=scene.max_depth
+        )
+        middle = time.perf_counter()
+        compile_seconds = _drain_compile_seconds()
+        image = reconstruct_image(buffers, method="fuse")
+        image = image.detach().to("cpu", torch.float32).contiguous()
+        end = time.perf_counter()
+        render_seconds = max(0.0, middle - start - compile_seconds)
+        return MethodResult(
+            image=image,
+            seconds=render_seconds + (end - middle),
+            render_seconds=render_seconds,
+            reconstruct_seconds=end - middle,
+            compile_seconds=compile_seconds,
+            route={"pilot_mask": buffers.metadata["pilot_mask"]},
+        )
+
+    run.__name__ = run.__qualname__ = f"masked_fuse_{design}"
+    return run
+
+
+EVAL_METHODS.register(
+    "gdpt+fuse-masked-variance",
+    EvalMethod(
+        "gdpt+fuse-masked-variance",
+        "a gradient pilot's gradient/primal variance ratio per 16 px tile masks the offsets of "
+        "the rest of the samples, + fuse (gdpt.gradient_mask; measured, not a default); the "
+        "pilot timed",
+        masked_fuse("variance"),
+        DENOISERS["fuse"].check,
     ),
 )
