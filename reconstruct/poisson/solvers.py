@@ -265,8 +265,8 @@ def solve_weighted_cg(
         wx = _mul_opt(base.x, wu[1][..., :-1] if wu[1] is not None else None)
         wy = _mul_opt(base.y, wu[2][..., :-1, :] if wu[2] is not None else None)
         w = Weights(wp, wx, wy)
-        if x0 is None:
-            x = prob.p.clone()
+        if x0 is None or (x0 is primal and not prob.has_missing):
+            x = prob.p  # (pcg starts from a copy)
         else:
             if not isinstance(x0, torch.Tensor) or x0.shape != primal.shape:
                 got = tuple(x0.shape) if isinstance(x0, torch.Tensor) else type(x0).__name__
