@@ -82,9 +82,10 @@ MAX_WEIGHT_RATIO = 1e3
 #: Conjugate-gradient iterations of a fusion solve (Jacobi-preconditioned, from ``D``). CG
 #: stopped early makes the local part of the correction and leaves the long-range part, where
 #: integrated gradient noise piles up (early stopping as regularisation): 30 iterations, not 100
-#: (which most 128 px solves of cornell-box and veach-mis reached) gave 0.87-0.97x the relMSE
-#: of the fused image on those, and equal on sponza and living-room-2 (docs/gradients.md).
-SOLVE_ITERATIONS = 30
+#: (which most 128 px solves of cornell-box and veach-mis reached), gave 0.87-0.97x the relMSE
+#: on those; 20 gave 0.98-1.02x that of 30 on the 48 renders of the safety table, no render
+#: worse than its ``D`` by more than the bar, at 2/3 of the solves' cost (docs/gradients.md).
+SOLVE_ITERATIONS = 20
 
 #: :func:`fuse_checked`'s held-out choice (:func:`.held_out.choose`): the fusion is kept in the
 #: whole image where the image's held-out sum favours it by :data:`CHECK_IMAGE_MARGIN` standard
