@@ -278,7 +278,8 @@ def fuse(
         error: ``(H, W, 1)`` squared-error estimate of ``D`` (e.g. :func:`cross_half_error`).
         trust_ratio: see :func:`fusion_weights` (``0``: return ``D``).
         error_floor: see :func:`fusion_weights`; > 0.
-        max_iter, tol: conjugate-gradient limits (Jacobi preconditioned, warm-started at ``D``).
+        max_iter, tol: exactly ``max_iter`` Jacobi-preconditioned CG iterations from ``D``,
+            none for a channel whose start already has a relative residual <= ``tol``.
 
     Returns:
         ``(image, info)``: the fused ``(H, W, C)`` image (dtype and device of ``denoised``)
@@ -323,6 +324,7 @@ def fuse(
         tol=tol,
         precondition="jacobi",
         return_info=True,
+        fixed_iterations=True,
     )
     bound = CORRECTION_BOUND * torch.sqrt(error.nan_to_num(0.0).clamp_min(error_floor))
     change = image.to(denoised.dtype) - denoised

@@ -67,3 +67,31 @@ def test_the_shipped_operator_and_jacobi_preconditioner_write_into_buffers():
         out = torch.full_like(prob.p, float("nan"))
         assert fn(prob.p, out=out) is out
         assert torch.equal(out, fn(prob.p))
+
+
+@pytest.mark.parametrize("iterations", [0, 1, 7])
+def test_jacobi_scaled_cg_runs_the_iterations_of_jacobi_pcg(iterations):
+    """CG on the symmetrically scaled system gives Jacobi-PCG's iterate after the same number
+    of iterations (float64, rows scaled over 3 decades) and leaves the start alone."""
+    from gdpt.reconstruct.poisson import problem
+
+    gen = torch.Generator().manual_seed(5)
+    p, dx, dy = (torch.rand(2, 7, 9, 3, generator=gen, dtype=torch.float64) for _ in range(3))
+    prob = problem.prepare(p, dx, dy, 0.2)
+    w = cg.Weights(
+        10.0 ** (3 * torch.rand(2, 1, 7, 9, generator=gen, dtype=torch.float64)),
+        10.0 ** (3 * torch.rand(2, 1, 7, 8, generator=gen, dtype=torch.float64)),
+        torch.rand(2, 1, 6, 9, generator=gen, dtype=torch.float64),
+    )
+    op = cg.Operator(prob, w)
+    b = cg.rhs(prob, w)
+    x0 = prob.p + 0.1
+    start = x0.clone()
+    expected = cg.pcg(op, b, x0, max_iter=iterations, tol=0.0, precond=lambda r: r / op.diag)
+    x, its, res = cg.jacobi_scaled_cg(op, b, x0, iterations=iterations, tol=0.0)
+    assert torch.equal(x0, start)
+    assert its == expected[1] == iterations
+    torch.testing.assert_close(x, expected[0], rtol=1e-10, atol=1e-12)
+    assert res == pytest.approx(expected[2], rel=1e-8)
+    if iterations:
+        assert not torch.allclose(x, x0)
