@@ -95,3 +95,16 @@ def test_jacobi_scaled_cg_runs_the_iterations_of_jacobi_pcg(iterations):
     assert res == pytest.approx(expected[2], rel=1e-8)
     if iterations:
         assert not torch.allclose(x, x0)
+
+
+def test_fixed_iterations_needs_the_jacobi_preconditioner():
+    from gdpt.reconstruct import poisson
+
+    p = torch.rand(4, 5, 3, generator=torch.Generator().manual_seed(6))
+    with pytest.raises(ValueError, match=r"fixed_iterations.*precondition='dct'"):
+        poisson.solve_weighted_cg(p, p, p, precondition="dct", fixed_iterations=True)
+    fixed, info = poisson.solve_weighted_cg(
+        p, p, p, max_iter=3, tol=0.0, fixed_iterations=True, return_info=True
+    )
+    assert info.cg_iterations == 3
+    torch.testing.assert_close(fixed, poisson.solve_weighted_cg(p, p, p, max_iter=3, tol=0.0))
