@@ -51,7 +51,7 @@ def load(name: str):
     """``(mi.Scene, max_depth)`` of a shared scene name or ``room:SEED``."""
     if name.startswith("room:"):
         source = random_scene(int(name[5:]), resolution=(128, 128), config=ROOM)
-        loaded = read_scene(source, box_filter=True)
+        loaded = read_scene(source)  # generated scenes have a box filter
     else:
         loaded = read_scene(SHARED / name / "scene.xml", box_filter=True, long_side=128)
     return loaded.scene, loaded.max_depth or DEFAULT_MAX_DEPTH

@@ -6,10 +6,17 @@ Per scene, gradient sample count and seed: one render as ``fuse`` reads it (as
 through the shipped denoiser), then :func:`~gdpt.reconstruct.fuse.fuse_checked` with each
 ``--iterations`` cap (all three solves), relMSE against the cached path-traced reference over
 ``D``'s; geometric mean over the seeds, and the iterations the whole render's solve took at the
-largest cap. Usage::
+largest cap. The renders' untraced gradients are filled as the ``fuse`` method fills them
+(:func:`gdpt.buffers.fill_untraced`). The last line gives, per cap, the worst single render
+(the safety bar of ``benchmarks/fuse_safety.py``: ``fuse`` <= 1.03x its ``D``). Usage::
 
     .venv/bin/python benchmarks/fuse_solve_iterations.py --scenes cornell-box sponza \\
         veach-mis living-room-2 --spp 16 64 --seeds 2 --iterations 100 50 30 20
+
+    # the 48 renders of the safety table
+    .venv/bin/python benchmarks/fuse_solve_iterations.py --scenes cornell-box sponza \\
+        veach-mis living-room-2 staircase matpreview-dof room:202 room:311 \\
+        --spp 16 64 256 --seeds 2 --iterations 30 20
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ from gdpt.reconstruct import fuse as F
 
 import gdpt
 from gdpt.adapters import fusion_statistics_of
+from gdpt.buffers import fill_untraced, gradient_half_count
 from gdpt.methods import primal_only
 from gdpt.metrics import relmse
 
@@ -41,6 +49,7 @@ def main() -> None:
     print(f"D = {name_d}; references {args.reference_spp} spp; relMSE(fuse) / relMSE(D)")
     print("| scene | grad spp | " + " | ".join(f"{n} its" for n in args.iterations) + " | its |")
     print("|---|---:|" + "---:|" * (len(args.iterations) + 1))
+    worst = {n: (0.0, "") for n in args.iterations}
     for name in args.scenes:
         scene, depth = load(name)
         ref = reference(name, scene, depth, args.reference_spp, args.cache)
@@ -48,9 +57,9 @@ def main() -> None:
             ratios = {n: [] for n in args.iterations}
             used = []
             for seed in range(args.seeds):
-                b = fuse_input(scene, spp, seed + 1, depth)
+                b = fill_untraced(fuse_input(scene, spp, seed + 1, depth), 0.0, 0.0)
                 stats = fusion_statistics_of(b, denoise)
-                counts = b.metadata["gradient_half_spp"]
+                counts = gradient_half_count(b)
                 scales = tuple(b.spp / n if n > 0 else math.inf for n in counts)
                 halves = ((b.dx_a, b.dy_a), (b.dx_b, b.dy_b))
                 base = relmse(stats.denoised, ref)
@@ -59,10 +68,13 @@ def main() -> None:
                         stats, b.dx, b.dy, halves, (b.primal_a, b.primal_b), scales, iterations=n
                     )
                     ratios[n].append(relmse(image, ref) / base)
+                    if ratios[n][-1] > worst[n][0]:
+                        worst[n] = (ratios[n][-1], f"{name} {spp} spp seed {seed + 1}")
                     if n == max(args.iterations):
                         used.append(info.cg_iterations)
             cells = " | ".join(f"{geomean(ratios[n]):.3f}" for n in args.iterations)
             print(f"| {name} | {spp} | {cells} | {used} |", flush=True)
+    print("worst render: " + "; ".join(f"{n} its {r:.3f} ({at})" for n, (r, at) in worst.items()))
 
 
 if __name__ == "__main__":

@@ -9,8 +9,11 @@ of the whole render (weighted CG + trust region), the two half renders' solves a
 choice (the rest of :func:`~gdpt.reconstruct.fuse.fuse_checked`), and the whole ``fuse``
 method. Per size and thread count (``torch.set_num_threads`` and ``drjit.set_thread_count``:
 OIDN runs on Dr.Jit's pool) each stage runs once untimed (weight loading, torch's first-call
-set-up), then ``--repeats`` times; medians are printed, with the ratio to OIDN alone. Rendering
-is not timed here (see ``benchmarks/method_cost.py``). The script prints the load average::
+set-up), then ``--repeats`` times; medians are printed, with the ratio to OIDN alone, in wall
+time and in the process's CPU time (``time.process_time``, all threads: on a machine loaded by
+other jobs the CPU-time ratio is the steadier one; at 1 thread it approximates the idle
+wall-time ratio). Rendering is not timed here (see ``benchmarks/method_cost.py``). The script
+prints the load average::
 
     .venv/bin/python benchmarks/fuse_stages.py [--sizes 128x128 1280x720] [--threads 1 2]
 """
@@ -33,20 +36,22 @@ from gdpt.buffers import gradient_half_count
 from gdpt.scenes import builtin_scene
 
 
-def median_seconds(fn, repeats: int) -> float:
+def median_seconds(fn, repeats: int) -> tuple[float, float]:
+    """Median wall and CPU seconds of ``fn()`` over ``repeats`` runs after an untimed one."""
     fn()
-    times = []
+    wall, cpu = [], []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         fn()
         if torch.cuda.is_available():
             torch.cuda.synchronize()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    return statistics.median(wall), statistics.median(cpu)
 
 
-def stages(b: gdpt.GradientBuffers, repeats: int) -> dict[str, float]:
-    """Median seconds of each stage of ``fuse`` on the render ``b``."""
+def stages(b: gdpt.GradientBuffers, repeats: int) -> dict[str, tuple[float, float]]:
+    """Median wall and CPU seconds of each stage of ``fuse`` on the render ``b``."""
     plain, half_a, half_b = b.replace(dx=None, dy=None), b.half("a"), b.half("b")
     den = plain_denoiser()
     d = gdpt.reconstruct_image(plain, den)
@@ -77,7 +82,7 @@ def stages(b: gdpt.GradientBuffers, repeats: int) -> dict[str, float]:
         ),
         "statistics": median_seconds(statistics_stage, repeats),
         "solve": solve,
-        "half solves + choice": checked - solve,
+        "half solves + choice": (checked[0] - solve[0], checked[1] - solve[1]),
         "fuse (all)": median_seconds(lambda: gdpt.reconstruct_image(b, "fuse"), repeats),
     }
 
@@ -101,12 +106,15 @@ def main() -> None:
             torch.set_num_threads(threads)
             dr.set_thread_count(threads)
             times = stages(b, args.repeats)
-            base = times["oidn alone"]
+            base, base_cpu = times["oidn alone"]
             load = os.getloadavg()[0]
             print(f"\n{width}x{height}, {threads} threads, load average {load:.1f}")
-            print("(seconds, ratio to OIDN alone)")
-            for name, seconds in times.items():
-                print(f"  {name:<22} {seconds:8.3f}  {seconds / base:6.2f}x")
+            print("(wall seconds, ratio to OIDN alone; CPU seconds, ratio to OIDN alone)")
+            for name, (wall, cpu) in times.items():
+                print(
+                    f"  {name:<22} {wall:8.3f}  {wall / base:6.2f}x  {cpu:8.3f}  "
+                    f"{cpu / base_cpu:6.2f}x"
+                )
 
 
 if __name__ == "__main__":

@@ -82,9 +82,10 @@ MAX_WEIGHT_RATIO = 1e3
 #: Conjugate-gradient iterations of a fusion solve (Jacobi-preconditioned, from ``D``). CG
 #: stopped early makes the local part of the correction and leaves the long-range part, where
 #: integrated gradient noise piles up (early stopping as regularisation): 30 iterations, not 100
-#: (which most 128 px solves of cornell-box and veach-mis reached) gave 0.87-0.97x the relMSE
-#: of the fused image on those, and equal on sponza and living-room-2 (docs/gradients.md).
-SOLVE_ITERATIONS = 30
+#: (which most 128 px solves of cornell-box and veach-mis reached), gave 0.87-0.97x the relMSE
+#: on those; 20 gave 0.98-1.02x that of 30 on the 48 renders of the safety table, no render
+#: worse than its ``D`` by more than the bar, at 2/3 of the solves' cost (docs/gradients.md).
+SOLVE_ITERATIONS = 20
 
 #: :func:`fuse_checked`'s held-out choice (:func:`.held_out.choose`): the fusion is kept in the
 #: whole image where the image's held-out sum favours it by :data:`CHECK_IMAGE_MARGIN` standard
@@ -277,7 +278,8 @@ def fuse(
         error: ``(H, W, 1)`` squared-error estimate of ``D`` (e.g. :func:`cross_half_error`).
         trust_ratio: see :func:`fusion_weights` (``0``: return ``D``).
         error_floor: see :func:`fusion_weights`; > 0.
-        max_iter, tol: conjugate-gradient limits (Jacobi preconditioned, warm-started at ``D``).
+        max_iter, tol: exactly ``max_iter`` Jacobi-preconditioned CG iterations from ``D``,
+            none for a channel whose start already has a relative residual <= ``tol``.
 
     Returns:
         ``(image, info)``: the fused ``(H, W, C)`` image (dtype and device of ``denoised``)
@@ -322,6 +324,7 @@ def fuse(
         tol=tol,
         precondition="jacobi",
         return_info=True,
+        fixed_iterations=True,
     )
     bound = CORRECTION_BOUND * torch.sqrt(error.nan_to_num(0.0).clamp_min(error_floor))
     change = image.to(denoised.dtype) - denoised

@@ -10,6 +10,7 @@ constraints are missing). Everything works on the internal ``(B, C, H, W)`` layo
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -59,17 +60,24 @@ class Operator:
         self.w = w
         self.diag = diag_of(prob.alpha**2, w, prob.p[:, :1])
 
-    def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        return apply_stencil(self.diag, self.w.x, self.w.y, x)
+    def __call__(self, x: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+        return apply_stencil(self.diag, self.w.x, self.w.y, x, out=out)
 
 
 def apply_stencil(
-    diag: torch.Tensor, wx: torch.Tensor | None, wy: torch.Tensor | None, x: torch.Tensor
+    diag: torch.Tensor,
+    wx: torch.Tensor | None,
+    wy: torch.Tensor | None,
+    x: torch.Tensor,
+    *,
+    out: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """``diag * x - (off-diagonal couplings wx, wy)``: the product of a 5-point stencil whose
     off-diagonal entries are ``-wx`` (horizontal, ``(B, 1|C, H, W-1)``) and ``-wy`` (vertical,
-    ``(B, 1|C, H-1, W)``), ``None`` meaning all ones; ``x`` is ``(B, C, H, W)``."""
-    out = x * diag
+    ``(B, 1|C, H-1, W)``), ``None`` meaning all ones; ``x`` is ``(B, C, H, W)``. Written into
+    ``out`` (a contiguous tensor of ``x``'s shape and dtype, not ``x``) when given, else into
+    a new tensor."""
+    out = torch.mul(x, diag, out=out)
     if x.shape[-1] > 1:
         if wx is None:
             out[..., :-1].sub_(x[..., 1:])
@@ -121,6 +129,22 @@ def _safe_div(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
     return torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(num))
 
 
+def _writing(
+    fn: Callable[..., torch.Tensor] | None,
+) -> Callable[[torch.Tensor, torch.Tensor | None], torch.Tensor] | None:
+    """``fn`` as ``f(v, buffer)``: ``fn(v, out=buffer)`` when ``fn`` takes an ``out`` keyword
+    (``buffer`` ``None``: a new tensor), else ``fn(v)``."""
+    if fn is None:
+        return None
+    try:
+        writes = "out" in inspect.signature(fn).parameters
+    except (TypeError, ValueError):  # a callable without an inspectable signature
+        writes = False
+    if writes:
+        return lambda v, buffer: fn(v, out=buffer)
+    return lambda v, buffer: fn(v)
+
+
 def pcg(
     apply_a: Callable[[torch.Tensor], torch.Tensor],
     b: torch.Tensor,
@@ -136,13 +160,17 @@ def pcg(
     A system is done once ``||r|| <= tol ||b||`` or once ``||r||`` dropped below ``rtol0``
     times its initial value. Done systems are frozen (step 0), so every system gets the
     iterations it needs independently of the others. Stops when all are done or after
-    ``max_iter`` iterations.
+    ``max_iter`` iterations. ``apply_a`` and ``precond`` that take an ``out`` keyword
+    (:class:`Operator`, the Jacobi preconditioner of :func:`.precond.make_precond`) write into
+    buffers allocated once per solve: a fresh image-sized tensor per iteration costs as much as
+    a pass over it (page faults on the CPU).
 
     Returns:
         ``(x, iterations, max relative residual ||r|| / ||b||)``.
     """
+    apply_a, precond = _writing(apply_a), _writing(precond)
     x = x.clone()
-    r = b - apply_a(x)
+    r = b - apply_a(x, None)
     tiny = torch.finfo(b.dtype).tiny
     bnorm = _dot(b, b).sqrt().clamp_min(tiny)
     rr = _dot(r, r)
@@ -152,15 +180,16 @@ def pcg(
 
     if max_iter <= 0 or (tol > 0 and bool((rr <= (tol * bnorm) ** 2).all())):
         return x, 0, relres(rr)
-    z = precond(r) if precond is not None else r
+    z = precond(r, None) if precond is not None else r
     p = z.clone()
+    ap = torch.empty_like(p)
     rz = _dot(r, z)
     thresh = torch.maximum((tol * bnorm) ** 2, rtol0**2 * rr)  # on ||r||^2, per system
     check = tol > 0 or rtol0 > 0  # a host sync per iteration only when stopping early
     active = torch.ones_like(rz, dtype=torch.bool)
     it = 0
     while True:
-        ap = apply_a(p)
+        ap = apply_a(p, ap)
         step = _safe_div(rz, _dot(p, ap))
         if check:
             step = torch.where(active, step, torch.zeros_like(step))
@@ -176,7 +205,7 @@ def pcg(
             break
         # The preconditioner is applied only when another iteration follows.
         if precond is not None:
-            z = precond(r)
+            z = precond(r, z)
             rz_new = _dot(r, z)
         else:
             z = r
@@ -187,6 +216,59 @@ def pcg(
     if not check:
         rr = _dot(r, r)
     return x, it, relres(rr)
+
+
+def jacobi_scaled_cg(
+    op: Operator, b: torch.Tensor, x: torch.Tensor, *, iterations: int, tol: float
+) -> tuple[torch.Tensor, int, float]:
+    """Exactly ``iterations`` iterations of Jacobi-preconditioned CG on ``op``'s system
+    ``A x = b``, every ``(B, C)`` system on its own, warm-started from ``x`` (not modified);
+    a system whose start already has ``||r|| <= tol ||b||`` is left at its start (iterating
+    on a residual of rounding errors would only move it), no test after that. Run as plain CG
+    on the symmetrically scaled system
+    ``(S A S) (S^-1 x) = S b``, ``S = diag(A)^-1/2``, whose diagonal is one: in exact
+    arithmetic the iterates of :func:`pcg` with the Jacobi preconditioner and ``tol = 0``
+    (e.g. Saad 2003, *Iterative Methods for Sparse Linear Systems*, sec. 9.2), without the
+    preconditioner's pass and one of the three dot products of each iteration.
+
+    Returns:
+        ``(x, iterations, max relative residual ||b - A x|| / ||b||)`` (of the recursion, as
+        :func:`pcg`).
+    """
+    tiny = torch.finfo(b.dtype).tiny
+    s = op.diag.clamp_min(tiny).rsqrt()
+    couplings = []
+    for w, here, there in (
+        (op.w.x, s[..., :-1], s[..., 1:]),
+        (op.w.y, s[..., :-1, :], s[..., 1:, :]),
+    ):
+        couplings.append(here * there if w is None else w * here * there)
+    one = torch.ones((), dtype=b.dtype, device=b.device)
+
+    def apply_scaled(v: torch.Tensor, out: torch.Tensor | None) -> torch.Tensor:
+        return apply_stencil(one, couplings[0], couplings[1], v, out=out)
+
+    y = x / s
+    r = b * s
+    r -= apply_scaled(y, None)
+    bnorm = _dot(b, b).sqrt().clamp_min(tiny)
+    active = _dot(r / s, r / s) > (tol * bnorm) ** 2  # the unscaled residual at the start
+    rr = _dot(r, r)
+    p = r.clone()
+    ap = torch.empty_like(p)
+    for it in range(iterations):
+        ap = apply_scaled(p, ap)
+        step = torch.where(active, _safe_div(rr, _dot(p, ap)), 0.0)
+        y.addcmul_(step, p)
+        r.addcmul_(step, ap, value=-1.0)
+        if it + 1 == iterations:
+            break
+        rr_new = _dot(r, r)
+        p = torch.addcmul(r, p, _safe_div(rr_new, rr), out=p)  # p = r + beta * p, in place
+        rr = rr_new
+    r.div_(s)  # the residual of the unscaled system
+    relres = _dot(r, r).sqrt() / bnorm
+    return y.mul_(s), max(iterations, 0), float(relres.max())
 
 
 def relative_residual_of(prob: Problem, x: torch.Tensor, w: Weights) -> float:

@@ -39,7 +39,7 @@ def make_precond(
         # Positive: the diagonal has alpha^2 * Wp > 0 (missing primals keep a tiny weight) unless
         # a caller passes zero primal weights; guard so the preconditioner stays finite.
         inv = op.diag.clamp_min(torch.finfo(prob.p.dtype).tiny).reciprocal()
-        return lambda r: r * inv
+        return lambda r, out=None: torch.mul(r, inv, out=out)
     if kind == "dct":
         a2 = prob.alpha**2
         cp = w.p.mean(dim=(2, 3), keepdim=True) * a2 if w.p is not None else a2

@@ -130,7 +130,7 @@ def to_bchw(t: torch.Tensor, dtype: torch.dtype, squeeze_channel: bool) -> torch
     if squeeze_channel:
         t = t.unsqueeze(-1)
     h, w, c = t.shape[-3:]
-    return t.reshape(-1, h, w, c).permute(0, 3, 1, 2).to(dtype).contiguous()
+    return t.reshape(math.prod(t.shape[:-3]), h, w, c).permute(0, 3, 1, 2).to(dtype).contiguous()
 
 
 def from_bchw(x: torch.Tensor, out_shape: torch.Size, squeeze_channel: bool) -> torch.Tensor:
@@ -156,6 +156,12 @@ def _pow2_scale(m: float) -> float:
     return math.ldexp(1.0, math.frexp(m)[1] - 1)
 
 
+def _abs_max(t: torch.Tensor) -> float:
+    """``max |t|`` in one pass, without an ``|t|`` tensor."""
+    low, high = torch.aminmax(t)
+    return max(-float(low), float(high))
+
+
 def prepare(
     primal: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor, alpha: float, *, warn: bool = True
 ) -> Problem:
@@ -165,8 +171,9 @@ def prepare(
     dtype = _compute_dtype(primal, dx, dy)
     squeeze = primal.dim() == 2
     p = to_bchw(primal, dtype, squeeze)
-    gx = to_bchw(dx, dtype, squeeze)[..., :-1]
-    gy = to_bchw(dy, dtype, squeeze)[..., :-1, :]
+    # the last column of dx and row of dy are not constraints: left out before the copy
+    gx = to_bchw(dx[..., :-1] if squeeze else dx[..., :-1, :], dtype, squeeze)
+    gy = to_bchw(dy[..., :-1, :] if squeeze else dy[..., :-1, :, :], dtype, squeeze)
 
     # one pass per buffer where all is finite (a NaN or inf makes the sum non-finite)
     finite = all(bool(torch.isfinite(t.sum())) for t in (p, gx, gy))
@@ -189,17 +196,14 @@ def prepare(
         gx = torch.where(fx, gx, zero)
         gy = torch.where(fy, gy, zero)
         mp, mx, my = (m.to(dtype) for m in (fp, fx, fy))
-    else:
-        gx = gx.contiguous()
-        gy = gy.contiguous()
 
     # Rescale (by a power of two: exact) only when squares/dot products could overflow or
     # underflow; then 1 <= max|b| < 2. L1 regularisers are rescaled along, so results do not
     # change, but in float32 data more than ~1e38 below the maximum then become subnormal.
     amax = max(
-        alpha * float(p.abs().max()),
-        float(gx.abs().max()) if gx.numel() else 0.0,
-        float(gy.abs().max()) if gy.numel() else 0.0,
+        alpha * _abs_max(p),
+        _abs_max(gx) if gx.numel() else 0.0,
+        _abs_max(gy) if gy.numel() else 0.0,
     )
     lim = _SAFE_EXP[dtype]
     scale = _pow2_scale(amax) if not (2.0**-lim <= amax <= 2.0**lim) else 1.0
