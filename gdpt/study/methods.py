@@ -146,10 +146,14 @@ def _timed_run(
     spp: int,
     seed: int,
     reconstruct: Callable[[GradientBuffers], torch.Tensor] | None,
+    render: Callable[..., GradientBuffers] | None = None,
     **props: Any,
 ) -> MethodResult:
-    """Render with ``gdpt`` (``props``), reconstruct, and time both parts."""
-    from gdpt.rendering import render
+    """Render with ``render`` (default :func:`gdpt.render`; called as ``render(scene, spp=,
+    seed=, max_depth=, **props)``), reconstruct, and time both parts; ``route`` holds the
+    buffers' ``metadata["pilot_mask"]`` where the render set one."""
+    if render is None:
+        from gdpt.rendering import render
 
     _drain_compile_seconds()
     start = time.perf_counter()
@@ -166,6 +170,11 @@ def _timed_run(
         render_seconds=render_seconds,
         reconstruct_seconds=end - middle,
         compile_seconds=compile_seconds,
+        **(
+            {"route": {"pilot_mask": buffers.metadata["pilot_mask"]}}
+            if "pilot_mask" in buffers.metadata
+            else {}
+        ),
     )
 
 
@@ -305,24 +314,12 @@ def masked_fuse(design: str) -> RunFunction:
 
         if reason := DENOISERS["fuse"].check():
             raise MethodUnavailable(reason)
-        _drain_compile_seconds()
-        start = time.perf_counter()
-        buffers = render_masked(
-            scene.scene, spp=spp, seed=seed, design=design, max_depth=scene.max_depth
-        )
-        middle = time.perf_counter()
-        compile_seconds = _drain_compile_seconds()
-        image = reconstruct_image(buffers, method="fuse")
-        image = image.detach().to("cpu", torch.float32).contiguous()
-        end = time.perf_counter()
-        render_seconds = max(0.0, middle - start - compile_seconds)
-        return MethodResult(
-            image=image,
-            seconds=render_seconds + (end - middle),
-            render_seconds=render_seconds,
-            reconstruct_seconds=end - middle,
-            compile_seconds=compile_seconds,
-            route={"pilot_mask": buffers.metadata["pilot_mask"]},
+        return _timed_run(
+            scene,
+            spp,
+            seed,
+            partial(reconstruct_image, method="fuse"),
+            render=partial(render_masked, design=design),
         )
 
     run.__name__ = run.__qualname__ = f"masked_fuse_{design}"
