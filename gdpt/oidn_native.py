@@ -39,7 +39,6 @@ __all__ = ["OIDN_WEIGHTS", "check", "check_weights", "denoise", "network_weights
 #: quality ``high`` (there is no large variant of it); user weights must have its tensors.
 OIDN_WEIGHTS = "rt_hdr_alb_nrm"
 
-_INPUTS = ("color", "albedo", "normal")
 _lock = threading.Lock()
 _devices: dict[tuple[str, int], Any] = {}
 _filters: dict[tuple, Any] = {}
@@ -193,8 +192,14 @@ def denoise(
             its shape), or ``weights`` whose tensors are not OIDN's network (named).
         RuntimeError: ``mitsuba-oidn`` is not installed.
     """
-    import torch
+    return _execute(_checked_inputs(color, albedo, normal, output), weights, input_scale, output)
 
+
+def _checked_inputs(
+    color: torch.Tensor, albedo: torch.Tensor, normal: torch.Tensor, output: torch.Tensor | None
+) -> dict[str, torch.Tensor]:
+    """:func:`denoise`'s images, validated (a named ``ValueError``), non-finite values replaced
+    by 0 (counted in a warning); one pass over each image."""
     if reason := check():
         raise RuntimeError(reason)
     images = {"color": color, "albedo": albedo, "normal": normal}
@@ -204,8 +209,21 @@ def denoise(
         warnings.warn(
             f"oidn: {nonfinite} non-finite input values were replaced by 0",
             RuntimeWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
+    return images
+
+
+def _execute(
+    images: dict[str, torch.Tensor],
+    weights: bytes | None,
+    input_scale: float | None,
+    output: torch.Tensor | None,
+) -> torch.Tensor:
+    """OIDN's filter on images :func:`_checked_inputs` returned (see :func:`denoise`)."""
+    import torch
+
+    color = images["color"]
     height, width, _ = color.shape
     if output is None:
         output = torch.empty((height, width, 3), dtype=torch.float32, device=color.device)
@@ -279,6 +297,5 @@ def reconstruct(reconstructor: Any, buffers: Any) -> torch.Tensor | None:
     blob = network_weights(reconstructor.net)
     if blob is None:
         return None
-    finite, _ = _finite(dict(zip(_INPUTS, images, strict=True)))
-    scale = float(autoexposure(finite["color"]))
-    return denoise(*images, weights=blob, input_scale=scale)
+    finite = _checked_inputs(*images, None)
+    return _execute(finite, blob, float(autoexposure(finite["color"])), None)

@@ -65,7 +65,7 @@ class Operator:
 
 
 def apply_stencil(
-    diag: torch.Tensor,
+    diag: torch.Tensor | None,
     wx: torch.Tensor | None,
     wy: torch.Tensor | None,
     x: torch.Tensor,
@@ -74,17 +74,19 @@ def apply_stencil(
 ) -> torch.Tensor:
     """``diag * x - (off-diagonal couplings wx, wy)``: the product of a 5-point stencil whose
     off-diagonal entries are ``-wx`` (horizontal, ``(B, 1|C, H, W-1)``) and ``-wy`` (vertical,
-    ``(B, 1|C, H-1, W)``), ``None`` meaning all ones; ``x`` is ``(B, C, H, W)``. Written into
-    ``out`` (a contiguous tensor of ``x``'s shape and dtype, not ``x``) when given, else into
-    a new tensor."""
-    out = torch.mul(x, diag, out=out)
-    if x.shape[-1] > 1:
-        if wx is None:
-            out[..., :-1].sub_(x[..., 1:])
-            out[..., 1:].sub_(x[..., :-1])
-        else:
-            out[..., :-1].addcmul_(wx, x[..., 1:], value=-1.0)
-            out[..., 1:].addcmul_(wx, x[..., :-1], value=-1.0)
+    ``(B, 1|C, H-1, W)``), ``None`` meaning all ones (``diag`` ``None``: a unit diagonal, whose
+    copy of ``x`` is folded into the first coupling's pass); ``x`` is ``(B, C, H, W)``.
+    Written into ``out`` (a contiguous tensor of ``x``'s shape and dtype, not ``x``) when
+    given, else into a new tensor."""
+    if diag is None and wx is not None and x.shape[-1] > 1:
+        out = torch.empty_like(x) if out is None else out
+        torch.addcmul(x[..., :-1], wx, x[..., 1:], value=-1.0, out=out[..., :-1])
+        out[..., -1:] = x[..., -1:]
+        out[..., 1:].addcmul_(wx, x[..., :-1], value=-1.0)
+    else:
+        out = torch.mul(x, 1.0 if diag is None else diag, out=out)
+        if x.shape[-1] > 1:
+            _couple_(out, wx, x)
     if x.shape[-2] > 1:
         if wy is None:
             out[..., :-1, :].sub_(x[..., 1:, :])
@@ -93,6 +95,16 @@ def apply_stencil(
             out[..., :-1, :].addcmul_(wy, x[..., 1:, :], value=-1.0)
             out[..., 1:, :].addcmul_(wy, x[..., :-1, :], value=-1.0)
     return out
+
+
+def _couple_(out: torch.Tensor, wx: torch.Tensor | None, x: torch.Tensor) -> None:
+    """``out -= `` the horizontal couplings ``wx`` (``None``: ones) of ``x``, in place."""
+    if wx is None:
+        out[..., :-1].sub_(x[..., 1:])
+        out[..., 1:].sub_(x[..., :-1])
+    else:
+        out[..., :-1].addcmul_(wx, x[..., 1:], value=-1.0)
+        out[..., 1:].addcmul_(wx, x[..., :-1], value=-1.0)
 
 
 def rhs(prob: Problem, w: Weights) -> torch.Tensor:
@@ -243,10 +255,9 @@ def jacobi_scaled_cg(
         (op.w.y, s[..., :-1, :], s[..., 1:, :]),
     ):
         couplings.append(here * there if w is None else w * here * there)
-    one = torch.ones((), dtype=b.dtype, device=b.device)
 
     def apply_scaled(v: torch.Tensor, out: torch.Tensor | None) -> torch.Tensor:
-        return apply_stencil(one, couplings[0], couplings[1], v, out=out)
+        return apply_stencil(None, couplings[0], couplings[1], v, out=out)
 
     y = x / s
     r = b * s

@@ -108,3 +108,32 @@ def test_fixed_iterations_needs_the_jacobi_preconditioner():
     )
     assert info.cg_iterations == 3
     torch.testing.assert_close(fixed, poisson.solve_weighted_cg(p, p, p, max_iter=3, tol=0.0))
+
+
+@pytest.mark.parametrize("shape", [(2, 3, 9, 11), (1, 3, 1, 7), (1, 2, 5, 1)])
+def test_a_unit_diagonal_stencil_is_the_product_with_diagonal_one(shape):
+    """``apply_stencil(None, ...)`` (the copy of ``x`` folded into the first coupling) equals
+    the product with an explicit diagonal of ones, into a buffer or a new tensor, and a
+    matrix product with the stencil's dense matrix; one-row and one-column images included."""
+    gen = torch.Generator().manual_seed(3)
+    b, c, h, w = shape
+    wx = torch.rand(b, 1, h, w - 1, generator=gen, dtype=torch.float64)
+    wy = torch.rand(b, 1, h - 1, w, generator=gen, dtype=torch.float64)
+    x = torch.randn(shape, generator=gen, dtype=torch.float64)
+    ones = torch.ones(b, 1, h, w, dtype=torch.float64)
+    expected = cg.apply_stencil(ones, wx, wy, x)
+    buffer = torch.full_like(x, float("nan"))
+    assert torch.equal(cg.apply_stencil(None, wx, wy, x, out=buffer), expected)
+    assert torch.equal(buffer, expected)
+    assert torch.equal(cg.apply_stencil(None, wx, wy, x), expected)
+    dense = torch.zeros(b, h * w, h * w, dtype=torch.float64)
+    index = torch.arange(h * w).view(h, w)
+    dense[:, index.flatten(), index.flatten()] = 1.0
+    for weights, here, there in (
+        (wx, index[:, :-1], index[:, 1:]),
+        (wy, index[:-1, :], index[1:, :]),
+    ):
+        for i, j in ((here, there), (there, here)):
+            dense[:, i.flatten(), j.flatten()] = -weights[:, 0].flatten(1)
+    by_matrix = torch.einsum("bij,bcj->bci", dense, x.flatten(2)).view(shape)
+    assert torch.allclose(expected, by_matrix, rtol=1e-12, atol=1e-12)
