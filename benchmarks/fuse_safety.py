@@ -32,8 +32,8 @@ import gdpt
 from gdpt.adapters import fusion_statistics_of
 from gdpt.methods import METHODS, primal_only
 from gdpt.metrics import relmse
+from gdpt.scenes import RandomSceneConfig, random_scene
 from gdpt.scenes.loading import DEFAULT_MAX_DEPTH, read_scene
-from gdpt.scenes.procedural import RandomSceneConfig, random_scene
 
 SHARED = Path(__file__).resolve().parents[1] / ".." / "shared" / "scenes"
 SHARED_SCENES = (

@@ -8,8 +8,8 @@ is ``path + share * (gdpt - path)`` with ``share`` the masked pixels' share; the
 median over rounds of each round's ``time / model`` (1 = the offset work shrinks in proportion
 to the mask). Every configuration has its own integrator and renders twice untimed first (JIT
 compilation and the frozen-pass recordings of both wavefronts excluded); then ``--repeats``
-rounds with new seeds time every configuration once, back to back, so that a drifting machine
-speed affects all of a round alike. Usage::
+interleaved rounds with new seeds (:func:`render_timing.interleaved_rounds`), so that a drifting
+machine speed affects all of a round alike. Usage::
 
     .venv/bin/python benchmarks/gradient_mask_cost.py [--scenes cornell-box sponza staircase]
         [--resolutions 128 512] [--spp 32 8] [--max-depth 6] [--repeats 3] [--json PATH]
@@ -21,10 +21,10 @@ import argparse
 import json
 import platform
 import statistics
-import time
 from pathlib import Path
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
+from render_timing import interleaved_rounds, load_shared
+
 SCENES = ["cornell-box", "sponza", "staircase"]
 SHARES = (0.25, 0.5, 0.75)
 TILE = 16
@@ -49,17 +49,6 @@ def _masks(width: int, height: int, seed: int = 0) -> dict[str, tuple[object, fl
     return {label: (m, float(m.mean())) for label, m in out.items()}
 
 
-def _time_render(scene, integrator, spp: int, seed: int) -> float:
-    import drjit as dr
-    import mitsuba as mi
-
-    start = time.perf_counter()
-    image = mi.render(scene, integrator=integrator, spp=spp, seed=seed)
-    dr.eval(image)
-    dr.sync_thread()
-    return time.perf_counter() - start
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scenes", nargs="+", default=SCENES)
@@ -75,14 +64,12 @@ def main() -> None:
     import mitsuba as mi
 
     import gdpt
-    from gdpt.scenes.loading import load_scene
 
     variant = gdpt.set_variant()
     rows = []
     for name in args.scenes:
         for resolution, spp in zip(args.resolutions, args.spp, strict=True):
-            scene = load_scene(SHARED / name / "scene.xml", box_filter=True, long_side=resolution)
-            width, height = (int(v) for v in scene.sensors()[0].film().crop_size())
+            scene, (width, height) = load_shared(name, resolution)
             props = {"type": "gdpt", "max_depth": args.max_depth}
             configs = {
                 "path": (mi.load_dict({**props, "gradients": False}), None),
@@ -92,13 +79,8 @@ def main() -> None:
                 integrator = mi.load_dict(props)
                 integrator.gradient_mask = mask
                 configs[label] = (integrator, share)
-            for integrator, _ in configs.values():  # compile and record, untimed
-                for seed in (0, 1):
-                    _time_render(scene, integrator, spp, seed)
-            runs = {label: [] for label in configs}
-            for r in range(args.repeats):
-                for label, (integrator, _) in configs.items():
-                    runs[label].append(_time_render(scene, integrator, spp, seed=2 + r))
+            integrators = {label: integrator for label, (integrator, _) in configs.items()}
+            _, runs = interleaved_rounds(scene, integrators, spp, args.repeats)
             result = {}
             for label, (_, share) in configs.items():
                 share = 0.0 if share is None else share

@@ -6,12 +6,11 @@ frozen passes), ``gdpt_rr`` and the primal-only mode (``gdpt`` with ``gradients=
 divided by ``path`` at the same max depth, resolution and spp, measured in one run. Every
 integrator renders twice first: the first render compiles the kernels (reported separately as
 ``compile [s]``: first render minus the median timed render) and records the frozen pass
-(dr.freeze may record once more on the second call); then ``--repeats`` rounds with new seeds
-reuse the cached kernels and recordings (``recordings``: how many the frozen pass holds after
-all rounds; it does not grow when the timed renders replay). A round times every integrator
-once, back to back, and the ratio to ``path`` is the median over rounds of the per-round ratio
-(IQR reported): on a shared virtual machine the speed drifts by 10-20% over tens of seconds,
-which would bias ratios of integrators timed one after the other. Usage::
+(dr.freeze may record once more on the second call); then ``--repeats`` interleaved rounds with
+new seeds (:func:`render_timing.interleaved_rounds`) reuse the cached kernels and recordings
+(``recordings``: how many the frozen pass holds after all rounds; it does not grow when the
+timed renders replay). The ratio to ``path`` is the median over rounds of the per-round ratio
+(IQR reported). Usage::
 
     .venv/bin/python benchmarks/render_cost.py [--scenes cornell-box veach-mis ...]
         [--resolutions 128 256] [--spp 32] [--max-depth 6] [--repeats 3] [--json PATH]
@@ -22,12 +21,12 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import time
 from pathlib import Path
+
+from render_timing import interleaved_rounds, load_shared
 
 from gdpt.machine import cpu_name
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
 SCENES = [
     "cornell-box",
     "veach-mis",
@@ -47,17 +46,6 @@ INTEGRATORS = {
 }
 
 
-def _time_render(scene, integrator, spp: int, seed: int) -> float:
-    import drjit as dr
-    import mitsuba as mi
-
-    start = time.perf_counter()
-    image = mi.render(scene, integrator=integrator, spp=spp, seed=seed)
-    dr.eval(image)
-    dr.sync_thread()
-    return time.perf_counter() - start
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scenes", nargs="+", default=SCENES)
@@ -71,27 +59,16 @@ def main() -> None:
     import mitsuba as mi
 
     import gdpt
-    from gdpt.scenes.loading import load_scene
 
     variant = gdpt.set_variant()
     rows = []
     for name, resolution in ((n, r) for n in args.scenes for r in args.resolutions):
-        xml = SHARED / name / "scene.xml"
-        scene = load_scene(xml, box_filter=True, long_side=resolution)
-        width, height = (int(v) for v in scene.sensors()[0].film().crop_size())
+        scene, (width, height) = load_shared(name, resolution)
         integrators = {
             label: mi.load_dict({**props, "max_depth": args.max_depth})
             for label, props in INTEGRATORS.items()
         }
-        first = {
-            label: _time_render(scene, i, args.spp, seed=0) for label, i in integrators.items()
-        }
-        for i in integrators.values():
-            _time_render(scene, i, args.spp, seed=0)
-        runs = {label: [] for label in integrators}
-        for r in range(args.repeats):
-            for label, integrator in integrators.items():
-                runs[label].append(_time_render(scene, integrator, args.spp, seed=1 + r))
+        first, runs = interleaved_rounds(scene, integrators, args.spp, args.repeats)
         times = {}
         for label, t in runs.items():
             median = statistics.median(t)

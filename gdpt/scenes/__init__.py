@@ -1,7 +1,8 @@
 """Scenes: the one loader of every scene source (:mod:`.loading`: XML files, dicts,
 ``builtin:NAME``, ``random:SEED[:VIEW]``), and scenes built in code: built-in test scenes
 (:mod:`.builtin`) and the procedural training-scene generator (:mod:`.procedural`, with its
-rooms and objects in :mod:`.procedural_layout` and materials in :mod:`.procedural_materials`),
+knobs in :mod:`.procedural_config`, rooms and objects in :mod:`.procedural_layout` and materials
+in :mod:`.procedural_materials`),
 from the blocks in :mod:`.elements`.
 
 Importing :mod:`gdpt.scenes` or :mod:`gdpt.scenes.loading` imports no Mitsuba (the loader sets
@@ -36,7 +37,7 @@ from typing import TYPE_CHECKING, Any
 _LAZY: dict[str, str] = {
     "TEST_RESOLUTION": "gdpt.scenes.elements",
     "SceneDict": "gdpt.scenes.elements",
-    "RandomSceneConfig": "gdpt.scenes.procedural",
+    "RandomSceneConfig": "gdpt.scenes.procedural_config",
     "builtin_names": "gdpt.scenes.builtin",
     "builtin_scene": "gdpt.scenes.builtin",
     "random_scene": "gdpt.scenes.procedural",
@@ -56,7 +57,8 @@ __all__ = [
 if TYPE_CHECKING:
     from gdpt.scenes.builtin import builtin_names, builtin_scene
     from gdpt.scenes.elements import TEST_RESOLUTION, SceneDict
-    from gdpt.scenes.procedural import RandomSceneConfig, random_scene, random_views
+    from gdpt.scenes.procedural import random_scene, random_views
+    from gdpt.scenes.procedural_config import RandomSceneConfig
 
 
 def __getattr__(name: str) -> Any:

@@ -5,20 +5,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from gdpt.scenes.elements import SceneDict, Vec3, cube, cylinder, disk, rectangle, sphere
+from gdpt.scenes.procedural_config import RandomSceneConfig
 from gdpt.scenes.procedural_materials import (
     SOLID_MATERIALS,
     SURFACE_MATERIALS,
     random_material,
     wall_material,
 )
-
-if TYPE_CHECKING:
-    from gdpt.scenes.procedural import RandomSceneConfig
 
 
 @dataclass

@@ -57,7 +57,6 @@ from typing import Any
 import torch
 
 from gdpt.interrupt import caused_by_interrupt
-from gdpt.statistics import mean_interval
 from gdpt.study.calibration import (
     TimeModel,
     calibrate,
@@ -75,7 +74,6 @@ from gdpt.study.results import (
     budget_key,
     cell_seed,
     cells_done,
-    finite,
     load_results,
     machine_info,
     replicate_seed,
@@ -83,6 +81,7 @@ from gdpt.study.results import (
     write_json,
 )
 from gdpt.study.scenes import EvalScene, SceneSpec, load_eval_scene, resolve_scenes
+from gdpt.study.scoring import interval_too_wide, replicate_record, score, summarise
 
 
 class StudyFailure(RuntimeError):
@@ -453,50 +452,11 @@ def _run_replicates(
         record.update(charged_seconds=charged, relative_error=(charged - budget) / budget)
         record["within_tolerance"] = abs(record["relative_error"]) <= cfg.tolerance
     replicates = [
-        {
-            "seed": seed,
-            "spp": spp,
-            "seconds": run.seconds,
-            "render_seconds": run.render_seconds,
-            "reconstruct_seconds": run.reconstruct_seconds,
-            **({"route": run.route} if run.route is not None else {}),
-            "result": run,
-        }
+        {**replicate_record(run, seed, spp), "result": run}
         for run, seed in zip(runs, seeds, strict=True)
     ]
     record["seed"] = seeds[0]
     return runs[0], record, replicates
-
-
-def _score(
-    replicate: dict[str, Any], image: torch.Tensor, reference: torch.Tensor, cfg: EvaluateConfig
-) -> dict[str, str]:
-    """Set ``replicate["metrics"]`` (``cfg.metrics``) and ``replicate["companions"]`` (the
-    robust companion of each headline metric that has one, :data:`gdpt.metrics.COMPANIONS`)
-    of ``image`` against ``reference``; returns the metrics skipped, with the reason."""
-    from gdpt.metrics import COMPANIONS, compute_metrics
-
-    values = compute_metrics(image, reference, cfg.metrics, options=cfg.metric_options)
-    replicate["metrics"] = {k: finite(v) for k, v in values.values.items()}
-    replicate["companions"] = {
-        name: finite(function(image, reference))
-        for metric, (name, function) in COMPANIONS.items()
-        if metric in values.values
-    }
-    return values.skipped
-
-
-def _interval_too_wide(replicates: list[dict[str, Any]], cfg: EvaluateConfig) -> bool:
-    """Whether ``cfg.until_interval`` asks for another replicate: the 95% interval of the
-    first metric over ``replicates`` reaches further than that share of its mean (a single
-    replicate has no interval: too wide)."""
-    if cfg.until_interval is None:
-        return False
-    values = [r["metrics"].get(cfg.metrics[0]) for r in replicates]
-    if None in values:
-        return False
-    mean, low, high = mean_interval(values)
-    return len(values) < 2 or max(high - mean, mean - low) > cfg.until_interval * abs(mean)
 
 
 def _evaluate_method(
@@ -566,39 +526,15 @@ def _evaluate_method(
             continue
         info.get("errors", {}).pop(key, None)
         for replicate in replicates:
-            skipped = _score(replicate, replicate.pop("result").image, reference, cfg)
-        while _interval_too_wide(replicates, cfg) and len(replicates) < cfg.max_seeds:
+            skipped = score(replicate, replicate.pop("result").image, reference, cfg)
+        while interval_too_wide(replicates, cfg) and len(replicates) < cfg.max_seeds:
             seed = replicate_seed(cfg.seed, scene.name, key, len(replicates))
             run = timed_run(method, scene, record["spp"], seed)
-            replicate = {
-                "seed": seed,
-                "spp": record["spp"],
-                "seconds": run.seconds,
-                "render_seconds": run.render_seconds,
-                "reconstruct_seconds": run.reconstruct_seconds,
-                **({"route": run.route} if run.route is not None else {}),
-                "added": "until_interval",
-            }
-            _score(replicate, run.image, reference, cfg)
+            replicate = {**replicate_record(run, seed, record["spp"]), "added": "until_interval"}
+            score(replicate, run.image, reference, cfg)
             replicates.append(replicate)
-        summary = {
-            k: mean_interval([r["metrics"][k] for r in replicates])
-            for k in replicates[0]["metrics"]
-            if all(r["metrics"][k] is not None for r in replicates)
-        }
-        companions = {
-            k: mean_interval([r["companions"][k] for r in replicates])
-            for k in replicates[0].get("companions", {})
-            if all(r["companions"][k] is not None for r in replicates)
-        }
+        record.update(budget=budget, **summarise(replicates))
         record.update(
-            budget=budget,
-            metrics={k: finite(v[0]) for k, v in summary.items()},
-            interval={k: [finite(v[1]), finite(v[2])] for k, v in summary.items()},
-            companions={
-                k: {"mean": finite(v[0]), "interval": [finite(v[1]), finite(v[2])]}
-                for k, v in companions.items()
-            },
             replicates=replicates,
             skipped_metrics=skipped,
             nonfinite_pixels=int((~torch.isfinite(result.image)).any(-1).sum()),
