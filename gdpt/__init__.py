@@ -36,6 +36,7 @@ from gdpt.version import __version__
 #: Public name -> module that defines it (imported on first attribute access).
 _LAZY: dict[str, str] = {
     "GradientBuffers": "gdpt.buffers",
+    "advise": "gdpt.advice",
     "buffers_from_aovs": "gdpt.aovs",
     "load_buffers": "gdpt.io.exr",
     "save_buffers": "gdpt.io.exr",
@@ -50,6 +51,7 @@ _LAZY: dict[str, str] = {
 __all__ = [
     "GradientBuffers",
     "__version__",
+    "advise",
     "buffers_from_aovs",
     "load_buffers",
     "load_scene",
@@ -62,6 +64,7 @@ __all__ = [
 ]
 
 if TYPE_CHECKING:
+    from gdpt.advice import advise
     from gdpt.aovs import buffers_from_aovs
     from gdpt.backend import set_variant
     from gdpt.buffers import GradientBuffers

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import torch
 from torch.nn import functional as F
 
-__all__ = ["BLOCK", "EPS", "HeldOutChoice", "apply", "choose", "held_out_terms"]
+__all__ = ["BLOCK", "EPS", "HeldOutChoice", "apply", "choose", "held_out_terms", "region_sums"]
 
 #: Side of the blocks whose sums give a region's standard error, in pixels.
 BLOCK = 8
@@ -104,7 +104,7 @@ def held_out_terms(
     return torch.where(finite, terms, 0.0), int((~finite).sum())
 
 
-def _region_sums(terms: torch.Tensor, size: int) -> torch.Tensor:
+def region_sums(terms: torch.Tensor, size: int) -> torch.Tensor:
     """Sums of ``terms`` ``(H, W, 1)`` over ``size`` px squares (the last ones clipped):
     ``(ceil(H / size), ceil(W / size))``."""
     h, w = terms.shape[:2]
@@ -154,7 +154,7 @@ def choose(
     if block < 1 or tile < 0 or tile % block:
         raise ValueError(f"tile must be 0 or a multiple of block {block}, got {tile}")
     h, w = terms.shape[:2]
-    blocks = _region_sums(terms, block)  # (nby, nbx)
+    blocks = region_sums(terms, block)  # (nby, nbx)
     total, error = _sum_and_error(blocks.reshape(-1))
     statistic = float(total / error) if float(error) > 0 else math.nan
     if tile == 0:

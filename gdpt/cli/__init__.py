@@ -1,15 +1,15 @@
 """Command-line interface: ``gdpt <command> ...`` (also ``python -m gdpt``).
 
 The commands come in groups, one module each: :mod:`.render` (``info``, ``reconstruct``,
-``render``, ``render-and-denoise``), :mod:`.study` (``demo``, ``evaluate``) and
-:mod:`.training` (``dataset``, ``train``, ``select-refinement``, ``model-report``). Every
-command is a :class:`~gdpt.cli.command.Command`: a name, a one-line help text, a function that
-adds its arguments to an argparse sub-parser and a function that runs it. To add a command,
-write ``_add_<name>_arguments(parser)`` and ``_run_<name>(args) -> int`` in its group and append
-a ``Command`` to the group's ``COMMANDS``. Heavy modules (torch, Mitsuba) are imported inside
-these functions only: a sub-parser adds its arguments when it is used (:class:`_CommandParser`),
-so ``gdpt --help`` and the light commands stay fast. Options of typed configurations
-(``TrainConfig``, ``DatasetConfig``) are generated from their fields
+``render``, ``render-and-denoise``), :mod:`.advice` (``advise``), :mod:`.study` (``demo``,
+``evaluate``) and :mod:`.training` (``dataset``, ``train``, ``select-refinement``,
+``model-report``). Every command is a :class:`~gdpt.cli.command.Command`: a name, a one-line
+help text, a function that adds its arguments to an argparse sub-parser and a function that runs
+it. To add a command, write ``_add_<name>_arguments(parser)`` and ``_run_<name>(args) -> int``
+in its group and append a ``Command`` to the group's ``COMMANDS``. Heavy modules (torch,
+Mitsuba) are imported inside these functions only: a sub-parser adds its arguments when it is
+used (:class:`_CommandParser`), so ``gdpt --help`` and the light commands stay fast. Options of
+typed configurations (``TrainConfig``, ``DatasetConfig``) are generated from their fields
 (:mod:`gdpt.cli.config_options`).
 
 User errors (missing or malformed input, refusing to overwrite, invalid options) print one line
@@ -29,7 +29,7 @@ import sys
 import warnings
 from collections.abc import Callable, Sequence
 
-from gdpt.cli import render, study, training
+from gdpt.cli import advice, render, study, training
 from gdpt.cli.command import Command, UsageError
 from gdpt.interrupt import caused_by_interrupt
 from gdpt.version import __version__
@@ -46,7 +46,12 @@ _USER_ERRORS = (
 
 
 #: The subcommands, in the order ``gdpt --help`` lists them.
-COMMANDS: tuple[Command, ...] = (*render.COMMANDS, *study.COMMANDS, *training.COMMANDS)
+COMMANDS: tuple[Command, ...] = (
+    *render.COMMANDS,
+    *advice.COMMANDS,
+    *study.COMMANDS,
+    *training.COMMANDS,
+)
 
 
 class _CommandParser(argparse.ArgumentParser):

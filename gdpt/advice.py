@@ -1,0 +1,504 @@
+"""Which method pays on *this* scene at *this* budget, without a reference: :func:`advise`.
+
+The candidate methods (study methods of :data:`gdpt.study.methods.EVAL_METHODS`, default
+:data:`DEFAULT_METHODS`) get the same wall time on this machine through the study's
+calibration (:func:`gdpt.study.calibration.calibrate`, shared by methods that render the same
+configuration), each renders once per replicate, and one independent plain render ``P`` per
+replicate (two halves, for its per-pixel variance) scores them: the relMSE ratio of each
+method to the first, with a 95% Fieller interval, from the reference-free estimator of
+:mod:`gdpt.reconstruct.reference_free` (weights from the first method's output; standard
+errors from 8 px block sums, replicates pooled)::
+
+    import gdpt
+
+    advice = gdpt.advise("scene.xml", budget=4.0, box_filter=True)
+    print(advice)                 # the report, one line per method, then "recommended: ..."
+    advice.recommended            # a study method name, e.g. "gdpt+fuse"
+
+``P``'s sample count: the plain samples that fill ``plain_budget`` seconds (default: the
+candidates' budget, so ``P`` costs as much as one candidate; with ``spp``, ``plain_spp``
+defaults to that count). ``P``'s noise adds to a difference's variance in proportion to
+``1 / n`` (:func:`gdpt.reconstruct.reference_free.plain_share`, measured from ``P``'s halves
+and reported per method): where it is more than half of it, a larger ``plain_budget`` tightens
+the interval most; else more ``replicates`` (each renders every method and ``P`` again).
+
+Bad input fails with a ``ValueError`` of one line before any render (``spp`` and ``budget``
+together, an unknown or unavailable method, a scene that does not load), or after the
+calibration and before the scored renders (a budget too small for one sample of a method,
+named; a ``P`` of one sample, whose variance cannot be measured). Where the estimator cannot
+tell (``P`` black or nearly black, non-finite renders, intervals that include 1), the report
+says so in one line each.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shlex
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import torch
+
+    from gdpt.reconstruct.reference_free import RatioEstimate
+
+__all__ = ["DEFAULT_BUDGET", "DEFAULT_METHODS", "Advice", "MethodAdvice", "advise"]
+
+#: The candidates of :func:`advise`, the first the baseline of every ratio.
+DEFAULT_METHODS = ("pt+oidn-tuned", "gdpt+fuse", "pt+oidn")
+
+#: Seconds per method when neither ``budget`` nor ``spp`` is given.
+DEFAULT_BUDGET = 4.0
+
+#: ``P`` is nearly black when fewer than this share of its pixels are brighter than
+#: ``sqrt(eps)`` (where the relMSE weight is half its largest value).
+BRIGHT_SHARE = 0.01
+
+
+@dataclass
+class MethodAdvice:
+    """One candidate of :func:`advise`.
+
+    Attributes:
+        name: study method name (:data:`gdpt.study.methods.EVAL_METHODS`).
+        spp: its samples per pixel (calibrated to the budget, or the given ``spp``).
+        seconds: its measured seconds per replicate (kernel compilation excluded, as in the
+            study; the first render at a sample count also records its frozen passes).
+        estimate: its relMSE ratio to the first method (``None`` for the first, or where it
+            cannot be estimated: :attr:`note`).
+        plain_share: share of the ratio's variance that ``P``'s noise makes up (``nan``:
+            not measured).
+        note: why it has no estimate, else ``None``.
+    """
+
+    name: str
+    spp: int
+    seconds: list[float] = field(default_factory=list)
+    estimate: RatioEstimate | None = None
+    plain_share: float = math.nan
+    note: str | None = None
+
+
+@dataclass
+class Advice:
+    """What :func:`advise` found.
+
+    Attributes:
+        scene: the scene argument.
+        budget: seconds per method (``None``: an equal ``spp``).
+        methods: the candidates, the baseline first.
+        plain_spp: samples per pixel of each plain render ``P``.
+        replicates: renders of every method (and ``P``).
+        recommended: the recommended study method, ``None`` where nothing can be told.
+        lines: the report, one line each (``str(advice)``).
+        seconds: wall time of the whole call.
+        command: a command that renders the recommended method (``None``: none).
+    """
+
+    scene: str
+    budget: float | None
+    methods: list[MethodAdvice]
+    plain_spp: int
+    replicates: int
+    recommended: str | None = None
+    lines: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+    command: str | None = None
+
+    def __str__(self) -> str:
+        return "\n".join(self.lines)
+
+
+def _check_arguments(
+    budget: float | None, spp: int | None, methods: tuple[str, ...], replicates: int
+) -> tuple[float | None, list[str]]:
+    """The budget (default :data:`DEFAULT_BUDGET` without ``spp``) and the current method
+    names; ``ValueError`` (one line) for bad input."""
+    from gdpt.study.methods import EVAL_METHODS
+
+    if budget is not None and spp is not None:
+        raise ValueError("give a time budget or a sample count (spp), not both")
+    if spp is None:
+        budget = DEFAULT_BUDGET if budget is None else budget
+        if not (math.isfinite(budget) and budget > 0):
+            raise ValueError(f"the budget must be a positive number of seconds, got {budget}")
+    elif spp < 1:
+        raise ValueError(f"spp must be >= 1, got {spp}")
+    if replicates < 1:
+        raise ValueError(f"replicates must be >= 1, got {replicates}")
+    EVAL_METHODS.check(methods)
+    names = [EVAL_METHODS.resolve(m, stacklevel=3) for m in methods]
+    if len(set(names)) < 2 or len(set(names)) != len(names):
+        raise ValueError(f"give at least two different methods, got {', '.join(names)}")
+    for name in names:
+        if reason := EVAL_METHODS[name].check():
+            raise ValueError(f"method {name} cannot run here: {reason}")
+    return budget, names
+
+
+def _load(scene: Any, long_side: int | None, box_filter: bool, max_depth: int | None):
+    """The :class:`~gdpt.study.scenes.EvalScene` of ``scene`` (a source of
+    :func:`gdpt.scenes.loading.read_scene`); ``ValueError`` where its film has no box filter
+    and ``box_filter`` is off, ``FileNotFoundError``/``ValueError`` where it does not load."""
+    from gdpt.scenes.loading import BOX_FILTER, choose_max_depth, read_scene
+    from gdpt.study.scenes import EvalScene, resolve_scenes
+
+    if long_side is not None and long_side < 1:
+        raise ValueError(f"long_side must be >= 1, got {long_side}")
+    if max_depth is not None and max_depth < -1:
+        raise ValueError(f"max_depth must be -1 (unbounded) or >= 0, got {max_depth}")
+    loaded = read_scene(scene, box_filter=box_filter, long_side=long_side)
+    if loaded.original_filter != BOX_FILTER and not box_filter:
+        raise ValueError(
+            f"{scene}: the film's pixel filter is '{loaded.original_filter}', gradient-domain "
+            "rendering needs a box filter: add --box-filter (box_filter=True) to replace it"
+        )
+    depth, note = choose_max_depth(max_depth, loaded.max_depth)
+    name = resolve_scenes([scene])[0].name if isinstance(scene, (str, os.PathLike)) else "scene"
+    return EvalScene(name, loaded.scene, depth, loaded.resolution, [*loaded.notes, note])
+
+
+def _render_command(
+    name: str, spp: int, scene: Any, options: dict[str, Any], out_name: str
+) -> str | None:
+    """The ``gdpt`` command that renders study method ``name`` at ``spp`` (``None``: none)."""
+    from gdpt.methods import METHODS
+
+    sampler, _, method = name.partition("+")
+    if name == "pt":
+        words = ["gdpt", "render", str(scene), "--no-gradients"]
+    elif name == "auto" or (sampler in ("pt", "gdpt") and method in METHODS):
+        words = ["gdpt", "render-and-denoise", str(scene), "--method", method or name]
+    else:
+        return None
+    words += ["--spp", str(spp)]
+    if options["long_side"] is not None:
+        words += ["--long-side", str(options["long_side"])]
+    if options["box_filter"]:
+        words.append("--box-filter")
+    if options["max_depth"] is not None:
+        words += ["--max-depth", str(options["max_depth"])]
+    return shlex.join([*words, "-o", f"out/{out_name}-{method or name}.exr"])
+
+
+def _plain_render(scene, spp: int, seed: int) -> dict[str, Any]:
+    """``P``: plain path tracing at ``spp`` with two halves: ``{"image", "variance", "halves",
+    "counts"}`` (``(H, W, 3)``, ``(H, W, 1)``, two ``(H, W, 3)``, two ints; float32, CPU)."""
+    import torch
+
+    from gdpt.reconstruct.reference_free import half_variance
+    from gdpt.rendering import render
+
+    buffers = render(
+        scene.scene,
+        spp=spp,
+        seed=seed,
+        max_depth=scene.max_depth,
+        gradients=False,
+        features=False,
+        halves=True,
+    )
+    counts = [int(c) for c in buffers.metadata["half_spp"]]
+    image, half_a, half_b = (
+        t.detach().to("cpu", torch.float32)
+        for t in (buffers.primal, buffers.primal_a, buffers.primal_b)
+    )
+    return {
+        "image": image,
+        "variance": half_variance(half_a, half_b, *counts),
+        "halves": (half_a, half_b),
+        "counts": counts,
+    }
+
+
+def _scores(
+    methods: list[MethodAdvice], images: list[list[torch.Tensor]], plains: list[dict[str, Any]]
+) -> None:
+    """Set each method's :attr:`~MethodAdvice.estimate` and :attr:`~MethodAdvice.plain_share`
+    from ``images[m][r]`` (method ``m``, replicate ``r``, ``(H, W, 3)``) and the plain renders
+    (one per replicate); block sums of the replicates pooled."""
+    import torch
+
+    from gdpt.reconstruct.reference_free import (
+        block_sums,
+        error_terms,
+        plain_share,
+        ratio_interval,
+        relmse_weights,
+    )
+
+    for m, method in enumerate(methods[1:], start=1):
+        if method.note is not None:
+            continue
+        full: tuple[list[torch.Tensor], list[torch.Tensor]] = ([], [])
+        per_half: list[list[tuple[torch.Tensor, torch.Tensor]]] = [[], []]
+        for r, plain in enumerate(plains):
+            weights = relmse_weights(images[0][r])
+            n = sum(plain["counts"])
+            for i, image in enumerate((images[0][r], images[m][r])):
+                full[i].append(
+                    block_sums(error_terms(image, plain["image"], plain["variance"], weights))
+                )
+            for h, (half, count) in enumerate(zip(plain["halves"], plain["counts"], strict=True)):
+                variance = plain["variance"] * (n / count)
+                per_half[h].append(
+                    tuple(
+                        error_terms(image, half, variance, weights)
+                        for image in (images[0][r], images[m][r])
+                    )
+                )
+        method.estimate = ratio_interval(torch.cat(full[1]), torch.cat(full[0]))
+        rho = method.estimate.ratio
+        halves = [
+            torch.cat([block_sums(terms[1] - rho * terms[0]) for terms in per_half[h]])
+            for h in range(2)
+        ]
+        method.plain_share = plain_share(*halves)
+
+
+def _render_and_score(advice: Advice, scene, candidates: list, seed: int, bar: Any) -> None:
+    """Render ``P`` and the candidates per replicate, score them and fill ``advice.lines`` and
+    ``advice.recommended`` (stops after ``P`` where ``P`` is unusable: one line why)."""
+    import torch
+
+    from gdpt.reconstruct.held_out import EPS
+    from gdpt.study.results import cell_seed, replicate_seed
+
+    budget = f"{advice.budget:g} s each" if advice.budget is not None else "equal spp"
+    width, height = scene.resolution
+    advice.lines.append(
+        f"advise {advice.scene}: {len(candidates)} methods at {budget} ({width}x{height}, "
+        f"max_depth {scene.max_depth}), {advice.replicates} replicate(s); P: "
+        f"{advice.plain_spp} plain spp"
+    )
+    plains = []
+    for r in range(advice.replicates):
+        bar.set_postfix_str(f"plain render P {r + 1}")
+        plain = _plain_render(
+            scene, advice.plain_spp, cell_seed(seed, scene.name, "advise-plain", str(r))
+        )
+        bar.update(1)
+        bad = int((~torch.isfinite(plain["image"])).any(-1).sum())
+        bright = float((plain["image"].mean(-1) > math.sqrt(EPS)).float().mean())
+        if bad:
+            advice.lines.append(
+                f"cannot tell: P has {bad} non-finite pixels (the scene or its lights)"
+            )
+        elif bright < BRIGHT_SHARE:
+            advice.lines.append(
+                f"cannot tell: the image is black or nearly black ({bright:.1%} of P's pixels "
+                f"above {math.sqrt(EPS):.3f}): relative errors mean nothing there"
+            )
+        if bad or bright < BRIGHT_SHARE:
+            advice.lines.append("recommended: none (nothing to compare)")
+            return
+        plains.append(plain)
+    images: list[list[torch.Tensor]] = [[] for _ in candidates]
+    for r in range(advice.replicates):
+        for m, (method, record) in enumerate(zip(candidates, advice.methods, strict=True)):
+            bar.set_postfix_str(f"{method.name} {r + 1}")
+            result = method.run(
+                scene, spp=record.spp, seed=replicate_seed(seed, scene.name, "advise", r)
+            )
+            bar.update(1)
+            record.seconds.append(result.seconds)
+            images[m].append(result.image)
+            bad = int((~torch.isfinite(result.image)).any(-1).sum())
+            if bad and record.note is None:
+                record.note = f"{bad} non-finite pixels in its output (its error is infinite)"
+    if advice.methods[0].note is not None:
+        advice.lines.append(
+            f"cannot tell: the baseline {advice.methods[0].name} has {advice.methods[0].note}"
+        )
+        advice.lines.append("recommended: none (no finite baseline)")
+        return
+    _scores(advice.methods, images, plains)
+    width = max(len(m.name) for m in advice.methods)
+    advice.lines += [_method_line(m, advice.methods[0].name, width) for m in advice.methods]
+    advice.recommended, lines = _recommend(advice.methods)
+    advice.lines += lines
+    unsure = [m for m in advice.methods[1:] if m.estimate is not None and not m.estimate.separated]
+    if unsure:
+        plain_heavy = any(m.plain_share > 0.5 for m in unsure)
+        advice.lines.append(
+            "to tighten: a larger plain budget (P's noise is most of the variance)"
+            if plain_heavy
+            else "to tighten: more replicates (the methods' own noise is most of the variance)"
+        )
+
+
+def _recommend(methods: list[MethodAdvice]) -> tuple[str | None, list[str]]:
+    """The recommended method and the lines that say why (the last starts ``recommended:``)."""
+    base = methods[0].name
+    scored = [m for m in methods[1:] if m.estimate is not None]
+    better = [m for m in scored if m.estimate.separated and m.estimate.high < 1.0]
+    if better:
+        best = min(better, key=lambda m: m.estimate.ratio)
+        e = best.estimate
+        return best.name, [
+            f"recommended: {best.name} ({e.ratio:.2f}x {base}'s relMSE, 95% interval "
+            f"{e.low:.2f}-{e.high:.2f})"
+        ]
+    lines = []
+    unsure = [m.name for m in scored if not m.estimate.separated]
+    if unsure:
+        lines.append(
+            f"no measurable difference between {base} and {', '.join(unsure)} (the interval "
+            "includes 1)"
+        )
+    if not scored:
+        return None, [f"recommended: none (no method could be compared with {base})"]
+    why = "no other method is measurably better" if unsure else "every other method is worse"
+    return base, [*lines, f"recommended: {base} ({why})"]
+
+
+def _method_line(method: MethodAdvice, base: str, width: int) -> str:
+    seconds = sum(method.seconds) / max(len(method.seconds), 1)
+    head = f"  {method.name:<{width}}  spp {method.spp:>6}  {seconds:6.2f} s"
+    if method.name == base:
+        return f"{head}  1.00 (the baseline)"
+    if method.estimate is None:
+        return f"{head}  cannot tell: {method.note}"
+    e = method.estimate
+    if not e.bounded:
+        return f"{head}  cannot tell: {base}'s estimated error is not separated from 0"
+    verdict = (
+        ("lower: separated from 1" if e.high < 1 else "higher: separated from 1")
+        if e.separated
+        else "includes 1: no measurable difference"
+    )
+    share = (
+        f", P's noise {e_share:.0%} of its variance"
+        if math.isfinite(e_share := method.plain_share)
+        else ""
+    )
+    return f"{head}  {e.ratio:.2f} [{e.low:.2f}, {e.high:.2f}] {verdict} (z {e.z:+.1f}{share})"
+
+
+def advise(
+    scene: Any,
+    *,
+    budget: float | None = None,
+    spp: int | None = None,
+    methods: tuple[str, ...] | list[str] = DEFAULT_METHODS,
+    replicates: int = 1,
+    plain_budget: float | None = None,
+    plain_spp: int | None = None,
+    long_side: int | None = None,
+    box_filter: bool = False,
+    max_depth: int | None = None,
+    seed: int = 0,
+    progress: bool = True,
+) -> Advice:
+    """Compare ``methods`` at equal time on ``scene`` without a reference (module docstring).
+
+    Args:
+        scene: an XML path, ``builtin:NAME`` or ``random:SEED[:VIEW]``
+            (:func:`gdpt.scenes.loading.read_scene`).
+        budget: seconds of sampling + reconstruction per method, calibrated on this machine
+            (default :data:`DEFAULT_BUDGET` without ``spp``).
+        spp: instead of ``budget``: every method renders this many samples per pixel.
+        methods: study method names (:data:`gdpt.study.methods.EVAL_METHODS`), the first the
+            baseline of every ratio.
+        replicates: renders of every method and of ``P`` (their block sums pooled).
+        plain_budget: seconds of plain path tracing in each ``P`` (default: ``budget``).
+        plain_spp: ``P``'s samples per pixel instead (default with ``spp``: ``spp``).
+        long_side: rescale the film to this many pixels on its long side.
+        box_filter: replace an XML film's pixel filter by the box filter.
+        max_depth: longest path (default: the scene's integrator setting, else 6).
+        seed: base seed of the renders.
+        progress: a progress bar over the calibrations and renders (stderr).
+
+    Returns:
+        The :class:`Advice` (``str(advice)``: the report).
+
+    Raises:
+        ValueError: bad input (module docstring), one line.
+        FileNotFoundError: the scene file does not exist.
+    """
+    import drjit as dr
+    from tqdm.auto import tqdm
+
+    from gdpt.study.calibration import calibrate, calibration_runner, configuration_key
+    from gdpt.study.config import EvaluateConfig
+    from gdpt.study.methods import EVAL_METHODS
+    from gdpt.study.results import cell_seed
+
+    start = time.perf_counter()
+    budget, names = _check_arguments(budget, spp, tuple(methods), replicates)
+    if plain_budget is not None and plain_spp is not None:
+        raise ValueError("give plain_budget or plain_spp, not both")
+    loaded = _load(scene, long_side, box_filter, max_depth)
+    candidates = [EVAL_METHODS[n] for n in names]
+    plain_key = configuration_key(EVAL_METHODS["pt"], "total")
+    to_calibrate = {}
+    if budget is not None:
+        to_calibrate = {configuration_key(m, "total"): m for m in candidates}
+        if plain_spp is None:
+            to_calibrate.setdefault(plain_key, EVAL_METHODS["pt"])
+    bar = tqdm(
+        total=len(to_calibrate) + replicates * (len(candidates) + 1),
+        unit="render",
+        desc="advise",
+        disable=not progress,
+        dynamic_ncols=True,
+    )
+    history_flag = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        models = {}
+        for key, method in to_calibrate.items():
+            runner = calibration_runner(method, "total")
+            bar.set_postfix_str(f"calibrating {runner.name}")
+            models[key] = calibrate(
+                runner,
+                loaded,
+                budget=budget,
+                seed=cell_seed(seed, loaded.name, runner.name, "calibration"),
+            )
+            bar.update(1)
+        for method in candidates:  # each candidate's one sample within the budget
+            model = models.get(configuration_key(method, "total"))
+            if model is not None and model.fixed + model.per_spp > budget * (
+                1 + EvaluateConfig.tolerance
+            ):
+                raise ValueError(
+                    f"a budget of {budget:g} s is too small for one sample of {method.name} "
+                    f"(about {model.fixed + model.per_spp:.2f} s here); raise the budget or "
+                    "lower the resolution (--long-side)"
+                )
+        if plain_spp is None:
+            plain_spp = spp if budget is None else models[plain_key].spp_for(plain_budget or budget)
+        advice = Advice(
+            str(scene),
+            budget,
+            [
+                MethodAdvice(m.name, spp or models[configuration_key(m, "total")].spp_for(budget))
+                for m in candidates
+            ],
+            plain_spp,
+            replicates,
+        )
+        if plain_spp < 2:
+            raise ValueError(
+                f"P would have {plain_spp} sample per pixel: its variance cannot be measured; "
+                "give a larger budget or plain_spp >= 2"
+            )
+        _render_and_score(advice, loaded, candidates, seed, bar)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, history_flag)
+        bar.close()
+    advice.seconds = time.perf_counter() - start
+    options = {"long_side": long_side, "box_filter": box_filter, "max_depth": max_depth}
+    if advice.recommended is not None:
+        chosen = next(m for m in advice.methods if m.name == advice.recommended)
+        advice.command = _render_command(chosen.name, chosen.spp, scene, options, loaded.name)
+    advice.lines += [
+        f"time: {advice.seconds:.1f} s (calibration, {replicates} x {len(candidates)} renders "
+        f"and {replicates} plain render(s) P)"
+    ]
+    if advice.command is not None:
+        advice.lines.append(f"render it: {advice.command}")
+    return advice
