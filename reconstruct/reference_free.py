@@ -156,7 +156,8 @@ def ratio_interval(
     With ``a = sum(baseline_blocks)``, ``b = sum(method_blocks)`` and the covariances ``V`` of
     the sums (``n`` times the sample covariance of the ``n`` paired blocks), the interval is
     the set of ``rho`` with ``(b - rho a)^2 <= z^2 (V_bb - 2 rho V_ab + rho^2 V_aa)``: bounded
-    when ``a^2 > z^2 V_aa``, else ``(-inf, inf)``.
+    when ``a^2 > z^2 V_aa``, else ``(-inf, inf)``; a negative lower end is raised to 0 (the
+    ratio of two expected squared errors is not negative).
 
     Args:
         method_blocks: ``(n,)`` block sums of the method's :func:`error_terms` (replicates
@@ -191,8 +192,8 @@ def ratio_interval(
     discriminant = c1 * c1 - c2 * c0
     if c2 <= 0 or discriminant < 0:
         return RatioEstimate(ratio, -math.inf, math.inf, z_diff, n)
-    root = math.sqrt(discriminant)
-    return RatioEstimate(ratio, (c1 - root) / c2, (c1 + root) / c2, z_diff, n)
+    root = math.sqrt(discriminant)  # errors are >= 0: so is their ratio
+    return RatioEstimate(ratio, max(0.0, (c1 - root) / c2), (c1 + root) / c2, z_diff, n)
 
 
 def plain_share(statistic_a: torch.Tensor, statistic_b: torch.Tensor) -> float:

@@ -1,0 +1,146 @@
+"""``gdpt advise`` and :func:`gdpt.advise`: end to end on the built-in Cornell box at 32 px
+with a small budget or sample count, and every bad input failing in one line before the
+renders it would waste."""
+
+from __future__ import annotations
+
+import math
+import re
+
+import pytest
+
+import gdpt
+from gdpt.cli import main
+
+pytestmark = pytest.mark.usefixtures("variant", "single_thread")
+
+#: A tiny scene: the built-in Cornell box at 32 px.
+TINY = ["builtin:cbox-demo", "--long-side", "32", "--no-progress"]
+
+#: The smallest Cornell box whose baseline error the estimator separates from 0: 64 px (64
+#: blocks of 8 px), 2 replicates.
+SMALL = ["builtin:cbox-demo", "--long-side", "64", "--replicates", "2", "--no-progress"]
+
+#: Fast candidates: the baseline, plain path tracing and OIDN.
+METHODS = ["pt+oidn-tuned", "pt", "pt+oidn"]
+
+
+def one_line_error(err: str) -> str:
+    lines = [line for line in err.splitlines() if line.startswith("gdpt ")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+@pytest.fixture
+def no_render(monkeypatch):
+    """Any render or calibration fails the test."""
+    import gdpt.rendering
+    import gdpt.study.calibration
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("rendered despite bad input")
+
+    monkeypatch.setattr(gdpt.rendering, "render", forbidden)
+    monkeypatch.setattr(gdpt.study.calibration, "calibrate", forbidden)
+
+
+def test_smoke_cli_at_equal_spp(capsys):
+    """Every method and P render, the report names each method with a ratio or says why it
+    cannot tell, and ends with the recommendation, the time and the command."""
+    argv = [*["advise", *SMALL, "--spp", "4", "--plain-spp", "64"], "--methods", *METHODS]
+    status = main(argv)
+    out = capsys.readouterr().out
+    assert status == 0, out
+    lines = out.splitlines()
+    assert lines[0].startswith("advise builtin:cbox-demo: 3 methods at equal spp (64x64")
+    assert re.search(r"pt\+oidn-tuned +spp +4 .* 1\.00 \(the baseline\)", out)
+    # plain path tracing at 4 spp against a denoiser: far worse, separated from 1
+    assert re.search(r"\n  pt  +spp +4 .* higher: separated from 1", out), out
+    assert sum(line.startswith("recommended: ") for line in lines) == 1
+    assert re.search(r"\ntime: [0-9.]+ s", out)
+    assert "render it: gdpt render-and-denoise builtin:cbox-demo --method " in out
+
+
+def test_feature_api_at_a_budget_with_replicates():
+    """At a budget every method gets a calibrated count; replicates pool their blocks."""
+    advice = gdpt.advise(
+        "builtin:cbox-demo",
+        budget=0.2,
+        methods=METHODS[:2],
+        replicates=2,
+        plain_spp=256,
+        long_side=32,
+        progress=False,
+    )
+    base, plain = advice.methods
+    assert base.spp >= 1 and plain.spp >= base.spp  # pt reconstructs nothing: more samples
+    assert len(base.seconds) == len(plain.seconds) == 2
+    assert plain.estimate is not None and plain.estimate.blocks == 2 * 16
+    assert advice.plain_spp == 256 and math.isfinite(plain.estimate.ratio)
+    assert advice.recommended in METHODS[:2]
+    assert sum(line.startswith("recommended: ") for line in advice.lines) == 1
+    assert math.isfinite(advice.seconds) and advice.seconds > 0
+    assert advice.command.startswith("gdpt render") and "builtin:cbox-demo" in advice.command
+
+
+@pytest.mark.parametrize(
+    ("extra", "match"),
+    [
+        (["--spp", "4", "--budget", "1"], "give --budget or --spp, not both"),
+        (["--methods", "pt", "nope"], "unknown method 'nope'; valid names: "),
+        (["--methods", "pt"], "give at least two different methods"),
+        (["--budget", "-1"], "the budget must be a positive number of seconds"),
+        (["--spp", "1", "--plain-spp", "1"], "P would have 1 sample per pixel"),
+        (["--replicates", "0"], "replicates must be >= 1"),
+    ],
+)
+def test_exception_bad_input_before_rendering(capsys, no_render, extra, match):
+    assert main(["advise", *TINY, *extra]) == 2
+    line = one_line_error(capsys.readouterr().err)
+    assert line.startswith("gdpt advise: error: ")
+    assert re.search(match, line), line
+
+
+@pytest.mark.parametrize(
+    ("scene", "match"),
+    [
+        ("{tmp}/none.xml", "scene file not found: .*none.xml"),
+        ("{tmp}/broken.xml", "cannot load scene .*broken.xml"),
+        ("builtin:nope", "unknown builtin scene 'nope'"),
+    ],
+)
+def test_exception_scene_does_not_load(tmp_path, capsys, no_render, scene, match):
+    (tmp_path / "broken.xml").write_text("<scene version='3.0.0'><shape type='nope'/></scene>")
+    assert main(["advise", scene.format(tmp=tmp_path), "--no-progress"]) == 2
+    assert re.search(match, one_line_error(capsys.readouterr().err))
+
+
+def test_exception_budget_too_small_names_the_method(capsys, monkeypatch):
+    """A budget below one sample of a method fails after the calibration, before the scored
+    renders, naming the method."""
+    import gdpt.advice
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("scored renders despite a budget below one sample")
+
+    monkeypatch.setattr(gdpt.advice, "_render_and_score", forbidden)
+    argv = ["advise", *TINY, "--budget", "1e-6", "--methods", "pt", "pt+oidn-tuned"]
+    assert main(argv) == 2
+    line = one_line_error(capsys.readouterr().err)
+    assert re.search(r"budget of 1e-06 s is too small for one sample of pt", line), line
+
+
+def test_feature_black_scene_cannot_tell(tmp_path, capsys):
+    """A scene without lights: one line says so, nothing is recommended (status 1), and the
+    methods are not rendered."""
+    (tmp_path / "black.xml").write_text(
+        """<scene version="3.0.0">
+        <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="16"/>
+        <integer name="height" value="16"/><rfilter type="box"/></film></sensor>
+        <shape type="sphere"><bsdf type="diffuse"/></shape></scene>"""
+    )
+    status = main(["advise", str(tmp_path / "black.xml"), "--spp", "2", "--no-progress"])
+    out = capsys.readouterr().out
+    assert status == 1
+    assert "cannot tell: the image is black or nearly black" in out
+    assert "recommended: none" in out and "spp" not in out.split("P:")[1].split("\n", 1)[1]
