@@ -43,6 +43,7 @@ if TYPE_CHECKING:
     import torch
 
     from gdpt.reconstruct.reference_free import RatioEstimate
+    from gdpt.study.scenes import EvalScene
 
 __all__ = ["DEFAULT_BUDGET", "DEFAULT_METHODS", "Advice", "MethodAdvice", "advise"]
 
@@ -183,87 +184,15 @@ def _render_command(
     return shlex.join([*words, "-o", f"out/{out_name}-{method or name}.exr"])
 
 
-def _plain_render(scene, spp: int, seed: int) -> dict[str, Any]:
-    """``P``: plain path tracing at ``spp`` with two halves: ``{"image", "variance", "halves",
-    "counts"}`` (``(H, W, 3)``, ``(H, W, 1)``, two ``(H, W, 3)``, two ints; float32, CPU)."""
-    import torch
-
-    from gdpt.reconstruct.reference_free import half_variance
-    from gdpt.rendering import render
-
-    buffers = render(
-        scene.scene,
-        spp=spp,
-        seed=seed,
-        max_depth=scene.max_depth,
-        gradients=False,
-        features=False,
-        halves=True,
-    )
-    counts = [int(c) for c in buffers.metadata["half_spp"]]
-    image, half_a, half_b = (
-        t.detach().to("cpu", torch.float32)
-        for t in (buffers.primal, buffers.primal_a, buffers.primal_b)
-    )
-    return {
-        "image": image,
-        "variance": half_variance(half_a, half_b, *counts),
-        "halves": (half_a, half_b),
-        "counts": counts,
-    }
-
-
-def _scores(
-    methods: list[MethodAdvice], images: list[list[torch.Tensor]], plains: list[dict[str, Any]]
+def _render_and_score(
+    advice: Advice, scene: EvalScene, candidates: list, seed: int, bar: Any
 ) -> None:
-    """Set each method's :attr:`~MethodAdvice.estimate` and :attr:`~MethodAdvice.plain_share`
-    from ``images[m][r]`` (method ``m``, replicate ``r``, ``(H, W, 3)``) and the plain renders
-    (one per replicate); block sums of the replicates pooled."""
-    import torch
-
-    from gdpt.reconstruct.reference_free import (
-        block_sums,
-        error_terms,
-        plain_share,
-        ratio_interval,
-        relmse_weights,
-    )
-
-    for m, method in enumerate(methods[1:], start=1):
-        if method.note is not None:
-            continue
-        full: tuple[list[torch.Tensor], list[torch.Tensor]] = ([], [])
-        per_half: list[list[tuple[torch.Tensor, torch.Tensor]]] = [[], []]
-        for r, plain in enumerate(plains):
-            weights = relmse_weights(images[0][r])
-            n = sum(plain["counts"])
-            for i, image in enumerate((images[0][r], images[m][r])):
-                full[i].append(
-                    block_sums(error_terms(image, plain["image"], plain["variance"], weights))
-                )
-            for h, (half, count) in enumerate(zip(plain["halves"], plain["counts"], strict=True)):
-                variance = plain["variance"] * (n / count)
-                per_half[h].append(
-                    tuple(
-                        error_terms(image, half, variance, weights)
-                        for image in (images[0][r], images[m][r])
-                    )
-                )
-        method.estimate = ratio_interval(torch.cat(full[1]), torch.cat(full[0]))
-        rho = method.estimate.ratio
-        halves = [
-            torch.cat([block_sums(terms[1] - rho * terms[0]) for terms in per_half[h]])
-            for h in range(2)
-        ]
-        method.plain_share = plain_share(*halves)
-
-
-def _render_and_score(advice: Advice, scene, candidates: list, seed: int, bar: Any) -> None:
     """Render ``P`` and the candidates per replicate, score them and fill ``advice.lines`` and
     ``advice.recommended`` (stops after ``P`` where ``P`` is unusable: one line why)."""
     import torch
 
     from gdpt.reconstruct.held_out import EPS
+    from gdpt.study.estimate import estimate_ratios, plain_render
     from gdpt.study.results import cell_seed, replicate_seed
 
     budget = f"{advice.budget:g} s each" if advice.budget is not None else "equal spp"
@@ -276,7 +205,7 @@ def _render_and_score(advice: Advice, scene, candidates: list, seed: int, bar: A
     plains = []
     for r in range(advice.replicates):
         bar.set_postfix_str(f"plain render P {r + 1}")
-        plain = _plain_render(
+        plain = plain_render(
             scene, advice.plain_spp, cell_seed(seed, scene.name, "advise-plain", str(r))
         )
         bar.update(1)
@@ -314,7 +243,10 @@ def _render_and_score(advice: Advice, scene, candidates: list, seed: int, bar: A
         )
         advice.lines.append("recommended: none (no finite baseline)")
         return
-    _scores(advice.methods, images, plains)
+    scored = [m for m, r in enumerate(advice.methods) if m == 0 or r.note is None]
+    estimates = estimate_ratios([images[m] for m in scored], plains)
+    for m, (estimate, share) in zip(scored[1:], estimates, strict=True):
+        advice.methods[m].estimate, advice.methods[m].plain_share = estimate, share
     width = max(len(m.name) for m in advice.methods)
     advice.lines += [_method_line(m, advice.methods[0].name, width) for m in advice.methods]
     advice.recommended, lines = _recommend(advice.methods)
@@ -485,7 +417,7 @@ def advise(
             raise ValueError(
                 f"P would have {plain_spp} sample per pixel: its variance cannot be measured; "
                 "give a larger budget or plain_spp >= 2"
-            )
+            )  # before any scored render (plain_render says the same)
         _render_and_score(advice, loaded, candidates, seed, bar)
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, history_flag)

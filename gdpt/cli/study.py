@@ -113,6 +113,12 @@ def _add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
         "machine); run again without it on an idle machine for the cells",
     )
     parser.add_argument(
+        "--no-reference",
+        action="store_true",
+        help="render no reference: each cell gets the reference-free estimate of its relMSE "
+        "ratio to pt+oidn-tuned (as gdpt advise; reported as an estimate) instead of metrics",
+    )
+    parser.add_argument(
         "--keep-going",
         action="store_true",
         help="record a scene, method or budget cell that fails and continue (exit status 0); "
@@ -157,6 +163,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
         "protocol": args.protocol,
         "reference_dir": args.references,
         "keep_going": args.keep_going,
+        "reference": False if args.no_reference else None,
     }
     cfg = PRESETS["quick" if args.quick else "full"]
     cfg = dataclasses.replace(cfg, **{k: v for k, v in changes.items() if v is not None})

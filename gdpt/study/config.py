@@ -66,6 +66,10 @@ class EvaluateConfig:
     """Reference cache; ``None`` means ``<out>/references`` (share it between runs)."""
     profile: str = "custom"
     """Name of the preset this config came from (recorded only)."""
+    reference: bool = True
+    """Render a reference and score against it; off (``gdpt evaluate --no-reference``): the
+    cells get only the reference-free estimate of their relMSE ratio to ``pt+oidn-tuned``
+    (:mod:`gdpt.study.estimate`), which is recorded beside the true ratio otherwise."""
     keep_going: bool = False
     """Record a failed scene, method or cell and continue; off: the study stops at the first
     failure (:class:`gdpt.study.evaluate.StudyFailure`), after recording it."""

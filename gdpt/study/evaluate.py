@@ -67,6 +67,7 @@ from gdpt.study.calibration import (
     timed_run,
 )
 from gdpt.study.config import PRESETS, EvaluateConfig
+from gdpt.study.estimate import estimate_scene
 from gdpt.study.methods import EVAL_METHODS, EvalMethod, MethodResult, MethodUnavailable
 from gdpt.study.references import reference_seed, render_reference
 from gdpt.study.results import (
@@ -334,7 +335,10 @@ def _evaluate_scene(
             film_filter=scene.film_filter,
         )
         stage = "reference"
-        reference, ref_meta = _study_reference(scene, spec, cfg, cache, bar)
+        no_reference = (None, None)
+        reference, ref_meta = (
+            _study_reference(scene, spec, cfg, cache, bar) if cfg.reference else no_reference
+        )
     except Exception as err:  # a broken scene is a result, not the end of the study
         if caused_by_interrupt(err):  # Ctrl-C inside a Dr.Jit frozen function
             raise
@@ -354,12 +358,15 @@ def _evaluate_scene(
     from gdpt.io.exr import save_image
     from gdpt.io.images import save_png
 
-    save_image(image_dir / "reference.exr", reference, metadata=ref_meta, force=True)
-    save_png(image_dir / "reference.png", reference, force=True)
+    if reference is not None:
+        save_image(image_dir / "reference.exr", reference, metadata=ref_meta, force=True)
+        save_png(image_dir / "reference.png", reference, force=True)
     for name in methods:
         _evaluate_method(
             EVAL_METHODS[name], scene, reference, cfg, entry, results, results_path, image_dir, bar
         )
+    estimate_scene(scene, entry, cfg, out, bar)  # the reference-free estimate of every cell
+    write_json(results_path, results)
 
 
 #: Fields of a cell record that describe the timed run itself (the evaluated method's, where
@@ -462,7 +469,7 @@ def _run_replicates(
 def _evaluate_method(
     method: EvalMethod,
     scene: EvalScene,
-    reference: torch.Tensor,
+    reference: torch.Tensor | None,
     cfg: EvaluateConfig,
     entry: dict[str, Any],
     results: dict[str, Any],

@@ -24,6 +24,8 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from gdpt.study.estimate import markdown as estimate_markdown
+
 __all__ = ["METRIC_LABELS", "best_methods", "plot_scene", "write_report"]
 
 #: Short column labels of the metrics.
@@ -221,14 +223,22 @@ def _markdown(results: dict[str, Any], plots: dict[str, str], crops: dict[str, s
         if entry.get("status") != "ok":
             out += ["", f"**Failed** at stage `{entry.get('stage')}`: {entry.get('error')}"]
             continue
-        ref = entry.get("reference", {})
+        ref = entry.get("reference")
         out += [
             "",
             f"{entry['resolution'][0]}x{entry['resolution'][1]} px, "
-            f"reference {ref.get('spp')} spp (seed {ref.get('seed')}, "
-            f"{ref.get('seconds', 0):.1f} s). " + "; ".join(entry.get("notes", [])) + ".",
+            + (
+                f"reference {ref.get('spp')} spp (seed {ref.get('seed')}, "
+                f"{ref.get('seconds', 0):.1f} s). "
+                if ref
+                else "no reference (--no-reference): the estimate below is the result. "
+            )
+            + "; ".join(entry.get("notes", []))
+            + ".",
         ]
         out += ["", _md_table(*_scene_table(results, entry))]
+        if estimates := estimate_markdown(entry):
+            out += ["", *estimates]
         if skips := _skips(entry):
             out += [""] + [f"- {s}" for s in skips]
         for figure in (plots.get(scene), crops.get(scene)):

@@ -35,6 +35,7 @@ _RESUME_KEYS = (
     "max_depth",
     "metrics",
     "metric_options",
+    "reference",
 )
 
 
@@ -154,7 +155,8 @@ def load_results(path: Path, cfg: EvaluateConfig) -> dict[str, Any]:
     if path.is_file():
         old = read_results(path)
         new = cfg.to_json()
-        made = {"protocol": "total", **old["config"]}  # studies before protocols: "total"
+        # studies before protocols: "total"; before --no-reference: with a reference
+        made = {"protocol": "total", "reference": True, **old["config"]}
         diff = [k for k in _RESUME_KEYS if made.get(k) != new.get(k)]
         if diff:
             raise ValueError(

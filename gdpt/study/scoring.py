@@ -33,13 +33,20 @@ def replicate_record(run: MethodResult, seed: int, spp: int) -> dict[str, Any]:
 
 
 def score(
-    replicate: dict[str, Any], image: torch.Tensor, reference: torch.Tensor, cfg: EvaluateConfig
+    replicate: dict[str, Any],
+    image: torch.Tensor,
+    reference: torch.Tensor | None,
+    cfg: EvaluateConfig,
 ) -> dict[str, str]:
     """Set ``replicate["metrics"]`` (``cfg.metrics``) and ``replicate["companions"]`` (the
     robust companion of each headline metric that has one, :data:`gdpt.metrics.COMPANIONS`)
-    of ``image`` against ``reference`` (both ``(H, W, 3)``); returns the metrics skipped, with
-    the reason."""
+    of ``image`` against ``reference`` (both ``(H, W, 3)``; ``None``: a study without a
+    reference, both empty); returns the metrics skipped, with the reason."""
     from gdpt.metrics import COMPANIONS, compute_metrics
+
+    if reference is None:
+        replicate.update(metrics={}, companions={})
+        return {}
 
     values = compute_metrics(image, reference, cfg.metrics, options=cfg.metric_options)
     replicate["metrics"] = {k: finite(v) for k, v in values.values.items()}
@@ -58,7 +65,7 @@ def interval_too_wide(replicates: list[dict[str, Any]], cfg: EvaluateConfig) -> 
     if cfg.until_interval is None:
         return False
     values = [r["metrics"].get(cfg.metrics[0]) for r in replicates]
-    if None in values:
+    if None in values or not cfg.reference:
         return False
     mean, low, high = mean_interval(values)
     return len(values) < 2 or max(high - mean, mean - low) > cfg.until_interval * abs(mean)

@@ -1,0 +1,205 @@
+"""The study's reference-free estimate: each method's relMSE ratio to ``pt+oidn-tuned`` from an
+independent plain render instead of a reference (:mod:`gdpt.reconstruct.reference_free`).
+
+Shared by :func:`gdpt.advise` and the study: :func:`plain_render` renders the plain image ``P``
+(two halves, for its per-pixel variance), :func:`estimate_ratios` scores images of the same
+scene against it. In the study (:func:`estimate_scene`), per scene and budget, one ``P`` with
+the ``pt`` cell's sample count (else the baseline's) scores the first replicate of every
+method; with a reference the cell records the estimate beside the true ratio of the same renders
+(the study's ``relmse``), so that every study run checks the estimator; without one
+(``gdpt evaluate --no-reference``) the estimate is the result. ``P``'s seed is
+``cell_seed(seed, scene, budget, "plain")``, independent of every replicate's.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import torch
+
+    from gdpt.reconstruct.reference_free import RatioEstimate
+    from gdpt.study.config import EvaluateConfig
+    from gdpt.study.scenes import EvalScene
+
+__all__ = ["BASELINE", "estimate_ratios", "estimate_scene", "markdown", "plain_render"]
+
+#: The method every estimated ratio is relative to (weights from its output).
+BASELINE = "pt+oidn-tuned"
+
+
+def plain_render(scene: EvalScene, spp: int, seed: int) -> dict[str, Any]:
+    """``P``: plain path tracing (``gdpt``, no gradients, no features) at ``spp`` with two
+    halves.
+
+    Returns:
+        ``{"image": (H, W, 3), "variance": (H, W, 1) (:func:`~gdpt.reconstruct.reference_free.
+        half_variance`), "halves": two (H, W, 3), "counts": two ints}``, float32 on the CPU.
+
+    Raises:
+        ValueError: ``spp < 2`` (a half without samples: no variance).
+    """
+    import torch
+
+    from gdpt.reconstruct.reference_free import half_variance
+    from gdpt.rendering import render
+
+    if spp < 2:
+        raise ValueError(
+            f"P would have {spp} sample per pixel: its variance cannot be measured; give it "
+            "at least 2"
+        )
+    buffers = render(
+        scene.scene,
+        spp=spp,
+        seed=seed,
+        max_depth=scene.max_depth,
+        gradients=False,
+        features=False,
+        halves=True,
+    )
+    counts = [int(c) for c in buffers.metadata["half_spp"]]
+    image, half_a, half_b = (
+        t.detach().to("cpu", torch.float32)
+        for t in (buffers.primal, buffers.primal_a, buffers.primal_b)
+    )
+    return {
+        "image": image,
+        "variance": half_variance(half_a, half_b, *counts),
+        "halves": (half_a, half_b),
+        "counts": counts,
+    }
+
+
+def estimate_ratios(
+    images: list[list[torch.Tensor]], plains: list[dict[str, Any]]
+) -> list[tuple[RatioEstimate, float]]:
+    """Each method's relMSE ratio to the first, and ``P``'s share of its variance.
+
+    Args:
+        images: ``images[m][r]``: method ``m``'s ``(H, W, 3)`` float image of replicate ``r``
+            (CPU); ``images[0]`` is the baseline, whose output gives the weights.
+        plains: one :func:`plain_render` per replicate, independent of every image.
+
+    Returns:
+        For ``images[1:]``, in order: the :class:`~gdpt.reconstruct.reference_free.
+        RatioEstimate` (block sums of the replicates pooled) and
+        :func:`~gdpt.reconstruct.reference_free.plain_share`.
+    """
+    import torch
+
+    from gdpt.reconstruct.reference_free import (
+        block_sums,
+        error_terms,
+        plain_share,
+        ratio_interval,
+        relmse_weights,
+    )
+
+    out = []
+    for method in images[1:]:
+        full: tuple[list[torch.Tensor], list[torch.Tensor]] = ([], [])
+        per_half: list[list[tuple[torch.Tensor, torch.Tensor]]] = [[], []]
+        for r, plain in enumerate(plains):
+            pair = (images[0][r], method[r])
+            weights = relmse_weights(pair[0])
+            n = sum(plain["counts"])
+            for i, image in enumerate(pair):
+                terms = error_terms(image, plain["image"], plain["variance"], weights)
+                full[i].append(block_sums(terms))
+            for h, (half, count) in enumerate(zip(plain["halves"], plain["counts"], strict=True)):
+                variance = plain["variance"] * (n / count)
+                terms = tuple(error_terms(image, half, variance, weights) for image in pair)
+                per_half[h].append(terms)
+        estimate = ratio_interval(torch.cat(full[1]), torch.cat(full[0]))
+        rho = estimate.ratio
+        statistic = [torch.cat([block_sums(b - rho * a) for a, b in per_half[h]]) for h in range(2)]
+        out.append((estimate, plain_share(*statistic)))
+    return out
+
+
+def _record(estimate: RatioEstimate, share: float, plain_spp: int) -> dict[str, Any]:
+    finite = lambda v: v if math.isfinite(v) else None  # noqa: E731 (JSON has no inf/nan)
+    return {
+        "baseline": BASELINE,
+        "ratio": finite(estimate.ratio),
+        "interval": [finite(estimate.low), finite(estimate.high)],
+        "z": finite(estimate.z),
+        "separated": estimate.separated,
+        "plain_share": finite(share),
+        "plain_spp": plain_spp,
+    }
+
+
+def estimate_scene(
+    scene: EvalScene, entry: dict[str, Any], cfg: EvaluateConfig, out: Path, bar: Any = None
+) -> None:
+    """Record ``cell["estimate"]`` in every cell of ``entry`` (a scene of ``results.json``)
+    that lacks one, per budget where :data:`BASELINE` has a cell: the estimated ratio of the
+    cell's first replicate (its saved image) to the baseline's, its interval, ``z``,
+    ``separated``, ``plain_share``, ``plain_spp``, and with a reference ``true_ratio``: the
+    ratio of the two first replicates' ``relmse``."""
+    from gdpt.io.exr import load_image
+    from gdpt.study.results import budget_key, cell_seed
+
+    methods = entry.get("methods", {})
+    for budget in cfg.budgets:
+        key = budget_key(budget)
+        base = methods.get(BASELINE, {}).get("cells", {}).get(key)
+        if base is None:
+            continue
+        todo = {
+            name: info["cells"][key]
+            for name, info in methods.items()
+            if name != BASELINE
+            and "estimate" not in info.get("cells", {}).get(key, {"estimate": 1})
+        }
+        if not todo:
+            continue
+        if bar is not None:
+            bar.set_postfix_str(f"{scene.name}: estimate at {key} s")
+        spp = methods.get("pt", {}).get("cells", {}).get(key, base)["spp"]
+        if spp < 2:
+            for cell in todo.values():
+                cell["estimate"] = {"note": f"P would have {spp} sample: no variance"}
+            continue
+        plain = plain_render(scene, spp, cell_seed(cfg.seed, scene.name, key, "plain"))
+        images = [load_image(out / base["image"])]
+        images += [load_image(out / cell["image"]) for cell in todo.values()]
+        for cell, (estimate, share) in zip(
+            todo.values(), estimate_ratios([[i] for i in images], [plain]), strict=True
+        ):
+            cell["estimate"] = _record(estimate, share, spp)
+            true = [c["replicates"][0]["metrics"].get("relmse") for c in (cell, base)]
+            if None not in true and true[1] > 0:
+                cell["estimate"]["true_ratio"] = true[0] / true[1]
+
+
+def markdown(entry: dict[str, Any]) -> list[str]:
+    """Lines of a Markdown table of the scene's estimates (none: ``[]``)."""
+    rows = []
+    for name, info in entry.get("methods", {}).items():
+        for key, cell in info.get("cells", {}).items():
+            e = cell.get("estimate")
+            if not e or "ratio" not in e:
+                continue
+            low, high = e["interval"]
+            interval = "unbounded" if low is None or high is None else f"{low:.2f}-{high:.2f}"
+            true = e.get("true_ratio")
+            inside = "" if true is None or low is None else ("yes" if low <= true <= high else "no")
+            rows.append(
+                f"| {name} | {key} | {e['ratio']:.3f} | {interval} | "
+                f"{'n/a' if true is None else f'{true:.3f}'} | {inside} | {e['plain_spp']} |"
+            )
+    if not rows:
+        return []
+    return [
+        f"Reference-free estimate of the relMSE ratio to `{BASELINE}` (one plain render P per "
+        "budget; 95% Fieller interval from 8 px block sums; `gdpt.advise`):",
+        "",
+        "| method | budget s | estimate | 95% interval | true ratio | inside | P spp |",
+        "|---|---|---:|---|---:|---|---:|",
+        *rows,
+    ]
