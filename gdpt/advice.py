@@ -88,6 +88,8 @@ class Advice:
 
     Attributes:
         scene: the scene argument.
+        resolution: the film's ``(width, height)``.
+        max_depth: the longest path rendered.
         budget: seconds per method (``None``: an equal ``spp``).
         methods: the candidates, the baseline first.
         plain_spp: samples per pixel of each plain render ``P``.
@@ -96,9 +98,13 @@ class Advice:
         lines: the report, one line each (``str(advice)``).
         seconds: wall time of the whole call.
         command: a command that renders the recommended method (``None``: none).
+        images: each method's outputs, one per replicate: ``(H, W, 3)`` float32 linear
+            radiance on the CPU (empty where the plain render stopped it).
     """
 
     scene: str
+    resolution: tuple[int, int]
+    max_depth: int
     budget: float | None
     methods: list[MethodAdvice]
     plain_spp: int
@@ -107,6 +113,7 @@ class Advice:
     lines: list[str] = field(default_factory=list)
     seconds: float = 0.0
     command: str | None = None
+    images: dict[str, list[torch.Tensor]] = field(default_factory=dict)
 
     def __str__(self) -> str:
         return "\n".join(self.lines)
@@ -234,6 +241,7 @@ def _render_and_score(
             bar.update(1)
             record.seconds.append(result.seconds)
             images[m].append(result.image)
+            advice.images.setdefault(method.name, []).append(result.image)
             bad = int((~torch.isfinite(result.image)).any(-1).sum())
             if bad and record.note is None:
                 record.note = f"{bad} non-finite pixels in its output (its error is infinite)"
@@ -405,6 +413,8 @@ def advise(
             plain_spp = spp if budget is None else models[plain_key].spp_for(plain_budget or budget)
         advice = Advice(
             str(scene),
+            loaded.resolution,
+            loaded.max_depth,
             budget,
             [
                 MethodAdvice(m.name, spp or models[configuration_key(m, "total")].spp_for(budget))
