@@ -7,16 +7,19 @@ PY     := $(VENV)/bin/python
 # to look: on a standard Linux x86_64 install that is PyPI's torch==2.13.0, a CUDA build (with
 # NVIDIA's CUDA libraries, several GB); where pip is configured with a local wheel folder
 # (find-links) holding torch-2.13.0+cpu, as on this project's CI machines, it is that CPU build.
-# CPU-only anywhere: make TORCH_INDEX=https://download.pytorch.org/whl/cpu
-# A CUDA build for your driver: make TORCH_INDEX=https://download.pytorch.org/whl/cu126
+# CPU-only anywhere: make cpu (= make setup TORCH_INDEX=$(CPU_INDEX)).
+# A CUDA build for your driver: make setup TORCH_INDEX=https://download.pytorch.org/whl/cu126
+# The index a venv was set up with is remembered ($(VENV)/.torch-index): a later make demo or
+# make test without TORCH_INDEX keeps that build; make setup TORCH_INDEX= goes back to pip's.
+CPU_INDEX   := https://download.pytorch.org/whl/cpu
 TORCH_SPEC  ?= torch==2.13.0
-TORCH_INDEX ?=
+TORCH_INDEX ?= $(shell cat $(VENV)/.torch-index 2>/dev/null)
 TORCH       := $(TORCH_SPEC)$(if $(TORCH_INDEX), --index-url $(TORCH_INDEX))
 # The torch request the venv was set up with; a different one reinstalls torch (and the package).
 TORCH_STAMP := $(VENV)/.torch-spec
 STAMP       := $(VENV)/.installed
 
-.PHONY: setup lint test test-all test-gpu demo bench clean FORCE
+.PHONY: setup cpu lint test test-all test-gpu demo bench clean FORCE
 
 $(TORCH_STAMP): FORCE
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -24,7 +27,7 @@ $(TORCH_STAMP): FORCE
 	  if [ -f $@ ]; then $(PY) -m pip uninstall -q -y torch; fi; \
 	  $(PY) -m pip install -q --upgrade pip && \
 	  $(PY) -m pip install -q "$(TORCH_SPEC)" $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) && \
-	  echo "$(TORCH)" > $@; \
+	  echo "$(TORCH)" > $@ && echo "$(TORCH_INDEX)" > $(VENV)/.torch-index; \
 	fi
 
 $(STAMP): $(TORCH_STAMP) pyproject.toml Makefile tools/ensure_llvm.sh
@@ -33,6 +36,10 @@ $(STAMP): $(TORCH_STAMP) pyproject.toml Makefile tools/ensure_llvm.sh
 	@touch $(STAMP)
 
 setup: $(STAMP)
+
+# The CPU build of torch (no CUDA libraries), kept by every later make command.
+cpu:
+	$(MAKE) setup TORCH_INDEX=$(CPU_INDEX)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -79,9 +79,9 @@ def main() -> None:
     cases = []
     print(
         "| scene | budget s | estimate | 95% interval | true | true (estimator's weights) "
-        "| inside | recommended | advise s |"
+        "| inside | recommended | spp tuned/fuse/P | advise s |"
     )
-    print("|---|---:|---:|---|---:|---:|---|---|---:|")
+    print("|---|---:|---:|---|---:|---:|---|---|---|---:|")
     for name in args.scenes:
         scene, ref_name, box = source(name)
         for budget in args.budgets:
@@ -128,7 +128,8 @@ def main() -> None:
             print(
                 f"| {name} | {budget:g} | {'n/a' if e is None else f'{e.ratio:.2f}'} | {interval} "
                 f"| {case['true_ratio']:.2f} | {case['true_ratio_estimator_weights']:.2f} "
-                f"| {'yes' if case['inside'] else 'no'} | {advice.recommended} | {seconds:.0f} |",
+                f"| {'yes' if case['inside'] else 'no'} | {advice.recommended} "
+                f"| {case['spp'][BASELINE]}/{fuse.spp}/{advice.plain_spp} | {seconds:.0f} |",
                 flush=True,
             )
     inside = sum(c["inside"] for c in cases)

@@ -194,3 +194,33 @@ def test_readme_states_the_cost_tables_condition():
     assert f"**{record['condition']}**" in condition, condition
     for part in (record["machine"], record["threads"], record["date"], *record["skipped"]):
         assert part in condition, (part, condition)
+
+
+#: A figure quoted in more than one place carries the same name everywhere, in an HTML comment
+#: right before it (invisible on the rendered page): ``<!--fig:auto-per-cell-->0.93-1.03x``;
+#: its number (a range included, the unit not) must be the same everywhere.
+_NAMED = re.compile(r"<!--fig:([\w.-]+)-->(\d[\d.\-]*\d|\d)")
+
+
+def _named_figures() -> dict[str, list[tuple[str, str]]]:
+    """Name -> ``[(where, figure)]`` over the README, the CHANGELOG and ``docs/``."""
+    named: dict[str, list[tuple[str, str]]] = {}
+    for page in PAGES:
+        text = page.read_text()
+        for match in _NAMED.finditer(text):
+            where = f"{page.relative_to(ROOT)}:{text.count(chr(10), 0, match.start()) + 1}"
+            named.setdefault(match.group(1), []).append((where, match.group(2)))
+    return named
+
+
+def test_a_figure_quoted_twice_is_the_same_everywhere():
+    """Every named figure (``_NAMED``) is quoted at least twice, each time with the same value:
+    a figure changed in one place only fails here."""
+    named = _named_figures()
+    assert len(named) >= 2, named  # the guard guards something
+    wrong = [
+        f"{name}: {quotes}"
+        for name, quotes in named.items()
+        if len(quotes) < 2 or len({figure for _, figure in quotes}) > 1
+    ]
+    assert not wrong, wrong
