@@ -35,6 +35,9 @@ Protocol, per scene:
    times, every attempt and kernel compilation (excluded from the times) are recorded.
 4. Metrics of every cell; ``results.json`` is rewritten after each cell, so an interrupted run
    resumes without recomputing finished cells.
+5. The reference-free estimate of every cell's relMSE ratio to ``pt+oidn-tuned``
+   (:mod:`gdpt.study.estimate`), beside the true one; with ``cfg.reference`` off (``gdpt
+   evaluate --no-reference``) step 2 and the metrics are skipped and the estimate is the result.
 
 A method that cannot run here (package missing, no shipped model) is recorded with the reason
 and skipped. A failure (a scene that fails to load or render its reference, a method that raises
