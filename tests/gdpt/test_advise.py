@@ -144,3 +144,41 @@ def test_feature_black_scene_cannot_tell(tmp_path, capsys):
     assert status == 1
     assert "cannot tell: the image is black or nearly black" in out
     assert "recommended: none" in out and "spp" not in out.split("P:")[1].split("\n", 1)[1]
+
+
+@pytest.mark.slow
+def test_feature_interval_covers_the_true_ratio_on_a_rendered_scene():
+    """On the Cornell box at 64 px, 12 seeded advise runs (``pt+oidn`` against
+    ``pt+oidn-tuned`` at 16 spp, ``P`` 64 spp, 2 replicates): the 95% interval covers the true
+    ratio of the same renders (the estimator's weights, a 4096-spp reference) in at least 10."""
+    from gdpt.reconstruct.reference_free import relmse_weights
+
+    from gdpt.rendering import render
+    from gdpt.scenes.loading import read_scene
+
+    scene = read_scene("builtin:cbox-demo", long_side=64).scene
+    reference = render(scene, spp=4096, seed=99, max_depth=6, gradients=False, features=False)
+    truth = reference.primal.cpu()
+    covered = []
+    for seed in range(12):
+        advice = gdpt.advise(
+            "builtin:cbox-demo",
+            spp=16,
+            plain_spp=64,
+            methods=["pt+oidn-tuned", "pt+oidn"],
+            replicates=2,
+            long_side=64,
+            seed=seed,
+            progress=False,
+        )
+        base, other = (advice.images[m] for m in ("pt+oidn-tuned", "pt+oidn"))
+        errors = [
+            sum(
+                float((relmse_weights(b) * (x - truth).square().mean(-1, keepdim=True)).sum())
+                for x, b in zip(images, base, strict=True)
+            )
+            for images in (base, other)
+        ]
+        e = advice.methods[1].estimate
+        covered.append(e.low <= errors[1] / errors[0] <= e.high)
+    assert sum(covered) >= 10, covered
