@@ -134,6 +134,7 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     from gdpt.methods import register_checkpoint
     from gdpt.metrics import METRICS
     from gdpt.study.config import PRESETS
+    from gdpt.study.estimate import BASELINE
     from gdpt.study.evaluate import StudyFailure, evaluate, failures, render_references
     from gdpt.study.methods import EVAL_METHODS, register_denoiser
     from gdpt.study.report import best_methods
@@ -165,6 +166,8 @@ def _run_evaluate(args: argparse.Namespace) -> int:
         "keep_going": args.keep_going,
         "reference": False if args.no_reference else None,
     }
+    if args.no_reference and args.methods is not None and BASELINE not in args.methods:
+        raise UsageError(f"--no-reference estimates ratios to {BASELINE}: add it to --methods")
     cfg = PRESETS["quick" if args.quick else "full"]
     cfg = dataclasses.replace(cfg, **{k: v for k, v in changes.items() if v is not None})
     if args.references_only:

@@ -150,12 +150,11 @@ def estimate_scene(
         base = methods.get(BASELINE, {}).get("cells", {}).get(key)
         if base is None:
             continue
-        todo = {
-            name: info["cells"][key]
-            for name, info in methods.items()
-            if name != BASELINE
-            and "estimate" not in info.get("cells", {}).get(key, {"estimate": 1})
-        }
+        todo = {}
+        for name, info in methods.items():
+            cell = info.get("cells", {}).get(key)
+            if name != BASELINE and cell is not None and "estimate" not in cell:
+                todo[name] = cell
         if not todo:
             continue
         if bar is not None:

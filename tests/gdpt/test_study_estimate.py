@@ -46,3 +46,9 @@ def test_feature_no_reference_estimate_only(tmp_path):
     assert cell["estimate"]["ratio"] > 0
     text = (tmp_path / "n" / "results.md").read_text()
     assert "no reference (--no-reference)" in text and "| pt | 0.1 |" in text
+
+
+def test_exception_no_reference_without_the_baseline(tmp_path, capsys):
+    argv = ["evaluate", "--scenes", "builtin:cbox-demo", "--out", str(tmp_path), "--quick"]
+    assert main([*argv, "--methods", "pt", "--no-reference", "--no-progress"]) == 2
+    assert "--no-reference estimates ratios to pt+oidn-tuned" in capsys.readouterr().err
