@@ -15,16 +15,25 @@ seed1000003.exr``; the film size and depth must match). Usage::
 
     .venv/bin/python benchmarks/advise_agreement.py --references out/refs128
         [--scenes cornell-box sponza veach-mis living-room-2 random:202 random:311]
-        [--budgets 4 8] [--replicates 1] [--out out/advise_agreement.json]
+        [--budgets 4 8] [--replicates 1] [--study out/study/results.json]
+        [--out out/advise_agreement.json]
 
-Prints one Markdown row per case and the count of cases whose interval covers the true ratio;
-writes every number, the advice's report and the machine to ``--out`` (JSON).
+With ``--study`` (a ``gdpt evaluate`` run with paired replicates of both methods on the same
+scenes and budgets), each case also gets the study's verdict: ``lower``/``higher`` where the
+paired 95% interval of the ratio (geometric mean over replicates,
+:func:`gdpt.statistics.mean_interval` of the log ratios) excludes 1, else ``none``; advise's
+verdict is the same from its own interval, and ``match`` says whether the two agree.
+
+Prints one Markdown row per case, the count of cases whose interval covers the true ratio and
+of verdicts that match; writes every number, the advice's report and the machine to ``--out``
+(JSON).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 
@@ -33,6 +42,7 @@ from gdpt.reconstruct.reference_free import relmse_weights
 import gdpt
 from gdpt.io.exr import load_image
 from gdpt.metrics import relmse
+from gdpt.statistics import mean_interval
 from gdpt.study.results import machine_info, versions
 
 SHARED = Path(__file__).resolve().parents[1] / ".." / "shared" / "scenes"
@@ -66,6 +76,29 @@ def squared_error(image, ref, weights=None) -> float:
     return float((weights * (image - ref).square().mean(-1, keepdim=True)).sum())
 
 
+def verdict(low: float, high: float) -> str:
+    """``lower``/``higher`` where the interval ``[low, high]`` of a ratio excludes 1, else
+    ``none``."""
+    return "lower" if high < 1 else "higher" if low > 1 else "none"
+
+
+def study_verdict(study: dict | None, scene: str, budget: float) -> str | None:
+    """The study's verdict on ``CANDIDATE`` / ``BASELINE`` at ``budget`` on ``scene`` from its
+    paired replicates (``None``: not in the study)."""
+    if study is None:
+        return None
+    methods = study["scenes"].get(scene, {}).get("methods", {})
+    cells = [methods.get(m, {}).get("cells", {}).get(f"{budget:g}") for m in (CANDIDATE, BASELINE)]
+    if None in cells:
+        return None
+    by_seed = [{r["seed"]: r["metrics"]["relmse"] for r in c["replicates"]} for c in cells]
+    logs = [math.log(by_seed[0][k] / by_seed[1][k]) for k in by_seed[0] if k in by_seed[1]]
+    if len(logs) < 2:
+        return None
+    _, low, high = mean_interval(logs)
+    return verdict(math.exp(low), math.exp(high))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     parser.add_argument("--references", type=Path, required=True)
@@ -73,15 +106,17 @@ def main() -> None:
     parser.add_argument("--budgets", type=float, nargs="+", default=[4.0, 8.0])
     parser.add_argument("--replicates", type=int, default=1)
     parser.add_argument("--long-side", type=int, default=128)
+    parser.add_argument("--study", type=Path, help="results.json of a study of the same scenes")
     parser.add_argument("--out", type=Path, default=Path("out/advise_agreement.json"))
     args = parser.parse_args()
+    study = json.loads(args.study.read_text()) if args.study else None
     gdpt.set_variant()
     cases = []
     print(
         "| scene | budget s | estimate | 95% interval | true | true (estimator's weights) "
-        "| inside | recommended | spp tuned/fuse/P | advise s |"
+        "| inside | advise | study | recommended | spp tuned/fuse/P | advise s |"
     )
-    print("|---|---:|---:|---|---:|---:|---|---|---|---:|")
+    print("|---|---:|---:|---|---:|---:|---|---|---|---|---|---:|")
     for name in args.scenes:
         scene, ref_name, box = source(name)
         for budget in args.budgets:
@@ -120,6 +155,8 @@ def main() -> None:
                 "true_ratio_estimator_weights": own[1] / own[0],
                 "inside": e is not None and e.low <= true[1] / true[0] <= e.high,
                 "recommended": advice.recommended,
+                "advise_verdict": "none" if e is None else verdict(e.low, e.high),
+                "study_verdict": study_verdict(study, ref_name, budget),
                 "seconds": seconds,
                 "report": advice.lines,
             }
@@ -128,19 +165,23 @@ def main() -> None:
             print(
                 f"| {name} | {budget:g} | {'n/a' if e is None else f'{e.ratio:.2f}'} | {interval} "
                 f"| {case['true_ratio']:.2f} | {case['true_ratio_estimator_weights']:.2f} "
-                f"| {'yes' if case['inside'] else 'no'} | {advice.recommended} "
+                f"| {'yes' if case['inside'] else 'no'} | {case['advise_verdict']} "
+                f"| {case['study_verdict'] or 'n/a'} | {advice.recommended} "
                 f"| {case['spp'][BASELINE]}/{fuse.spp}/{advice.plain_spp} | {seconds:.0f} |",
                 flush=True,
             )
     inside = sum(c["inside"] for c in cases)
     print(f"\ninterval covers the true ratio in {inside} of {len(cases)} cases")
+    compared = [c for c in cases if c["study_verdict"] is not None]
+    matches = sum(c["advise_verdict"] == c["study_verdict"] for c in compared)
+    print(f"advise's verdict matches the study's in {matches} of {len(compared)} cases")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(
         json.dumps(
             {
                 "machine": machine_info(),
                 "versions": versions(),
-                "args": vars(args) | {"references": str(args.references), "out": str(args.out)},
+                "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
                 "cases": cases,
             },
             indent=1,
