@@ -99,6 +99,18 @@ def study_verdict(study: dict | None, scene: str, budget: float) -> str | None:
     return verdict(math.exp(low), math.exp(high))
 
 
+def write(args: argparse.Namespace, cases: list[dict]) -> None:
+    """``--out``: the machine, versions, arguments and the cases so far (JSON)."""
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    record = {
+        "machine": machine_info(),
+        "versions": versions(),
+        "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+        "cases": cases,
+    }
+    args.out.write_text(json.dumps(record, indent=1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     parser.add_argument("--references", type=Path, required=True)
@@ -161,6 +173,7 @@ def main() -> None:
                 "report": advice.lines,
             }
             cases.append(case)
+            write(args, cases)  # after every case: an interrupted run keeps what it measured
             interval = "n/a" if e is None else f"{e.low:.2f}-{e.high:.2f}"
             print(
                 f"| {name} | {budget:g} | {'n/a' if e is None else f'{e.ratio:.2f}'} | {interval} "
@@ -175,18 +188,6 @@ def main() -> None:
     compared = [c for c in cases if c["study_verdict"] is not None]
     matches = sum(c["advise_verdict"] == c["study_verdict"] for c in compared)
     print(f"advise's verdict matches the study's in {matches} of {len(compared)} cases")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(
-        json.dumps(
-            {
-                "machine": machine_info(),
-                "versions": versions(),
-                "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
-                "cases": cases,
-            },
-            indent=1,
-        )
-    )
     print(f"wrote {args.out}")
 
 
