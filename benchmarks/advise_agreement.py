@@ -129,9 +129,9 @@ def main() -> None:
         "| inside | advise | study | recommended | spp tuned/fuse/P | advise s |"
     )
     print("|---|---:|---:|---|---:|---:|---|---|---|---|---|---:|")
-    for name in args.scenes:
-        scene, ref_name, box = source(name)
-        for budget in args.budgets:
+    for budget in args.budgets:  # every scene at the first budget first
+        for name in args.scenes:
+            scene, ref_name, box = source(name)
             start = time.perf_counter()
             advice = gdpt.advise(
                 scene,
