@@ -3,10 +3,10 @@ decides gradients or not for the whole image; every sample it traced goes into t
 
 Two routes fill the same render time; ``spp`` (``N``) counts the plain route's samples:
 
-* ``gradient``: ``G = (N - S) / (c + f)`` gradient samples per pixel (``c``: a gradient sample's
-  cost in plain ones, ``f``: :data:`~gdpt.adapters.FUSE_PRIMAL_SPP_FACTOR` plain samples pooled
-  per gradient sample, ``S``: the pilot's statistics in plain samples), reconstructed by
-  ``fuse``;
+* ``gradient``: ``G = N / (c + f)`` gradient samples per pixel (``c``:
+  :data:`DEFAULT_COST_RATIO`, a gradient sample's cost in plain ones; ``f``:
+  :data:`~gdpt.adapters.FUSE_PRIMAL_SPP_FACTOR` plain samples pooled per gradient sample; the
+  pooled count is then set by measured time), reconstructed by ``fuse``;
 * ``plain``: plain path samples (features on), reconstructed by the primal-only denoiser ``D``
   (:func:`gdpt.adapters.plain_denoiser`).
 
@@ -78,18 +78,11 @@ PILOT_SPP = 2
 #: Clamp of the measured gradient/plain sample cost ratio.
 COST_RATIO_RANGE = (1.0, 4.0)
 
-#: Gradient/plain sample cost ratio assumed before a pilot of the scene measured it (2-3 on warm
-#: renders, ``benchmarks/method_cost.py``).
+#: Gradient/plain sample cost ratio that sizes ``G`` (1.7 measured on cornell-box at 128 px, 2-3
+#: in ``benchmarks/method_cost.py``). A constant, not a measurement: ``G`` and the pilot's
+#: pooled count then depend on ``N`` alone, so a render replays the frozen passes of an earlier
+#: one of the same ``N`` (a measured ratio would change them from render to render).
 DEFAULT_COST_RATIO = 2.0
-
-#: Per scene of this process (``id`` of the ``mi.Scene`` and its ``max_depth``): the last
-#: pilot's measured ``cost_ratio`` and plain ``seconds_per_spp``, which size the next pilot's
-#: ``G`` and its statistics' charge.
-_SCENE_COSTS: dict[tuple[int, Any], dict[str, float]] = {}
-
-#: The statistics' seconds per window pixel of this process's last pilot, per denoiser: a
-#: measured machine constant (three denoises and two solves per window).
-_STATISTICS_SECONDS_PER_PIXEL: dict[str, float] = {}
 
 
 @dataclass
@@ -257,21 +250,10 @@ def run_pilot(
     }
     start = time.perf_counter()
     denoiser, denoise = methods.primal_only()
-    key = _scene_key(scene, props)
-    known = _SCENE_COSTS.get(key, {})
-    cost_ratio = known.get("cost_ratio", DEFAULT_COST_RATIO)
     corners = pilot_tiles(height, width, count, seed, tile)
     windows = statistics_windows(height, width, corners, tile)
     window_pixels = sum(h * w for (_, _, h, w), _ in windows)
-    expected = _STATISTICS_SECONDS_PER_PIXEL.get(denoiser, 0.0) * window_pixels
-    statistics_spp = expected / known["seconds_per_spp"] if "seconds_per_spp" in known else 0.0
-    g = gradient_spp_for(spp - statistics_spp, cost_ratio)
-    if g < PILOT_SPP:
-        reason = (
-            f"{spp} spp: the pilot's statistics (~{expected:.2f} s) leave fewer than "
-            f"{PILOT_SPP} gradient spp; plain route"
-        )
-        return _no_pilot(reason), None
+    g = gradient_spp_for(spp, DEFAULT_COST_RATIO)
     mask = np.zeros((height, width), dtype=bool)
     for y, x in corners:
         mask[y : y + tile, x : x + tile] = True
@@ -282,8 +264,8 @@ def run_pilot(
     share_px = float(mask.mean())
     t_plain = render.metadata["primal_only"]["render_seconds"]
     seconds_per_spp = max(t_plain / p1, 1e-9)
-    cost_ratio = _measured_cost_ratio(
-        key, render.metadata["render_seconds"] - t_plain, g, share_px, seconds_per_spp
+    cost_ratio = measured_cost_ratio(
+        render.metadata["render_seconds"] - t_plain, g, share_px, seconds_per_spp
     )
     counts = {
         "gradient_spp": g,
@@ -303,7 +285,6 @@ def run_pilot(
     terms, nonfinite = _tile_terms(render, denoise, windows, tile)
     choice = choose(terms, tile=0, margin=SIGNIFICANCE, nonfinite=nonfinite)
     statistics_seconds = time.perf_counter() - measure_start
-    _STATISTICS_SECONDS_PER_PIXEL[denoiser] = statistics_seconds / window_pixels
     counts.update(
         statistic=choice.statistic,
         difference=choice.difference,
@@ -328,26 +309,16 @@ def run_pilot(
     return RouteChoice(route, method, reason, cost_ratio, seconds, counts), pilot
 
 
-def _measured_cost_ratio(
-    key: tuple[int, Any], seconds: float, gradient_spp: int, share: float, seconds_per_spp: float
+def measured_cost_ratio(
+    seconds: float, gradient_spp: int, share: float, seconds_per_spp: float
 ) -> float:
-    """The cost ratio of a gradient sample to a plain one from a masked gradient pass of
-    ``seconds`` at ``gradient_spp`` whose offsets covered ``share`` of the pixels (the others
-    plain samples), clamped to :data:`COST_RATIO_RANGE`. Remembered for the scene (with the
-    plain ``seconds_per_spp``) where no pass of a larger ``share`` measured it before; returns
-    the remembered ratio."""
+    """The cost of a gradient sample in plain ones, from a gradient pass of ``seconds`` at
+    ``gradient_spp`` whose offsets covered ``share`` of the pixels (the others plain samples)
+    and a plain sample's ``seconds_per_spp``, clamped to :data:`COST_RATIO_RANGE`
+    (informational: the route's charges use measured seconds, not this ratio)."""
     per_sample = seconds / gradient_spp / seconds_per_spp
     measured = 1.0 + (per_sample - 1.0) / max(share, 1e-9)
-    measured = min(max(measured, COST_RATIO_RANGE[0]), COST_RATIO_RANGE[1])
-    known = _SCENE_COSTS.setdefault(key, {"share": 0.0})
-    if share >= known["share"]:
-        known.update(cost_ratio=measured, share=share)
-    known["seconds_per_spp"] = seconds_per_spp
-    return known["cost_ratio"]
-
-
-def _scene_key(scene: Any, props: dict[str, Any]) -> tuple[int, Any]:
-    return id(scene), props.get("max_depth")
+    return min(max(measured, COST_RATIO_RANGE[0]), COST_RATIO_RANGE[1])
 
 
 def _tile_terms(
@@ -414,9 +385,7 @@ def render_route(
     g = info["gradient_spp"]
     sampling = {**fuse.sampling(g), "primal_spp": 0, "features": False, **props}
     gradient = rendering.render(scene, spp=g, seed=seed, gradient_mask=~pilot.tiles, **sampling)
-    key = _scene_key(load_scene(scene), props)
     seconds = gradient.metadata["render_seconds"]
-    _measured_cost_ratio(key, seconds, g, 1.0 - info["share"], info["seconds_per_spp"])
     rest = max(1, round(left - seconds / info["seconds_per_spp"]))
     plain_sampling = {**fuse.sampling(rest), "gradients": False, "primal_spp": 0, **props}
     plain_seed = (int(seed) ^ rendering.PRIMAL_SEED_SALT) & 0xFFFFFFFF

@@ -29,13 +29,6 @@ pytestmark = pytest.mark.usefixtures("variant", "single_thread")
 TILE = 8
 
 
-@pytest.fixture(autouse=True)
-def _nothing_remembered(monkeypatch):
-    """Each test starts without measured costs (statistics, cost ratio) of earlier pilots."""
-    monkeypatch.setattr(route, "_STATISTICS_SECONDS_PER_PIXEL", {})
-    monkeypatch.setattr(route, "_SCENE_COSTS", {})
-
-
 @pytest.fixture(scope="module")
 def scene():
     return gdpt.load_scene(builtin_scene("cbox-demo"), long_side=64)
@@ -156,8 +149,6 @@ def test_the_statistics_time_is_charged_to_the_main_render(scene, monkeypatch):
     kept = []
     for seconds in (0.0, 0.0, 1.0):  # the first records the frozen passes of these counts
         _forced_terms(monkeypatch, 1.0, seconds)
-        monkeypatch.setattr(route, "_STATISTICS_SECONDS_PER_PIXEL", {})  # the same pilot size
-        monkeypatch.setattr(route, "_SCENE_COSTS", {})
         choice, pilot = route.run_pilot(scene, spp=spp, seed=3, tile=TILE)
         buffers = route.render_route(scene, choice, pilot, spp=spp, seed=4)
         assert choice.route == "plain" and not buffers.has_gradients
