@@ -78,10 +78,11 @@ PILOT_SPP = 2
 #: Clamp of the measured gradient/plain sample cost ratio.
 COST_RATIO_RANGE = (1.0, 4.0)
 
-#: Gradient/plain sample cost ratio that sizes ``G`` (1.7 measured on cornell-box at 128 px, 2-3
-#: in ``benchmarks/method_cost.py``). A constant, not a measurement: ``G`` and the pilot's
-#: pooled count then depend on ``N`` alone, so a render replays the frozen passes of an earlier
-#: one of the same ``N`` (a measured ratio would change them from render to render).
+#: Gradient/plain sample cost ratio that sizes ``G`` (1.5-2.0 measured by the pilots of the
+#: quick study's directly lit scenes, docs/gradients.md; 2-3 in ``benchmarks/method_cost.py``).
+#: A constant, not a measurement: ``G`` and the pilot's pooled count then depend on ``N`` alone,
+#: so a render replays the frozen passes of an earlier one of the same ``N`` (a measured ratio
+#: would change them from render to render).
 DEFAULT_COST_RATIO = 2.0
 
 
