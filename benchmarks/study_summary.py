@@ -25,7 +25,7 @@ and so are such names given as options (with a ``DeprecationWarning``).
 
     .venv/bin/python benchmarks/study_summary.py out/eval/results.json \\
         [--candidates gdpt+fuse auto] [--against pt+oidn-tuned] [--metrics relmse flip_ldr] \\
-        [--out out/eval/summary.md]
+        [--budgets 4 8] [--out out/eval/summary.md]
 """
 
 from __future__ import annotations
@@ -49,16 +49,21 @@ def replicate_values(cell: dict, metric: str) -> list[float] | None:
     return values
 
 
-def table(results: dict, metric: str) -> dict[tuple[str, str], dict[str, list[float]]]:
-    """``(scene, budget) -> {method: per-replicate values}``; ``relmse-corrected`` subtracts the
-    reference noise estimated from the cell's ``pt`` (see the module docstring) and holds only
-    the cells that have ``pt``."""
+def table(
+    results: dict, metric: str, budgets: list[str] | None = None
+) -> dict[tuple[str, str], dict[str, list[float]]]:
+    """``(scene, budget) -> {method: per-replicate values}`` (only ``budgets``, keys as in
+    ``results.json``, where given); ``relmse-corrected`` subtracts the reference noise estimated
+    from the cell's ``pt`` (see the module docstring) and holds only the cells that have
+    ``pt``."""
     base = "relmse" if metric == "relmse-corrected" else metric
     ref_spp = results["config"]["reference_spp"]
     out: dict[tuple[str, str], dict[str, list[float]]] = {}
     for scene, entry in results["scenes"].items():
         for method, data in entry.get("methods", {}).items():
             for budget, cell in data.get("cells", {}).items():
+                if budgets is not None and budget not in budgets:
+                    continue
                 values = replicate_values(cell, base)
                 if values is not None:
                     out.setdefault((scene, budget), {})[method] = values
@@ -141,8 +146,14 @@ def overview(results: dict, metrics: list[str], against: str) -> list[str]:
     return [*lines, ""]
 
 
-def summarise(results: dict, metric: str, candidates: list[str], against: str) -> list[str]:
-    cells = table(results, metric)
+def summarise(
+    results: dict,
+    metric: str,
+    candidates: list[str],
+    against: str,
+    budgets: list[str] | None = None,
+) -> list[str]:
+    cells = table(results, metric, budgets)
     lowest, firm = Counter(), Counter()
     for errors in cells.values():
         ranked = sorted(errors, key=lambda m: mean(errors[m]))
@@ -213,6 +224,9 @@ def main() -> None:
     parser.add_argument("--against", default="pt+oidn-tuned")
     parser.add_argument("--metrics", nargs="+", default=["relmse", "relmse-corrected", "flip_ldr"])
     parser.add_argument("--out", type=Path, help="also write the Markdown here")
+    parser.add_argument(
+        "--budgets", nargs="+", help="summarise these budget cells only (e.g. 4 8; default all)"
+    )
     args = parser.parse_args()
     args.against = EVAL_METHODS.resolve(args.against)
     args.candidates = [EVAL_METHODS.resolve(c) for c in args.candidates]
@@ -220,7 +234,7 @@ def main() -> None:
     lines = [f"# {args.results}", "", "Per-cell values: mean [min, max] of the replicates.", ""]
     lines += overview(results, args.metrics, args.against)
     for metric in args.metrics:
-        lines += summarise(results, metric, args.candidates, args.against)
+        lines += summarise(results, metric, args.candidates, args.against, args.budgets)
     text = "\n".join(lines)
     print(text)
     if args.out is not None:

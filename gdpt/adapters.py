@@ -165,22 +165,65 @@ def plain_denoiser() -> str:
 
 
 def fusion_statistics_of(
-    buffers: GradientBuffers, denoise: Callable[[GradientBuffers], torch.Tensor]
+    buffers: GradientBuffers,
+    denoise: Callable[[GradientBuffers], torch.Tensor],
+    *,
+    whole_denoise: bool = True,
 ) -> FusionStatistics:
     """:func:`gdpt.reconstruct.fuse.fusion_statistics` of a render with variances and halves:
-    ``denoise`` runs on the render without its gradients and on its two halves."""
+    ``denoise`` runs on the render without its gradients and on its two halves; without
+    ``whole_denoise``, the mean of the halves' denoises stands for the whole render's (one
+    denoise fewer: enough where only the held-out terms are read, which take from it only the
+    relMSE weights' luminance, the statistics' guide and the error floor)."""
     from gdpt.reconstruct.fuse import fusion_statistics
 
-    def part(name: str) -> GradientBuffers:
-        return buffers.replace(dx=None, dy=None) if name == "full" else buffers.half(name)
+    done: dict[str, torch.Tensor] = {}
+
+    def denoised(name: str) -> torch.Tensor:
+        if name == "full" and not whole_denoise:
+            return 0.5 * (denoised("a") + denoised("b"))
+        if name not in done:
+            part = buffers.replace(dx=None, dy=None) if name == "full" else buffers.half(name)
+            done[name] = denoise(part)
+        return done[name]
 
     return fusion_statistics(
-        lambda name: denoise(part(name)),
-        buffers.primal_a,
-        buffers.primal_b,
-        buffers.var_dx,
-        buffers.var_dy,
+        denoised, buffers.primal_a, buffers.primal_b, buffers.var_dx, buffers.var_dy
     )
+
+
+def _fusion_halves(buffers: GradientBuffers) -> tuple[GradientBuffers, tuple[Any, Any, Any]]:
+    """``buffers`` with untraced gradients filled (:func:`gdpt.buffers.fill_untraced`: 0 with
+    infinite variance) and the halves :func:`gdpt.reconstruct.fuse.fuse_checked` reads:
+    ``((dx_a, dy_a), (dx_b, dy_b))``, ``(primal_a, primal_b)`` and the variance scales (the
+    render's gradient samples over each half's, ``inf`` for an empty half)."""
+    from gdpt.buffers import fill_untraced, gradient_half_count  # (torch: not at import)
+
+    buffers = fill_untraced(buffers, 0.0, 0.0)
+    counts = gradient_half_count(buffers)
+    return buffers, (
+        ((buffers.dx_a, buffers.dy_a), (buffers.dx_b, buffers.dy_b)),
+        (buffers.primal_a, buffers.primal_b),
+        tuple(buffers.spp / n if n > 0 else math.inf for n in counts),
+    )
+
+
+def held_out_fusion_terms_of(
+    buffers: GradientBuffers,
+    denoise: Callable[[GradientBuffers], torch.Tensor],
+    *,
+    whole_denoise: bool = True,
+) -> tuple[torch.Tensor, int]:
+    """:func:`gdpt.reconstruct.fuse.held_out_fusion_terms` of ``fuse``'s input ``buffers``
+    (gradients, variances and halves; untraced gradients have no weight) with the denoiser
+    ``denoise`` (``whole_denoise``: see :func:`fusion_statistics_of`): ``(H, W, 1)`` per-pixel
+    held-out relMSE of the fusion minus the denoise's (< 0: the fusion looks better) and the
+    count of non-finite terms."""
+    from gdpt.reconstruct.fuse import TRUST_RATIO, held_out_fusion_terms
+
+    buffers, halves = _fusion_halves(buffers)
+    statistics = fusion_statistics_of(buffers, denoise, whole_denoise=whole_denoise)
+    return held_out_fusion_terms(statistics, *halves, trust_ratio=TRUST_RATIO)
 
 
 def fuse_method(
@@ -226,17 +269,12 @@ def fuse_method(
             + "; these buffers have none"
         )
     name, denoise = primal_only(denoiser)
-    from gdpt.buffers import fill_untraced, gradient_half_count  # (torch: not at import)
-
-    buffers = fill_untraced(buffers, 0.0, 0.0)
-    counts = gradient_half_count(buffers)
+    buffers, halves = _fusion_halves(buffers)
     image, info = fuse_checked(
         fusion_statistics_of(buffers, denoise),
         buffers.dx,
         buffers.dy,
-        ((buffers.dx_a, buffers.dy_a), (buffers.dx_b, buffers.dy_b)),
-        (buffers.primal_a, buffers.primal_b),
-        tuple(buffers.spp / n if n > 0 else math.inf for n in counts),
+        *halves,
         trust_ratio=TRUST_RATIO if trust_ratio is None else trust_ratio,
     )
     buffers.metadata["fuse"] = {"denoiser": name, **dataclasses.asdict(info)}

@@ -168,18 +168,25 @@ class GradientBuffers:
         """A copy with some fields replaced (validated again)."""
         return dataclasses.replace(self, **changes)
 
+    def crop(self, top: int, left: int, height: int, width: int) -> GradientBuffers:
+        """The ``height x width`` window at ``(top, left)`` of every present buffer (clipped to
+        the image), as views of the same tensors; the crop's last column has no ``dx`` and its
+        last row no ``dy`` (``gradient_mask`` says so where the render has one)."""
+        rows, cols = slice(top, top + height), slice(left, left + width)
+        crop = {n: t[rows, cols] for n, t in self.items()}
+        if self.gradient_mask is not None:
+            crop["gradient_mask"] = self.gradient_mask[rows, cols].clone()
+            crop["gradient_mask"][:, -1, 0] = False
+            crop["gradient_mask"][-1, :, 1] = False
+        return self.replace(**crop)
+
     def centre_crop(self, size: int) -> GradientBuffers:
         """The centre ``size x size`` pixels (each side at most ``size``) of every present
-        buffer, as views of the same tensors; ``self`` where the image fits."""
+        buffer (:meth:`crop`); ``self`` where the image fits."""
         if self.height <= size and self.width <= size:
             return self
         y0, x0 = max(0, (self.height - size) // 2), max(0, (self.width - size) // 2)
-        crop = {n: t[y0 : y0 + size, x0 : x0 + size] for n, t in self.items()}
-        if self.gradient_mask is not None:
-            crop["gradient_mask"] = self.gradient_mask[y0 : y0 + size, x0 : x0 + size].clone()
-            crop["gradient_mask"][:, -1, 0] = False  # (the crop's last column has no dx)
-            crop["gradient_mask"][-1, :, 1] = False
-        return self.replace(**crop)
+        return self.crop(y0, x0, size, size)
 
     # ------------------------------------------------------------------ validation
     def validate(self) -> None:
@@ -335,29 +342,75 @@ def primal_count(buffers: GradientBuffers) -> int:
     return int(buffers.metadata.get("primal_spp") or buffers.spp)
 
 
+def _traced(buffers: GradientBuffers, exists_only: bool = False) -> torch.Tensor:
+    """``(H, W, 2)`` bool: the gradients ``buffers`` traced (all without a gradient mask; with
+    ``exists_only``, the last column's ``dx`` and last row's ``dy``, which do not exist, are
+    left out then)."""
+    if buffers.gradient_mask is not None:
+        return buffers.gradient_mask
+    out = torch.ones((buffers.height, buffers.width, 2), dtype=torch.bool, device=buffers.device)
+    if exists_only:
+        out[:, -1, 0] = False
+        out[-1, :, 1] = False
+    return out
+
+
+def _pool_traced(
+    fields: dict[str, torch.Tensor],
+    group: Sequence[GradientBuffers],
+    traced: Sequence[torch.Tensor],
+    axis: int,
+    weights: Sequence[float],
+    name: str,
+    variance: str | None = None,
+) -> None:
+    """Set ``fields[name]`` to the mean of ``name`` over the renders of ``group`` that traced
+    each gradient (``traced[i][..., axis]``), render ``i`` weighted by ``weights[i]``, and
+    ``fields[variance]`` to the variance of that mean (``inf`` where none traced it); ``0``
+    where none traced it. Left out where a render of ``group`` lacks the buffer."""
+    if not group or any(getattr(r, name) is None for r in group):
+        return
+    w = [wi * t[..., axis : axis + 1].float() for wi, t in zip(weights, traced, strict=True)]
+    total = sum(w)
+    share = [wi / total.clamp_min(1e-30) for wi in w]
+    fields[name] = sum(
+        torch.where(si > 0, getattr(r, name), 0.0) * si for r, si in zip(group, share, strict=True)
+    )
+    if variance is not None and all(getattr(r, variance) is not None for r in group):
+        pooled = sum(
+            torch.where(si > 0, getattr(r, variance), 0.0) * si.square()
+            for r, si in zip(group, share, strict=True)
+        )
+        fields[variance] = torch.where(total > 0, pooled, torch.inf)
+
+
 def merge_renders(renders: Sequence[GradientBuffers]) -> GradientBuffers:
     """Merge independent renders of one scene and film into the render of all their samples.
 
     The primal, the features (:data:`POOLED`) and ``var_primal`` become sample-weighted means
     over every render (:func:`primal_count` samples each); ``dx``/``dy`` and their variances
-    over the renders with gradients (``spp`` samples each); a variance of a mean pools as
-    ``sum(w_i^2 v_i)``. A buffer some render lacks is left out, except that gradients come
-    from the renders that have them; the half-buffers pool half by half
-    (``metadata["half_spp"]``) when every render has them, and the gradient halves likewise
-    over the renders with gradients (``metadata["gradient_half_spp"]``).
+    gradient by gradient over the renders that traced it (``spp`` samples each, its
+    ``gradient_mask``); a variance of a mean pools as ``sum(w_i^2 v_i)``. A buffer some render
+    lacks is left out, except that gradients come from the renders that have them; the
+    half-buffers pool half by half (``metadata["half_spp"]``) when every render has them, and
+    the gradient halves likewise (``metadata["gradient_half_spp"]``). Renders with different
+    gradient masks merge when every gradient traced by any of them ends with the same sample
+    count (the same mask, or disjoint masks of equal ``spp``: a render completed where another
+    traced no offsets); a gradient none traced stays untraced.
 
     Args:
         renders: at least one render, same size and device, seeds independent.
 
     Returns:
-        New buffers: ``spp`` the gradient samples when any render has gradients (with
-        ``metadata["primal_spp"]`` the primal's count), else the primal's count;
-        ``metadata`` that of the last render plus ``merged_spp`` (each render's primal count)
-        and ``render_seconds`` summed where every render has one.
+        New buffers: ``spp`` the gradient samples of each traced gradient when any render has
+        gradients (their sum where none was traced; with ``metadata["primal_spp"]`` the
+        primal's count), else the primal's count; ``gradient_mask`` the gradients any render
+        traced (``None``: all); ``metadata`` that of the last render plus ``merged_spp`` (each
+        render's primal count) and ``render_seconds`` summed where every render has one.
 
     Raises:
-        ValueError: no renders, their sizes or devices differ, or the renders with gradients
-            have different ``gradient_mask`` (``None`` included).
+        ValueError: no renders, their sizes or devices differ, or the gradients traced end
+            with different sample counts.
     """
     if not renders:
         raise ValueError("merge_renders: no renders")
@@ -367,14 +420,19 @@ def merge_renders(renders: Sequence[GradientBuffers]) -> GradientBuffers:
     counts = [primal_count(r) for r in renders]
     gradient = [r for r in renders if r.has_gradients]
     fields: dict[str, torch.Tensor] = {}
-    masks = [r.gradient_mask for r in gradient]
-    if any(m is not None for m in masks):
-        if any(m is None or not torch.equal(m, masks[0]) for m in masks):
+    traced = [_traced(r) for r in gradient]
+    pair_spp = sum(r.spp * t for r, t in zip(gradient, traced, strict=True)) if gradient else None
+    if gradient:
+        exists = _traced(gradient[0].replace(gradient_mask=None), exists_only=True)
+        ends = torch.unique(pair_spp[(pair_spp > 0) & exists])
+        if ends.numel() > 1:
             raise ValueError(
-                "merge_renders: the renders with gradients traced different gradients "
-                "(gradient_mask); merge renders of one gradient mask"
+                "merge_renders: the traced gradients would end with different sample counts "
+                f"({', '.join(str(int(n)) for n in ends)}); merge renders of one gradient mask, "
+                "or of disjoint masks and equal spp"
             )
-        fields["gradient_mask"] = masks[0]
+        if any(r.gradient_mask is not None for r in gradient):
+            fields["gradient_mask"] = pair_spp > 0
 
     def mean(group: Sequence[GradientBuffers], weights: Sequence[float], name: str) -> None:
         if group and all(getattr(r, name) is not None for r in group) and sum(weights) > 0:
@@ -391,10 +449,8 @@ def merge_renders(renders: Sequence[GradientBuffers]) -> GradientBuffers:
     for name in POOLED:
         mean(renders, counts, name)
     pooled_variance(renders, counts, "var_primal")
-    for name in ("dx", "dy"):
-        mean(gradient, [r.spp for r in gradient], name)
-    for name in ("var_dx", "var_dy"):
-        pooled_variance(gradient, [r.spp for r in gradient], name)
+    for axis, name in enumerate(("dx", "dy")):
+        _pool_traced(fields, gradient, traced, axis, [r.spp for r in gradient], name, f"var_{name}")
     metadata = {**renders[-1].metadata, "merged_spp": counts}
     if all(r.has_halves for r in renders):
         half_spp = [[int(n) for n in r.metadata["half_spp"]] for r in renders]
@@ -407,16 +463,21 @@ def merge_renders(renders: Sequence[GradientBuffers]) -> GradientBuffers:
     metadata.pop("gradient_half_spp", None)
     if gradient and all(r.has_gradient_halves for r in gradient):
         half_spp = [gradient_half_count(r) for r in gradient]
-        for name in ("dx", "dy"):
+        for axis, name in enumerate(("dx", "dy")):
             for side, which in enumerate("ab"):
-                mean(gradient, [max(h[side], 0) for h in half_spp], f"{name}_{which}")
-        metadata["gradient_half_spp"] = [sum(h[0] for h in half_spp), sum(h[1] for h in half_spp)]
+                weights = [max(h[side], 0) for h in half_spp]
+                _pool_traced(fields, gradient, traced, axis, weights, f"{name}_{which}")
+        metadata["gradient_half_spp"] = [
+            int(sum(h[side] * t for h, t in zip(half_spp, traced, strict=True)).max())
+            for side in (0, 1)
+        ]
     seconds = [r.metadata.get("render_seconds") for r in renders]
     if None not in seconds:
         metadata["render_seconds"] = sum(seconds)
     if gradient:
         metadata["primal_spp"] = sum(counts)
-        spp = sum(r.spp for r in gradient)
+        traced_any = bool((pair_spp > 0).any())  # (none traced: the renders' gradient spp)
+        spp = int(pair_spp.max()) if traced_any else sum(r.spp for r in gradient)
     else:
         metadata.pop("primal_spp", None)
         spp = sum(counts)

@@ -62,9 +62,10 @@ def render_and_denoise(
             included; the gradient route renders gradient samples of the same cost,
             :func:`gdpt.auto_route.render_route`).
         method (str): ``"auto"`` (from :func:`gdpt.auto_route.pilot_threshold` spp on, a pilot
-            render, whose samples go into the image, chooses between the primal-only denoiser
-            on plain samples and ``fuse`` on gradient-domain samples, :mod:`gdpt.auto_route`;
-            below, the former), or a key of
+            of a share of the film's tiles at the main render's gradient count, whose samples
+            go into the image, chooses between the primal-only denoiser on plain samples and
+            ``fuse`` on gradient-domain samples, :mod:`gdpt.auto_route`; below, or on a film
+            with too few tiles, the former), or a key of
             :data:`gdpt.methods.METHODS` (a deprecated name runs its new one, with a
             ``DeprecationWarning``).
         seed (int): random seed.

@@ -1,173 +1,249 @@
-"""``method="auto"`` (gdpt.auto_route): the decision rule, the pilot on scenes whose answer is
-known, and the replicate statistics of the study that measures it."""
+"""``method="auto"`` (gdpt.auto_route): the tile pilot at the main render's count, its samples
+in the final image, the decision on the tiles' held-out statistic, the charge to the budget,
+what it does where it cannot decide; and the replicate statistics of the study that measures
+it."""
 
 from __future__ import annotations
 
+import hashlib
 import math
+import time
 
+import numpy as np
 import pytest
 import scipy.stats
 import torch
 
 import gdpt
 from gdpt import auto_route as route
+from gdpt import methods
+from gdpt.buffers import GradientBuffers, merge_renders, pool_primal
+from gdpt.rendering import PRIMAL_SEED_SALT
 from gdpt.scenes import builtin_scene
 from gdpt.statistics import mean_interval
 from gdpt.study.results import replicate_seed
 
 pytestmark = pytest.mark.usefixtures("variant", "single_thread")
 
+#: A small film with enough tiles for a pilot at 8 px tiles (64 tiles: 10 of them).
+TILE = 8
 
-@pytest.fixture(autouse=True)
-def _no_remembered_statistics_cost(monkeypatch):
-    """Each test starts without a measured statistics cost (a pilot always looks first)."""
-    monkeypatch.setattr(route, "_STATISTICS_SECONDS_PER_PIXEL", {})
+
+@pytest.fixture(scope="module")
+def scene():
+    return gdpt.load_scene(builtin_scene("cbox-demo"), long_side=64)
+
+
+class RenderLog:
+    """Wraps ``gdpt.rendering.render``, recording each call's keyword arguments."""
+
+    def __init__(self, monkeypatch):
+        self.calls: list[dict] = []
+        self._render = gdpt.rendering.render
+        monkeypatch.setattr(gdpt.rendering, "render", self)
+
+    def __call__(self, scene, **kwargs):
+        self.calls.append(kwargs)
+        return self._render(scene, **kwargs)
+
+
+def _forced_terms(monkeypatch, value: float, seconds: float = 0.0) -> None:
+    """The held-out terms replaced by ``value`` + small seeded noise per pixel (``< 0``: fuse
+    looks better), after ``seconds`` of sleep: the decision and the charge made observable."""
+    gen = torch.Generator().manual_seed(0)
+
+    def terms(buffers, denoise, **_):
+        time.sleep(seconds)
+        noise = 0.1 * torch.randn(buffers.height, buffers.width, 1, generator=gen)
+        return value + noise, 0
+
+    monkeypatch.setattr(route, "held_out_fusion_terms_of", terms)
+
+
+def _digest(t: torch.Tensor) -> str:
+    return hashlib.sha256(t.detach().cpu().contiguous().numpy().tobytes()).hexdigest()
+
+
+def test_the_pilot_renders_its_tiles_at_the_main_renders_gradient_count(scene, monkeypatch):
+    log = RenderLog(monkeypatch)
+    _forced_terms(monkeypatch, -1.0)
+    spp = 300
+    choice, pilot = route.run_pilot(scene, spp=spp, seed=3, tile=TILE)
+    g = route.gradient_spp_for(spp, route.DEFAULT_COST_RATIO)
+    assert choice.route == "gradient" and choice.pilot["gradient_spp"] == g
+    first = log.calls[0]
+    assert first["spp"] == g and first["primal_spp"] == route.pooled_spp(g)
+    assert first["variance"] and first["halves"] and first["gradients"]
+    tiles = torch.as_tensor(first["gradient_mask"])
+    assert torch.equal(tiles, pilot.tiles.cpu())
+    assert int(tiles.sum()) == choice.pilot["tiles"] * TILE * TILE == 10 * TILE * TILE
+    log.calls.clear()
+    buffers = route.render_route(scene, choice, pilot, spp=spp, seed=4)
+    gradient, plain = log.calls  # the rest: offsets outside the tiles, then plain samples
+    assert gradient["spp"] == g and torch.equal(torch.as_tensor(gradient["gradient_mask"]), ~tiles)
+    assert not plain["gradients"] and plain["features"]
+    assert buffers.spp == g and buffers.metadata["gradient_half_spp"] == [g - g // 2, g // 2]
+    primal = g + route.pooled_spp(g) + g + plain["spp"]
+    assert buffers.metadata["primal_spp"] == primal
+
+
+def test_every_pilot_sample_is_in_the_final_image(scene, monkeypatch):
+    """The pilot's render is the render of its seeds (digest of a re-render), its gradients
+    in the tiles are the final image's there, and the final primal is the sample-weighted mean
+    of the pilot and of the rest re-rendered from the same seeds and counts."""
+    _forced_terms(monkeypatch, -1.0)
+    choice, pilot = route.run_pilot(scene, spp=300, seed=3, tile=TILE)
+    final = route.render_route(scene, choice, pilot, spp=300, seed=4)
+    g, p1 = choice.pilot["gradient_spp"], choice.pilot["primal_spp"]
+    fuse = methods.METHODS["fuse"].sampling(g)
+    tiles = pilot.tiles.cpu().numpy()
+    again = gdpt.render(scene, spp=g, seed=3, gradient_mask=tiles, **{**fuse, "primal_spp": p1})
+    assert _digest(again.primal) == _digest(pilot.render.primal)
+    assert _digest(again.dx) == _digest(pilot.render.dx)
+    inside = pilot.render.gradient_mask[..., 0]
+    assert inside.any() and torch.equal(final.dx[inside], pilot.render.dx[inside])
+    n_pilot, n_rest = final.metadata["merged_spp"]
+    rest_gradient = gdpt.render(
+        scene, spp=g, seed=4, gradient_mask=~tiles, **{**fuse, "primal_spp": 0, "features": False}
+    )
+    plain_sampling = {**fuse, "gradients": False, "primal_spp": 0}
+    rest_plain = gdpt.render(
+        scene, spp=n_rest - g, seed=(4 ^ PRIMAL_SEED_SALT) & 0xFFFFFFFF, **plain_sampling
+    )
+    expected = merge_renders([pilot.render, pool_primal(rest_gradient, rest_plain)])
+    assert n_pilot == g + p1
+    assert _digest(final.primal) == _digest(expected.primal)
+    assert _digest(final.dx) == _digest(expected.dx)
+
+
+@pytest.mark.parametrize("value, expected", [(-1.0, "gradient"), (1.0, "plain")])
+def test_the_decision_follows_the_tiles_held_out_statistic(scene, monkeypatch, value, expected):
+    _forced_terms(monkeypatch, value)
+    choice, _ = route.run_pilot(scene, spp=300, seed=3, tile=TILE)
+    assert choice.route == expected, choice.reason
+    assert (choice.pilot["statistic"] < -route.SIGNIFICANCE) == (expected == "gradient")
+    assert choice.method == ("fuse" if expected == "gradient" else methods.primal_only()[0])
+
+
+def test_a_denoiser_that_leaves_nothing_to_fix_makes_fuse_lose(scene, monkeypatch):
+    """With the identity for a denoiser (the noisy primal), the gradients have plenty to fix:
+    the gradient route. With a denoiser that returns a converged render (a test double: no
+    error left), the fusion can only add the gradients' noise: the plain route."""
+    converged = gdpt.render(scene, spp=2048, seed=99, gradients=False, features=False).primal
+
+    def primal_only(denoise):
+        return lambda denoiser=None: ("oidn", denoise)
+
+    monkeypatch.setattr(methods, "primal_only", primal_only(lambda b: b.primal))
+    noisy, _ = route.run_pilot(scene, spp=300, seed=3, tile=TILE)
+    monkeypatch.setattr(methods, "primal_only", primal_only(lambda b: converged.clone()))
+    perfect, _ = route.run_pilot(scene, spp=300, seed=3, tile=TILE)
+    assert noisy.route == "gradient", noisy.reason
+    assert perfect.route == "plain", perfect.reason
+
+
+def test_the_statistics_time_is_charged_to_the_main_render(scene, monkeypatch):
+    """Statistics made to take one second leave the main render that second's worth of plain
+    samples fewer (at the pilot's measured seconds per sample) than statistics that take none."""
+    spp = 3000  # the pilot keeps ~60% of it: a second's charge fits in the rest
+    kept = []
+    for seconds in (0.0, 0.0, 1.0):  # the first records the frozen passes of these counts
+        _forced_terms(monkeypatch, 1.0, seconds)
+        choice, pilot = route.run_pilot(scene, spp=spp, seed=3, tile=TILE)
+        buffers = route.render_route(scene, choice, pilot, spp=spp, seed=4)
+        assert choice.route == "plain" and not buffers.has_gradients
+        charge = choice.pilot["statistics_seconds"] / choice.pilot["seconds_per_spp"]
+        assert choice.pilot["statistics_seconds"] >= seconds
+        rest = buffers.metadata["merged_spp"][1]
+        assert rest == max(1, round(spp - choice.pilot["cost_spp"]))
+        kept.append((rest, charge))
+    (rest_0, charge_0), (rest_1, charge_1) = kept[1:]
+    assert charge_1 - charge_0 > 10  # a second is many samples of this film
+    assert rest_0 - rest_1 == pytest.approx(charge_1 - charge_0, rel=0.5, abs=3)
+
+
+def test_no_pilot_below_its_threshold_or_on_a_film_with_too_few_tiles(monkeypatch):
+    def no_render(*args, **kwargs):
+        raise AssertionError("pilot rendered")
+
+    monkeypatch.setattr(gdpt.rendering, "render", no_render)
+    small = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=64)
+    limit = route.pilot_threshold()
+    choice, pilot = route.run_pilot(small, spp=limit - 1, tile=TILE)
+    assert choice.route == "plain" and pilot is None and f">= {limit}" in choice.reason
+    choice, pilot = route.run_pilot(small, spp=1000)  # 16 tiles of 16 px: too few
+    assert choice.route == "plain" and pilot is None and "16 whole 16 px tiles" in choice.reason
+    assert choice.pilot_seconds == 0.0 and choice.cost_ratio == route.DEFAULT_COST_RATIO
 
 
 @pytest.mark.parametrize(
-    "gain, cost, expected",
-    [(0.5, 2.0, "gradient"), (0.9, 2.0, "plain"), (0.9, 1.0, "gradient"), (1.0, 1.0, "plain")],
+    "tile, share, message",
+    [(12, 0.15, "multiple of 8"), (128, 0.15, "does not fit the 64x64 film"), (8, 0.0, "share")],
 )
-def test_decision_weighs_the_predicted_gain_against_the_samples_gradients_cost(
-    gain, cost, expected
+def test_a_tile_or_share_that_does_not_fit_is_refused_before_rendering(
+    scene, monkeypatch, tile, share, message
 ):
-    chosen, ratio = route.decide(gain, cost, factor=2.5)
-    assert chosen == expected
-    assert ratio == pytest.approx(3.5 / (cost + 2.5))
+    monkeypatch.setattr(gdpt.rendering, "render", None)
+    with pytest.raises(ValueError, match=message):
+        route.run_pilot(scene, spp=1000, tile=tile, share=share)
 
 
 def test_a_black_scene_takes_the_plain_route_and_says_why():
-    film = {"type": "hdrfilm", "width": 16, "height": 16, "rfilter": {"type": "box"}}
+    film = {"type": "hdrfilm", "width": 64, "height": 64, "rfilter": {"type": "box"}}
     scene = {
         "type": "scene",
         "sensor": {"type": "perspective", "film": film},
         "shape": {"type": "sphere", "bsdf": {"type": "diffuse"}},  # no emitter anywhere
     }
-    choice = route.choose_route(gdpt.load_scene(scene), spp=1000, seed=1)
-    assert choice.route == "plain" and "rendered black" in choice.reason
+    choice, pilot = route.run_pilot(gdpt.load_scene(scene), spp=1000, seed=1, tile=TILE)
+    assert choice.route == "plain" and "rendered black" in choice.reason and pilot is not None
 
 
-def test_pilot_on_glass_takes_the_plain_route():
-    """Caustics through a glass sphere: gradients are unreliable there, the plain route wins."""
-    scene = gdpt.load_scene(builtin_scene("glass", resolution=(32, 32)))
-    choice = route.choose_route(scene, spp=1000, seed=2)
-    assert choice.route == "plain", choice.reason
-    assert 1.0 <= choice.cost_ratio <= 4.0 and choice.pilot_seconds > 0
-
-
-def test_auto_records_its_choice_and_renders_what_the_route_reads():
-    scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
-    spp = route.pilot_threshold()  # auto is the default; a pilot from this spp on
-    result = gdpt.render_and_denoise(scene, spp=spp)
-    assert result.route is not None and result.buffers.metadata["route"]["route"] in (
-        "gradient",
-        "plain",
+def test_a_statistic_without_spread_cannot_decide(scene, monkeypatch):
+    monkeypatch.setattr(
+        route, "held_out_fusion_terms_of", lambda b, d, **_: (b.primal[..., :1] * 0, 0)
     )
+    choice, _ = route.run_pilot(scene, spp=300, seed=3, tile=TILE)
+    assert choice.route == "plain" and "cannot decide" in choice.reason
+
+
+def test_auto_records_its_choice_and_keeps_the_pilot():
+    result = gdpt.render_and_denoise(
+        gdpt.load_scene(builtin_scene("cbox-demo"), long_side=128), spp=64
+    )
+    assert result.route is not None and result.route.pilot["tiles"] >= route.MIN_TILES
+    assert result.buffers.metadata["route"]["route"] == result.route.route
     assert result.timings["pilot"] > 0 and torch.isfinite(result.image).all()
-    if result.route.route == "plain":  # the pilot's samples and what is left of spp
-        pilot = result.route.pilot
-        kept = pilot["gradient_spp"] + pilot["primal_spp"] + pilot["held_out_spp"]
-        rest = max(1, round(spp - pilot["cost_spp"]))
-        assert not result.buffers.has_gradients and result.buffers.spp == kept + rest
-    with pytest.raises(ValueError, match="pilot_spp must be >= 2"):
-        route.choose_route(scene, spp=1000, pilot_spp=1)
 
 
-def test_the_pilots_time_is_charged_to_the_main_render(monkeypatch):
-    """Equal time: what the pilot costs beyond the samples the image keeps (here statistics
-    that take a second, far more than the warm render of 200 spp) is taken from the main
-    render, which is left with one sample; uncharged, it would render the rest of ``spp``."""
-    import time
-
-    def slow_measure(*args, **kwargs):
-        time.sleep(1.0)
-        return route.PilotEvidence(
-            error=1.0, error_half=2.0, delta=0.0, delta_se=1.0, model_pilot=1.0, model_main=1.0
-        )  # no gain seen: the plain route
-
-    scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
-    gdpt.render_and_denoise(scene, spp=200)  # warm: the pilot's renders replay their passes
-    monkeypatch.setattr(route, "measure", slow_measure)
-    monkeypatch.setattr(route, "STATISTICS_SHARE", 1e9)  # it looks, whatever looking costs
-    result = gdpt.render_and_denoise(scene, spp=200)
-    pilot = result.route.pilot
-    assert result.route.route == "plain" and pilot["cost_spp"] > 200
-    kept = pilot["gradient_spp"] + pilot["primal_spp"] + pilot["held_out_spp"]
-    assert result.buffers.spp == kept + 1
+def test_tiles_are_stratified_and_seeded():
+    tiles = route.pilot_tiles(128, 128, 10, seed=7, tile=16)
+    again = route.pilot_tiles(128, 128, 10, seed=7, tile=16)
+    other = route.pilot_tiles(128, 128, 10, seed=8, tile=16)
+    assert tiles == again and tiles != other and len(set(tiles)) == 10
+    bounds = np.linspace(0, 64, 11).round()  # ten runs of the 64 tiles in row-major order
+    runs = [int(np.searchsorted(bounds, y // 16 * 8 + x // 16, side="right")) - 1 for y, x in tiles]
+    assert runs == list(range(10))
+    assert route.tile_count(128, 128) == 10 and route.tile_count(72, 128) == 8
+    assert route.tile_count(64, 64) == 0  # 16 tiles: 8 of them would be half
 
 
-def test_no_pilot_below_its_share_of_the_render(monkeypatch):
-    """Below ``pilot_threshold()`` plain spp (the pilot's samples over ``PILOT_SHARE``) nothing
-    is rendered for the decision: the plain route, with the assumed cost ratio, says why."""
-    scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
-    monkeypatch.setattr(gdpt.rendering, "render", _no_render)
-    limit = route.pilot_threshold()
-    choice = route.choose_route(scene, spp=limit - 1)
-    assert choice.route == "plain" and choice.pilot_seconds == 0.0
-    assert choice.cost_ratio == route.DEFAULT_COST_RATIO and f">= {limit}" in choice.reason
-    with pytest.raises(AssertionError, match="pilot rendered"):
-        route.choose_route(scene, spp=limit)
+def test_statistics_windows_are_crops_until_the_whole_image_is_cheaper():
+    few = route.statistics_windows(512, 512, [(0, 0), (256, 256)], tile=16, margin=16)
+    assert few == [((0, 0, 32, 32), [(0, 0)]), ((240, 240, 48, 48), [(256, 256)])]
+    many = [(16 * i, 16 * j) for i in range(5) for j in range(5)]
+    assert route.statistics_windows(128, 128, many) == [((0, 0, 128, 128), many)]
 
 
 @pytest.mark.parametrize("cost_ratio", [2.0, 3.0])
-def test_both_routes_spend_the_samples_of_spp_plain_ones(cost_ratio):
-    """``spp`` plain samples, or gradient samples that cost as much: each ``cost_ratio`` plain
-    ones plus the plain samples pooled into their primal."""
-    plain = route.RouteChoice("plain", "oidn", 1.0, 0.8, cost_ratio, 0.0, "")
-    gradient = route.RouteChoice("gradient", "fuse", 0.5, 0.8, cost_ratio, 0.0, "")
+def test_without_a_pilot_both_routes_spend_the_samples_of_spp_plain_ones(cost_ratio):
+    plain = route.RouteChoice("plain", "oidn", "", cost_ratio)
+    gradient = route.RouteChoice("gradient", "fuse", "", cost_ratio)
     assert route.route_sampling(plain, 450)["spp"] == 450
     sampling = route.route_sampling(gradient, 450)
     assert sampling["gradients"] and sampling["variance"] and sampling["halves"]
     cost = sampling["spp"] * cost_ratio + sampling["primal_spp"]
     assert abs(cost - 450) <= cost_ratio + 2.5  # rounding to whole gradient samples
-
-
-def test_pilot_statistics_on_the_centre_window(monkeypatch):
-    """The pilot's denoises see the centre ``PILOT_WINDOW`` square (each side at most that),
-    cut from the pilot render's buffers; an image that fits is passed whole."""
-    from gdpt import methods
-
-    shapes = []
-
-    def denoiser(buffers, method, **kwargs):
-        shapes.append((buffers.height, buffers.width))
-        return buffers.primal
-
-    monkeypatch.setattr(route, "PILOT_WINDOW", 8)
-    monkeypatch.setattr(methods, "reconstruct_image", denoiser)
-    film = builtin_scene("cbox-demo", resolution=(20, 6))
-    route.choose_route(gdpt.load_scene(film), spp=1000, seed=3)
-    assert shapes == [(6, 8)] * 3
-
-
-def test_pilot_with_infinite_gradient_variances_predicts_no_gain(monkeypatch):
-    """An infinite gradient variance means no information: a pilot whose gradients all have one
-    predicts no gain from them and takes the plain route (read as zero variance, it would
-    predict a large gain)."""
-    from gdpt import methods
-    from gdpt.buffers import GradientBuffers
-
-    gen = torch.Generator().manual_seed(5)
-    image = 0.5 + 0.1 * torch.rand(12, 12, 3, generator=gen)
-    inf = torch.full((12, 12, 1), float("inf"))
-
-    def pilot(*args, **kwargs):
-        noisy = [image + 0.05 * torch.randn(image.shape, generator=gen) for _ in range(2)]
-        metadata = {"render_seconds": 3.0, "primal_only": {"render_seconds": 1.0}}
-        return GradientBuffers(
-            primal=image, dx=torch.zeros_like(image), dy=torch.zeros_like(image), var_dx=inf,
-            var_dy=inf, primal_a=noisy[0], primal_b=noisy[1], spp=4,
-            metadata={**metadata, "half_spp": [2, 2]},
-        )  # fmt: skip
-
-    monkeypatch.setattr(gdpt.rendering, "render", pilot)
-    monkeypatch.setattr(methods, "reconstruct_image", lambda buffers, method: buffers.primal)
-    choice = route.choose_route(object(), spp=route.pilot_threshold())
-    assert choice.gain == 1.0 and choice.route == "plain"
-
-
-def _no_render(*args, **kwargs):
-    raise AssertionError("pilot rendered")
 
 
 def test_mean_interval_matches_student_t():
@@ -186,104 +262,7 @@ def test_replicate_seeds_are_paired_across_methods_and_distinct_across_replicate
     assert replicate_seed(0, "cornell-box", "2", 0) != seeds[0]
 
 
-def _evidence(**changes) -> route.PilotEvidence:
-    """A pilot where ``fuse`` beat ``D`` by half, clearly, and the model keeps that ratio."""
-    base = dict(
-        error=0.01, error_half=0.02, delta=-0.005, delta_se=0.0005, model_pilot=0.5, model_main=0.5
-    )
-    return route.PilotEvidence(**{**base, **changes})
-
-
-@pytest.mark.parametrize(
-    "changes, expected, why",
-    [
-        ({}, "gradient", "predicted 0.50"),  # 0.5 < 0.78 (sample ratio at cost 2)
-        ({"model_main": 0.25}, "gradient", "predicted 0.25"),  # carried to the main counts
-        ({"delta": 0.002}, "plain", "no significant gain"),  # fuse lost on the pilot
-        ({"delta": -0.001, "delta_se": 0.001}, "plain", "no significant gain"),  # not visible
-        ({"delta": -0.001, "delta_se": 1e-5}, "plain", "predicted 0.90"),  # gain < sample price
-        ({"error": 0.0}, "plain", "cannot decide"),  # nothing measurable
-        ({"error": float("nan")}, "plain", "cannot decide"),
-    ],
-)
-def test_route_rule_on_pilot_evidence(changes, expected, why):
-    chosen, gain, decay, reason = route.predict(_evidence(**changes), cost_ratio=2.0)
-    assert chosen == expected and why in reason, reason
-    assert 0.0 <= decay <= 1.0 and 0.0 < gain <= 1.0
-
-
-def test_route_rule_weighs_the_sample_price_by_the_denoisers_error_decay():
-    """A denoiser whose error barely falls with samples (``beta`` near 0) makes the gradient
-    route's fewer primal samples cheap: a 0.9 gain is worth taking there, not at ``beta = 1``."""
-    slow = _evidence(delta=-0.001, delta_se=1e-5, error_half=0.0101)
-    assert route.predict(slow, cost_ratio=2.0)[0] == "gradient"
-    assert route.predict(_evidence(delta=-0.001, delta_se=1e-5), cost_ratio=2.0)[0] == "plain"
-
-
-def _pilot_pair(gradient_noise: float, seed: int = 0):
-    """Synthetic pilot and held-out renders of a smooth image: the primal carries noise of
-    variance 0.01, the gradients are exact plus noise of ``gradient_noise`` variance (as
-    reported)."""
-    from gdpt.buffers import GradientBuffers
-
-    gen = torch.Generator().manual_seed(seed)
-    y, x = torch.meshgrid(torch.linspace(0, 1, 48), torch.linspace(0, 1, 48), indexing="ij")
-    truth = (0.3 + 0.5 * x * y).unsqueeze(-1).expand(48, 48, 3).contiguous()
-
-    def noisy(var):
-        return torch.randn(truth.shape, generator=gen) * var**0.5
-
-    dx = torch.zeros_like(truth)
-    dy = torch.zeros_like(truth)
-    dx[:, :-1] = truth[:, 1:] - truth[:, :-1]
-    dy[:-1] = truth[1:] - truth[:-1]
-    halves = [truth + noisy(0.02) for _ in range(2)]
-    var = lambda v: torch.full((48, 48, 1), v)  # noqa: E731
-    pilot = GradientBuffers(
-        primal=(halves[0] + halves[1]) / 2, dx=dx + noisy(gradient_noise),
-        dy=dy + noisy(gradient_noise), var_primal=var(0.01), var_dx=var(gradient_noise),
-        var_dy=var(gradient_noise), primal_a=halves[0], primal_b=halves[1], spp=4,
-        metadata={"half_spp": [2, 2]},
-    )  # fmt: skip
-    held = [truth + noisy(0.02) for _ in range(2)]
-    held_out = GradientBuffers(
-        primal=(held[0] + held[1]) / 2, var_primal=var(0.01), primal_a=held[0],
-        primal_b=held[1], spp=4, metadata={"half_spp": [2, 2]},
-    )  # fmt: skip
-    return pilot, held_out
-
-
-@pytest.mark.parametrize("gradient_noise, expected", [(1e-6, "gradient"), (10.0, "plain")])
-def test_pilot_measurement_sees_exact_gradients_win_and_noisy_ones_not(gradient_noise, expected):
-    """:func:`measure` on synthetic renders whose denoiser is the identity: near-exact
-    gradients make ``fuse`` beat ``D`` on held-out data and the rule takes them; gradients far
-    noisier than ``D``'s error are not trusted, ``fuse`` equals ``D`` and the route is plain."""
-    pilot, held_out = _pilot_pair(gradient_noise)
-    evidence = route.measure(
-        pilot, held_out, lambda buffers: buffers.primal, main_primal=40, main_gradient=16
-    )
-    assert evidence.nonfinite == 0 and evidence.error > 0
-    chosen, _, _, reason = route.predict(evidence, cost_ratio=2.0)
-    assert chosen == expected, reason
-    if expected == "plain":
-        assert evidence.delta == 0.0
-
-
-def test_non_finite_pilot_statistics_are_counted_not_propagated():
-    pilot, held_out = _pilot_pair(1e-6)
-    held_out.primal[3, 5] = float("nan")
-    held_out.primal[7, 9] = float("inf")
-    evidence = route.measure(
-        pilot, held_out, lambda buffers: buffers.primal, main_primal=40, main_gradient=16
-    )
-    assert evidence.nonfinite == 2
-    values = (evidence.error, evidence.error_half, evidence.delta, evidence.delta_se)
-    assert all(math.isfinite(v) for v in values)
-
-
 def test_merged_renders_are_the_sample_weighted_mean():
-    from gdpt.buffers import GradientBuffers, merge_renders
-
     ones, threes = torch.ones(2, 3, 3), torch.full((2, 3, 3), 3.0)
     var = torch.ones(2, 3, 1)
     gradient = GradientBuffers(
@@ -303,9 +282,8 @@ def test_merged_renders_are_the_sample_weighted_mean():
 
 
 def test_merged_gradient_renders_pool_their_gradient_halves_by_count():
-    """The gradient route merges the pilot's and the main render's gradient halves (what
-    ``fuse``'s held-out check reads), each weighted by its gradient half count."""
-    from gdpt.buffers import GradientBuffers, merge_renders
+    """Renders of one gradient mask pool their gradient halves (what ``fuse``'s held-out check
+    reads), each weighted by its gradient half count."""
 
     def render(value: float, halves: tuple[int, int]) -> GradientBuffers:
         image = torch.full((2, 3, 3), value)
@@ -320,40 +298,30 @@ def test_merged_gradient_renders_pool_their_gradient_halves_by_count():
     assert torch.allclose(merged.dy_b, torch.full((2, 3, 3), 2.5))  # (1 * 1 + 1 * 4) / 2
 
 
-def test_no_significant_gain_means_the_plain_route_even_when_gradients_cost_nothing():
-    """A pilot that saw no gain takes the plain route even where the gradient route's primal
-    would hold as many samples (cost ratio 1, sample ratio >= 1: nothing to lose, nothing
-    seen to win)."""
-    unseen = _evidence(delta=0.0, delta_se=1.0)
-    for ratio in (1.0, 1.2):
-        chosen, gain, _, reason = route.predict(unseen, cost_ratio=1.0, sample_ratio=ratio)
-        assert chosen == "plain" and gain == 1.0 and "no significant gain" in reason
+def test_renders_of_disjoint_gradient_masks_merge_gradient_by_gradient():
+    """Where each render traced the gradients the other did not, at equal ``spp``, every traced
+    gradient keeps its one render's value and variance; one traced by neither stays untraced;
+    unequal counts per gradient are refused."""
+    from gdpt.buffers import fill_untraced
 
+    def render(value: float, columns: slice, spp: int) -> GradientBuffers:
+        mask = torch.zeros(2, 4, 2, dtype=torch.bool)
+        mask[:, columns, 0] = True
+        image = torch.full((2, 4, 3), value)
+        variance = torch.full((2, 4, 1), value)
+        buffers = GradientBuffers(
+            primal=image, dx=image, dy=image, var_dx=variance, var_dy=variance, spp=spp,
+            gradient_mask=mask,
+        )  # fmt: skip
+        return fill_untraced(buffers, 0.0, 0.0).replace(gradient_mask=mask)
 
-def test_a_pilot_does_not_look_where_its_statistics_would_cost_more_than_their_share(
-    monkeypatch,
-):
-    """Once a pilot measured what its statistics cost, a render too short to pay that share
-    renders only the held-out samples (kept in the image), takes the plain route and says
-    why; a long enough render looks again."""
-    calls = []
-    render = gdpt.rendering.render
-
-    def counting(*args, **kwargs):
-        calls.append(kwargs.get("gradients", True))
-        return render(*args, **kwargs)
-
-    monkeypatch.setattr(gdpt.rendering, "render", counting)
-    scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=16)
-    route.choose_route(scene, spp=200, seed=1)  # looks: learns what looking costs
-    assert route._STATISTICS_SECONDS_PER_PIXEL
-    calls.clear()
-    monkeypatch.setattr(route, "_STATISTICS_SECONDS_PER_PIXEL", {"oidn-tuned": 1.0, "oidn": 1.0})
-    choice, renders = route.run_pilot(scene, spp=200, seed=1)
-    assert choice.route == "plain" and "looking would cost" in choice.reason
-    assert calls == [False] and len(renders) == 1  # the held-out render only
-    assert choice.pilot["cost_spp"] == choice.pilot["held_out_spp"]
-    monkeypatch.setattr(route, "STATISTICS_SHARE", 1e9)
-    calls.clear()
-    route.run_pilot(scene, spp=200, seed=1)
-    assert len(calls) == 2
+    left, right = render(1.0, slice(0, 1), 4), render(2.0, slice(2, 3), 4)
+    merged = merge_renders([left, right])
+    assert merged.spp == 4
+    assert torch.equal(merged.dx[:, 0], torch.ones(2, 3)) and torch.equal(
+        merged.dx[:, 2], 2 * torch.ones(2, 3)
+    )
+    assert torch.equal(merged.var_dx[:, 2], 2 * torch.ones(2, 1))
+    assert torch.isinf(merged.var_dx[:, 1]).all() and not merged.gradient_mask[:, 1, 0].any()
+    with pytest.raises(ValueError, match="different sample counts"):
+        merge_renders([left, render(2.0, slice(2, 3), 8)])

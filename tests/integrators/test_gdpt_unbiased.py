@@ -344,3 +344,44 @@ def test_masked_render_is_unbiased(variant, name, max_depth):
     border = mask & ~traced[..., 0]  # masked pixels whose dx is not traced
     assert border[:, :-1].any() and traced[..., 0].any()
     _assert_passes(results, f"masked gdpt on {name}, max depth {max_depth}")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("name", "max_depth"), [("sphere-light", 3), ("glass", 5)])
+def test_auto_pilot_merged_with_its_main_render_is_unbiased(variant, name, max_depth):
+    """``auto``'s gradient route (:func:`gdpt.auto_route.render_route`): a pilot with offsets
+    in the tiles of :func:`_tile_mask` and pooled plain samples, merged gradient by gradient
+    with the rest (offsets outside the tiles, then plain samples). The primal at every pixel and
+    every gradient traced by either render against ``path``; a gradient between a tile and the
+    rest, traced by neither, exactly 0."""
+    import torch
+
+    from gdpt.auto_route import Pilot, RouteChoice, render_route
+    from gdpt.methods import METHODS
+    from gdpt.rendering import render
+
+    scene = _scene(name)
+    width, height = (int(v) for v in scene.sensors()[0].film().crop_size())
+    mask = _tile_mask(height, width)
+    g, pooled, rest = 16, 24, 24
+    # a plain sample's cost so large that the measured render time buys none: ``rest`` exactly
+    pilot_info = {"gradient_spp": g, "cost_spp": 0.0, "seconds_per_spp": 1e9, "share": 0.5}
+    choice = RouteChoice("gradient", "fuse", "", pilot=pilot_info)
+    sampling = {**METHODS["fuse"].sampling(g), "primal_spp": pooled, "max_depth": max_depth}
+    runs: dict[str, list[np.ndarray]] = {}
+    for i in range(RUNS):
+        first = render(scene, spp=g, seed=1 + 2 * i, gradient_mask=mask, **sampling)
+        pilot = Pilot(first, torch.from_numpy(mask).to(first.device))
+        merged = render_route(scene, choice, pilot, spp=rest, seed=2 + 2 * i, max_depth=max_depth)
+        assert merged.metadata["primal_spp"] == g + pooled + g + rest
+        for key in ("primal", "dx", "dy"):
+            runs.setdefault(key, []).append(getattr(merged, key).cpu().numpy())
+    traced = merged.gradient_mask.cpu().numpy()
+    oracle = _oracle(name, max_depth)
+    results = {"primal": pixel_z(np.stack(runs["primal"]), oracle.primal)}
+    for k, buffer in enumerate(("dx", "dy")):
+        values = np.stack(runs[buffer])
+        assert (values[:, ~traced[..., k]] == 0).all(), buffer
+        results[buffer] = PixelZ(pixel_z(values, getattr(oracle, buffer)).z[traced[..., k]])
+    assert traced[..., 0][:, :-1].mean() < 1.0 and traced[..., 0].any()  # border pairs untraced
+    _assert_passes(results, f"auto's merged pilot + main render on {name}, max depth {max_depth}")
