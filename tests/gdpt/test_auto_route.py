@@ -325,3 +325,14 @@ def test_renders_of_disjoint_gradient_masks_merge_gradient_by_gradient():
     assert torch.isinf(merged.var_dx[:, 1]).all() and not merged.gradient_mask[:, 1, 0].any()
     with pytest.raises(ValueError, match="different sample counts"):
         merge_renders([left, render(2.0, slice(2, 3), 8)])
+
+
+def test_statistics_run_on_crops_around_few_tiles():
+    """With few tiles on a large film the statistics see windows around the tiles only (their
+    pixels counted in ``window_pixels``) and still give a finite statistic."""
+    film = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=256)
+    choice, _ = route.run_pilot(film, spp=20, seed=5, tile=TILE, share=0.01)
+    tiles = choice.pilot["tiles"]
+    assert tiles == 11 and choice.pilot["window_pixels"] < 256 * 256
+    assert choice.pilot["window_pixels"] <= tiles * (TILE + 2 * route.MARGIN) ** 2
+    assert math.isfinite(choice.pilot["statistic"]), choice.reason
