@@ -56,8 +56,9 @@ from gdpt.scenes.loading import load_scene
 #: Side of the pilot's tiles (pixels; a multiple of :data:`~gdpt.reconstruct.held_out.BLOCK`).
 TILE = 16
 
-#: Share of the film's whole tiles the pilot renders.
-SHARE = 0.15
+#: Share of the film's whole tiles the pilot renders (13 of the 64 tiles of a 128 px film; at
+#: 15%, 10 tiles, the statistic missed cornell-box's gain in 2 of 9 runs: docs/gradients.md).
+SHARE = 0.2
 
 #: Fewest tiles of a pilot (32 blocks of 8 px for the standard error at 16 px tiles).
 MIN_TILES = 8
@@ -78,12 +79,12 @@ PILOT_SPP = 2
 #: Clamp of the measured gradient/plain sample cost ratio.
 COST_RATIO_RANGE = (1.0, 4.0)
 
-#: Gradient/plain sample cost ratio that sizes ``G`` (1.5-2.0 measured by the pilots of the
-#: quick study's directly lit scenes, docs/gradients.md; 2-3 in ``benchmarks/method_cost.py``).
+#: Gradient/plain sample cost ratio that sizes ``G``: the median of the ratios the pilots of the
+#: quick study measured (1.5-2.4 per render, 1.7-1.8 per directly lit scene; docs/gradients.md).
 #: A constant, not a measurement: ``G`` and the pilot's pooled count then depend on ``N`` alone,
 #: so a render replays the frozen passes of an earlier one of the same ``N`` (a measured ratio
 #: would change them from render to render).
-DEFAULT_COST_RATIO = 2.0
+DEFAULT_COST_RATIO = 1.8
 
 
 @dataclass

@@ -76,7 +76,8 @@ def test_the_pilot_renders_its_tiles_at_the_main_renders_gradient_count(scene, m
     assert first["variance"] and first["halves"] and first["gradients"]
     tiles = torch.as_tensor(first["gradient_mask"])
     assert torch.equal(tiles, pilot.tiles.cpu())
-    assert int(tiles.sum()) == choice.pilot["tiles"] * TILE * TILE == 10 * TILE * TILE
+    share = math.ceil(route.SHARE * (64 // TILE) ** 2)  # of the 64x64 film's whole tiles
+    assert int(tiles.sum()) == choice.pilot["tiles"] * TILE * TILE == share * TILE * TILE
     log.calls.clear()
     buffers = route.render_route(scene, choice, pilot, spp=spp, seed=4)
     gradient, plain = log.calls  # the rest: offsets outside the tiles, then plain samples
@@ -224,7 +225,7 @@ def test_tiles_are_stratified_and_seeded():
     bounds = np.linspace(0, 64, 11).round()  # ten runs of the 64 tiles in row-major order
     runs = [int(np.searchsorted(bounds, y // 16 * 8 + x // 16, side="right")) - 1 for y, x in tiles]
     assert runs == list(range(10))
-    assert route.tile_count(128, 128) == 10 and route.tile_count(72, 128) == 8
+    assert route.tile_count(128, 128, share=0.15) == 10 and route.tile_count(72, 128) == 8
     assert route.tile_count(64, 64) == 0  # 16 tiles: 8 of them would be half
 
 
