@@ -122,14 +122,10 @@ class TimeModel:
         self.fixed, self.per_spp, self.measurements = refit.fixed, refit.per_spp, refit.measurements
 
 
-#: Added to a timed render's seed for its untimed warm-up render.
-WARM_UP_SEED_OFFSET = 7_777_777
-
-
 def timed_run(
     method: EvalMethod, scene: EvalScene, spp: int, seed: int, *, render_only: bool = False
 ) -> MethodResult:
-    """A timed render, after an untimed one at the same ``spp`` (another seed); with
+    """A timed render, after an untimed one at the same ``spp`` and seed; with
     ``render_only``, without the reconstruction where the method can be split
     (:attr:`EvalMethod.render`).
 
@@ -137,10 +133,13 @@ def timed_run(
     tracing of a frozen pass, which the integrators record per spp per pass and replay
     afterwards: about 0.35 s for ``gdpt`` on a 49-BSDF scene at 128 px); the timed render
     replays it, as any repeated render of that configuration does. The warm-up only samples
-    where the method can be split (the reconstruction has nothing to record per spp).
+    where the method can be split (the reconstruction has nothing to record per spp). The same
+    seed, so that a method whose work depends on it records what the timed render replays
+    (``auto``: its pilot's tiles and the route they choose; a warm-up on the other route left
+    the timed render to record the route's passes, charged as samples it then did not render).
     """
     render = method.render or method.run
-    render(scene, spp=spp, seed=seed + WARM_UP_SEED_OFFSET)
+    render(scene, spp=spp, seed=seed)
     return (render if render_only else method.run)(scene, spp=spp, seed=seed)
 
 

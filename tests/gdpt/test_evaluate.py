@@ -14,7 +14,7 @@ from shared_scenes import SHARED_SCENES
 
 from gdpt.cli import main
 from gdpt.methods import METHODS
-from gdpt.study.calibration import WARM_UP_SEED_OFFSET, TimeModel, calibrate, run_at_budget
+from gdpt.study.calibration import TimeModel, calibrate, run_at_budget
 from gdpt.study.config import EvaluateConfig
 from gdpt.study.evaluate import StudyFailure, evaluate, render_references
 from gdpt.study.methods import EVAL_METHODS, EvalMethod, MethodResult
@@ -363,7 +363,7 @@ def test_references_only_then_cells_reuse_them(variant, tmp_path, monkeypatch, c
 
 def test_calibration_fits_the_cost_and_warms_up_every_timed_render_fake_clock():
     """:func:`calibrate` on reported times ``0.05 + 0.01 spp``: it recovers the line, every timed
-    render follows an untimed one at the same spp (seed + WARM_UP_SEED_OFFSET), and the probes
+    render follows an untimed one at the same spp and seed, and the probes
     grow from 1 spp until one takes half the budget."""
     clock = FakeClock(fixed=0.05, per_spp=0.01)
     model = calibrate(clock.method("fake"), SCENE, budget=2.0, seed=3)
@@ -372,7 +372,7 @@ def test_calibration_fits_the_cost_and_warms_up_every_timed_render_fake_clock():
     warm_ups, timed = calls[::2], calls[1::2]
     assert len(warm_ups) == len(timed)
     for (warm_spp, warm_seed), (spp, seed) in zip(warm_ups, timed, strict=True):
-        assert warm_spp == spp and warm_seed == seed + WARM_UP_SEED_OFFSET
+        assert warm_spp == spp and warm_seed == seed
     timed_spp = [spp for spp, _ in timed]
     assert timed_spp[:5] == [1, 2, 1, 1, 1]  # warm-up at 1 and 2 spp, then 3 timings at 1 spp
     probes = timed_spp[4:]
