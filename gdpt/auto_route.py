@@ -3,10 +3,11 @@ decides gradients or not for the whole image; every sample it traced goes into t
 
 Two routes fill the same render time; ``spp`` (``N``) counts the plain route's samples:
 
-* ``gradient``: ``G = N / (c + f)`` gradient samples per pixel (``c``:
-  :data:`DEFAULT_COST_RATIO`, a gradient sample's cost in plain ones; ``f``:
-  :data:`~gdpt.adapters.FUSE_PRIMAL_SPP_FACTOR` plain samples pooled per gradient sample; the
-  pooled count is then set by measured time), reconstructed by ``fuse``;
+* ``gradient``: ``G = N / (c + f)`` gradient samples per pixel (``c``: a gradient sample's
+  cost in plain ones, measured by the scene's last gradient route, :func:`learned_cost_ratio`,
+  else :data:`DEFAULT_COST_RATIO`; ``f``: :data:`~gdpt.adapters.FUSE_PRIMAL_SPP_FACTOR` plain
+  samples pooled per gradient sample; the pooled count is then set by measured time),
+  reconstructed by ``fuse``;
 * ``plain``: plain path samples (features on), reconstructed by the primal-only denoiser ``D``
   (:func:`gdpt.adapters.plain_denoiser`).
 
@@ -31,9 +32,14 @@ merged gradient by gradient (:func:`gdpt.buffers.merge_renders`): every traced g
 render and has no weight in ``fuse``. On the plain route, plain samples for what is left of
 ``N``. Either way the pilot's cost beyond what the route keeps (its gradient samples' extra cost
 on the plain route, the statistics' time on both) is charged in plain samples at the plain
-pass's measured seconds per sample. Stratified rather than simply random tiles: one tile in
-each of ``n`` equal runs of the tiles in row-major order, so every band of the image is seen
-(a window, a light, a dark corner) and the sum stays an unbiased sample of the image's.
+pass's measured seconds per sample. The gradient route's render (offsets on most pixels)
+measures the scene's cost ratio, which sizes ``G`` of the scene's later renders (kept per scene
+object and integrator properties, replaced only where it moves by more than :data:`RELEARN`:
+``G`` stays put between renders, so they replay each other's frozen passes; the first gradient
+route of a scene is sized at :data:`DEFAULT_COST_RATIO`). Stratified rather than simply random
+tiles: one tile in each of ``n`` equal runs of the tiles in row-major order, so every band of
+the image is seen (a window, a light, a dark corner) and the sum stays an unbiased sample of
+the image's.
 Measurements: ``docs/gradients.md``.
 """
 
@@ -41,6 +47,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import OrderedDict
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -79,12 +86,20 @@ PILOT_SPP = 2
 #: Clamp of the measured gradient/plain sample cost ratio.
 COST_RATIO_RANGE = (1.0, 4.0)
 
-#: Gradient/plain sample cost ratio that sizes ``G``: the median of the ratios the pilots of the
-#: quick study measured (1.5-2.4 per render, 1.7-1.8 per directly lit scene; docs/gradients.md).
-#: A constant, not a measurement: ``G`` and the pilot's pooled count then depend on ``N`` alone,
-#: so a render replays the frozen passes of an earlier one of the same ``N`` (a measured ratio
-#: would change them from render to render).
+#: Gradient/plain sample cost ratio that sizes ``G`` on a scene's first gradient route: the median
+#: of the ratios the pilots of the quick study measured (1.5-2.4 per render, 1.7-1.8 per directly
+#: lit scene; docs/gradients.md).
 DEFAULT_COST_RATIO = 1.8
+
+#: Relative change of a scene's measured cost ratio that replaces the remembered one
+#: (:func:`learned_cost_ratio`): below it ``G`` stays put between renders of the scene, so a
+#: render replays the frozen passes of an earlier one of the same ``N``.
+RELEARN = 0.2
+
+#: ``(id(scene), properties) -> (scene, cost ratio)``, least recently used first (the scene is
+#: kept so that its id stays unique).
+_LEARNED: OrderedDict[tuple, tuple[Any, float]] = OrderedDict()
+_LEARNED_SIZE = 8
 
 
 @dataclass
@@ -95,8 +110,9 @@ class RouteChoice:
         route: ``"gradient"`` or ``"plain"``.
         method: the reconstruction method of that route (``"fuse"`` or the denoiser).
         reason: one line for the CLI and the metadata.
-        cost_ratio: cost of a gradient sample over a plain one (measured by the pilot, clamped
-            to :data:`COST_RATIO_RANGE`; :data:`DEFAULT_COST_RATIO` without a pilot).
+        cost_ratio: cost of a gradient sample over a plain one that sized ``G``
+            (:func:`learned_cost_ratio`, else :data:`DEFAULT_COST_RATIO`); the pilot's own
+            measurement is ``pilot["measured_cost_ratio"]``.
         pilot_seconds: wall time of the pilot (render and statistics).
         pilot: without a pilot, empty; else ``gradient_spp`` (``G``), ``primal_spp`` (its
             pooled plain samples), ``tile``, ``tiles`` (how many), ``share`` (of the film's
@@ -104,7 +120,8 @@ class RouteChoice:
             held-out sum in standard errors, < 0: ``fuse`` looks better), ``difference`` (its
             relMSE difference per tile pixel), ``nonfinite`` (terms left out),
             ``statistics_seconds``, ``seconds_per_spp`` (a plain sample's), ``cost_spp`` (the
-            pilot's cost in plain samples, statistics included).
+            pilot's cost in plain samples, statistics included), ``measured_cost_ratio`` (from
+            its two passes, clamped to :data:`COST_RATIO_RANGE`).
     """
 
     route: str
@@ -245,17 +262,14 @@ def run_pilot(
             f"the {width}x{height} film has {rows * cols} whole {tile} px tiles: too few for a "
             f"pilot of {MIN_TILES} tiles in at most {MAX_SHARE:.0%} of them; plain route"
         ), None
-    props = {
-        k: v
-        for k, v in props.items()
-        if k not in ("variance", "halves", "gradients", "features", "primal_spp")
-    }
+    props = _integrator_props(props)
     start = time.perf_counter()
     denoiser, denoise = methods.primal_only()
     corners = pilot_tiles(height, width, count, seed, tile)
     windows = statistics_windows(height, width, corners, tile)
     window_pixels = sum(h * w for (_, _, h, w), _ in windows)
-    g = gradient_spp_for(spp, DEFAULT_COST_RATIO)
+    sizing = learned_cost_ratio(scene, props) or DEFAULT_COST_RATIO
+    g = gradient_spp_for(spp, sizing)
     mask = np.zeros((height, width), dtype=bool)
     for y, x in corners:
         mask[y : y + tile, x : x + tile] = True
@@ -278,11 +292,12 @@ def run_pilot(
         "window_pixels": window_pixels,
         "seconds_per_spp": seconds_per_spp,
         "cost_spp": render.metadata["render_seconds"] / seconds_per_spp,
+        "measured_cost_ratio": cost_ratio,
     }
     if float(render.primal.abs().max()) == 0.0:
         reason = "the pilot rendered black (no light reaches the film): nothing to fuse"
         seconds = time.perf_counter() - start
-        return RouteChoice("plain", denoiser, reason, cost_ratio, seconds, counts), pilot
+        return RouteChoice("plain", denoiser, reason, sizing, seconds, counts), pilot
     measure_start = time.perf_counter()
     terms, nonfinite = _tile_terms(render, denoise, windows, tile)
     choice = choose(terms, tile=0, margin=SIGNIFICANCE, nonfinite=nonfinite)
@@ -308,7 +323,7 @@ def run_pilot(
         reason += f" ({nonfinite} pixels with non-finite statistics left out)"
     method = "fuse" if route == "gradient" else denoiser
     seconds = time.perf_counter() - start
-    return RouteChoice(route, method, reason, cost_ratio, seconds, counts), pilot
+    return RouteChoice(route, method, reason, sizing, seconds, counts), pilot
 
 
 def measured_cost_ratio(
@@ -316,11 +331,43 @@ def measured_cost_ratio(
 ) -> float:
     """The cost of a gradient sample in plain ones, from a gradient pass of ``seconds`` at
     ``gradient_spp`` whose offsets covered ``share`` of the pixels (the others plain samples)
-    and a plain sample's ``seconds_per_spp``, clamped to :data:`COST_RATIO_RANGE`
-    (informational: the route's charges use measured seconds, not this ratio)."""
+    and a plain sample's ``seconds_per_spp``, clamped to :data:`COST_RATIO_RANGE` (the
+    route's charges use measured seconds; the ratio sizes ``G``)."""
     per_sample = seconds / gradient_spp / seconds_per_spp
     measured = 1.0 + (per_sample - 1.0) / max(share, 1e-9)
     return min(max(measured, COST_RATIO_RANGE[0]), COST_RATIO_RANGE[1])
+
+
+def _integrator_props(props: dict[str, Any]) -> dict[str, Any]:
+    """``props`` without the sampling a route sets itself and without ``progress``."""
+    routed = ("variance", "halves", "gradients", "features", "primal_spp", "progress")
+    return {k: v for k, v in props.items() if k not in routed}
+
+
+def _learned_key(scene: Any, props: dict[str, Any]) -> tuple:
+    return (id(scene), tuple(sorted(props.items())))
+
+
+def learned_cost_ratio(scene: Any, props: dict[str, Any]) -> float | None:
+    """The cost ratio the last gradient route measured on ``scene`` (an ``mi.Scene``) rendered
+    with integrator ``props`` (the 8 most recently used scenes are kept), ``None`` before."""
+    key = _learned_key(scene, props)
+    if key not in _LEARNED:
+        return None
+    _LEARNED.move_to_end(key)
+    return _LEARNED[key][1]
+
+
+def learn_cost_ratio(scene: Any, props: dict[str, Any], ratio: float) -> None:
+    """Remember ``ratio`` for ``scene`` and ``props`` where none is remembered or it differs from
+    the remembered one by more than :data:`RELEARN` of it."""
+    known = learned_cost_ratio(scene, props)
+    if known is not None and abs(ratio - known) <= RELEARN * known:
+        return
+    _LEARNED[_learned_key(scene, props)] = (scene, ratio)
+    _LEARNED.move_to_end(_learned_key(scene, props))
+    while len(_LEARNED) > _LEARNED_SIZE:
+        _LEARNED.popitem(last=False)
 
 
 def _tile_terms(
@@ -368,8 +415,9 @@ def render_route(
     ``cost_spp`` (at least 1 sample); the gradient route renders ``G`` gradient samples outside
     the pilot's tiles (features off), then plain samples for what is left after the pilot and
     that render's measured time (at least 1, which brings the features), pooled into it
-    (:func:`gdpt.buffers.pool_primal`). ``props`` as for :func:`gdpt.render` (they override the
-    route's sampling).
+    (:func:`gdpt.buffers.pool_primal`); the cost ratio that render measured (offsets on most
+    pixels) sizes ``G`` of the scene's next renders (:func:`learn_cost_ratio`). ``props`` as
+    for :func:`gdpt.render` (they override the route's sampling).
     """
     if pilot is None:
         return rendering.render(scene, seed=seed, **{**route_sampling(choice, spp), **props})
@@ -388,6 +436,8 @@ def render_route(
     sampling = {**fuse.sampling(g), "primal_spp": 0, "features": False, **props}
     gradient = rendering.render(scene, spp=g, seed=seed, gradient_mask=~pilot.tiles, **sampling)
     seconds = gradient.metadata["render_seconds"]
+    ratio = measured_cost_ratio(seconds, g, 1.0 - info["share"], info["seconds_per_spp"])
+    learn_cost_ratio(scene, _integrator_props(props), ratio)
     rest = max(1, round(left - seconds / info["seconds_per_spp"]))
     plain_sampling = {**fuse.sampling(rest), "gradients": False, "primal_spp": 0, **props}
     plain_seed = (int(seed) ^ rendering.PRIMAL_SEED_SALT) & 0xFFFFFFFF

@@ -34,6 +34,14 @@ def scene():
     return gdpt.load_scene(builtin_scene("cbox-demo"), long_side=64)
 
 
+@pytest.fixture(autouse=True)
+def _forget_learned_ratios():
+    """Each test starts without a cost ratio learned by an earlier test's gradient route."""
+    route._LEARNED.clear()
+    yield
+    route._LEARNED.clear()
+
+
 class RenderLog:
     """Wraps ``gdpt.rendering.render``, recording each call's keyword arguments."""
 
@@ -337,3 +345,29 @@ def test_statistics_run_on_crops_around_few_tiles():
     assert tiles == 11 and choice.pilot["window_pixels"] < 256 * 256
     assert choice.pilot["window_pixels"] <= tiles * (TILE + 2 * route.MARGIN) ** 2
     assert math.isfinite(choice.pilot["statistic"]), choice.reason
+
+
+def test_a_gradient_route_sizes_the_scenes_next_pilot(scene, monkeypatch):
+    """The gradient route's render measures the cost ratio; the next pilot of the same scene and
+    properties is sized by it (``G`` and ``route.cost_ratio``), another ``max_depth`` is not."""
+    _forced_terms(monkeypatch, -1.0)
+    first, pilot = route.run_pilot(scene, spp=300, seed=3, tile=TILE, max_depth=4)
+    assert first.cost_ratio == route.DEFAULT_COST_RATIO
+    route.render_route(scene, first, pilot, spp=300, seed=4, max_depth=4, progress=False)
+    learned = route.learned_cost_ratio(scene, {"max_depth": 4})
+    assert learned is not None and route.COST_RATIO_RANGE[0] <= learned <= route.COST_RATIO_RANGE[1]
+    second, _ = route.run_pilot(scene, spp=300, seed=5, tile=TILE, max_depth=4)
+    assert second.cost_ratio == learned
+    assert second.pilot["gradient_spp"] == route.gradient_spp_for(300, learned)
+    other, _ = route.run_pilot(scene, spp=300, seed=5, tile=TILE, max_depth=5)
+    assert other.cost_ratio == route.DEFAULT_COST_RATIO
+
+
+def test_a_learned_ratio_moves_only_past_the_relearn_share():
+    scene, props = object(), {"max_depth": 6}
+    route.learn_cost_ratio(scene, props, 2.0)
+    route.learn_cost_ratio(scene, props, 2.0 * (1 + 0.9 * route.RELEARN))
+    assert route.learned_cost_ratio(scene, props) == 2.0
+    route.learn_cost_ratio(scene, props, 2.0 * (1 + 1.1 * route.RELEARN))
+    assert route.learned_cost_ratio(scene, props) == pytest.approx(2.0 * (1 + 1.1 * route.RELEARN))
+    assert route.learned_cost_ratio(object(), props) is None
