@@ -416,7 +416,8 @@ def render_route(
     the pilot's tiles (features off), then plain samples for what is left after the pilot and
     that render's measured time (at least 1, which brings the features), pooled into it
     (:func:`gdpt.buffers.pool_primal`); the cost ratio that render measured (offsets on most
-    pixels) sizes ``G`` of the scene's next renders (:func:`learn_cost_ratio`). ``props`` as
+    pixels; not where it recorded frozen passes, whose tracing and compilation it timed too)
+    sizes ``G`` of the scene's next renders (:func:`learn_cost_ratio`). ``props`` as
     for :func:`gdpt.render` (they override the route's sampling).
     """
     if pilot is None:
@@ -436,8 +437,9 @@ def render_route(
     sampling = {**fuse.sampling(g), "primal_spp": 0, "features": False, **props}
     gradient = rendering.render(scene, spp=g, seed=seed, gradient_mask=~pilot.tiles, **sampling)
     seconds = gradient.metadata["render_seconds"]
-    ratio = measured_cost_ratio(seconds, g, 1.0 - info["share"], info["seconds_per_spp"])
-    learn_cost_ratio(scene, _integrator_props(props), ratio)
+    if not gradient.metadata["recorded_passes"]:  # a recording's time is not the samples'
+        ratio = measured_cost_ratio(seconds, g, 1.0 - info["share"], info["seconds_per_spp"])
+        learn_cost_ratio(scene, _integrator_props(props), ratio)
     rest = max(1, round(left - seconds / info["seconds_per_spp"]))
     plain_sampling = {**fuse.sampling(rest), "gradients": False, "primal_spp": 0, **props}
     plain_seed = (int(seed) ^ rendering.PRIMAL_SEED_SALT) & 0xFFFFFFFF

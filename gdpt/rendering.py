@@ -227,6 +227,7 @@ def _render_one(
         integrator.pass_callback = lambda done, total: bar.update(start + done - bar.n)
     integrator.gradient_mask = mask
     try:
+        recordings = integrator.recordings
         begin = time.perf_counter()
         out = integrator.render(scene, seed=seed, spp=spp)
         dr.eval(out)
@@ -238,4 +239,5 @@ def _render_one(
         integrator.gradient_mask = None
 
     buffers.metadata["render_seconds"] = seconds
+    buffers.metadata["recorded_passes"] = integrator.recordings - recordings
     return buffers

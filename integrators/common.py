@@ -299,6 +299,9 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         # tests/gdpt/test_rendering.py checks that a repeated render replays. The 32 most
         # recently used recordings are kept.
         self._frozen_pass = dr.freeze(self._trace_pass, limit=32, warn_after=2**31 - 1)
+        #: Frozen-pass recordings made by ``render()`` so far (a render that adds some traced
+        #: those passes anew: its time includes the tracing, and kernel compilation if new).
+        self.recordings = 0
         #: Optional ``callable(spp_done, spp_total)`` called after every pass (progress bars).
         self.pass_callback = None
         #: How often each numerical guard fired in the last ``render()``: ``sample_nonfinite``
@@ -453,6 +456,8 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
                 stacklevel=2,
             )
         traced = None if mask is None else traced_gradients(mask)
+        if self.freeze:
+            self.recordings = self._frozen_pass.n_recordings
         return acc.finish(width, height, self.channels(), traced)
 
     def _pixel_mask(self, width: int, height: int) -> np.ndarray | None:

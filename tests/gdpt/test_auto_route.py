@@ -348,12 +348,16 @@ def test_statistics_run_on_crops_around_few_tiles():
 
 
 def test_a_gradient_route_sizes_the_scenes_next_pilot(scene, monkeypatch):
-    """The gradient route's render measures the cost ratio; the next pilot of the same scene and
-    properties is sized by it (``G`` and ``route.cost_ratio``), another ``max_depth`` is not."""
+    """The gradient route's render measures the cost ratio (not where it recorded its passes:
+    their tracing is in its time); the next pilot of the same scene and properties is sized by
+    it (``G`` and ``route.cost_ratio``), another ``max_depth`` is not."""
     _forced_terms(monkeypatch, -1.0)
-    first, pilot = route.run_pilot(scene, spp=300, seed=3, tile=TILE, max_depth=4)
-    assert first.cost_ratio == route.DEFAULT_COST_RATIO
-    route.render_route(scene, first, pilot, spp=300, seed=4, max_depth=4, progress=False)
+    for recorded in (True, False):
+        first, pilot = route.run_pilot(scene, spp=300, seed=3, tile=TILE, max_depth=4)
+        assert first.cost_ratio == route.DEFAULT_COST_RATIO
+        route.render_route(scene, first, pilot, spp=300, seed=4, max_depth=4, progress=False)
+        if recorded:
+            assert route.learned_cost_ratio(scene, {"max_depth": 4}) is None
     learned = route.learned_cost_ratio(scene, {"max_depth": 4})
     assert learned is not None and route.COST_RATIO_RANGE[0] <= learned <= route.COST_RATIO_RANGE[1]
     second, _ = route.run_pilot(scene, spp=300, seed=5, tile=TILE, max_depth=4)

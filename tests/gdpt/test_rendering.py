@@ -57,6 +57,16 @@ def test_second_render_of_one_scene_replays_and_equals_tracing(scene):
     assert [str(w.message) for w in caught] == []
 
 
+def test_a_render_reports_the_passes_it_recorded(scene):
+    """``metadata["recorded_passes"]``: a render at a pass size its integrator has not recorded
+    says so (its time includes the tracing), a repeat replays and says 0."""
+    props = dict(max_depth=2, features=False)
+    first = render(scene, spp=3, seed=1, **props)  # passes of 2 and 1 spp
+    again = render(scene, spp=3, seed=2, **props)
+    assert first.metadata["recorded_passes"] >= 1
+    assert again.metadata["recorded_passes"] == 0
+
+
 def _copy(buffers) -> dict[str, torch.Tensor]:
     """Copies of the primal and gradients (the render's tensors are views that may be reused)."""
     return {name: getattr(buffers, name).clone() for name in ("primal", "dx", "dy")}
