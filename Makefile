@@ -20,6 +20,8 @@ TORCH_STAMP := $(VENV)/.torch-spec
 STAMP       := $(VENV)/.installed
 
 .PHONY: setup cpu lint test test-all test-gpu demo bench clean FORCE
+# `make` alone (e.g. `make TORCH_INDEX=...`) sets up .venv, not only its torch.
+.DEFAULT_GOAL := setup
 
 $(TORCH_STAMP): FORCE
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)

@@ -18,15 +18,30 @@ seed1000003.exr``; the film size and depth must match). Usage::
         [--budgets 4 8] [--replicates 1] [--study out/study/results.json]
         [--out out/advise_agreement.json]
 
+**The reference's own noise.** A reference of ``n_r`` samples has the per-pixel variance
+``v_r = sigma^2 / n_r``, which adds ``w v_r`` to every method's expected squared error
+against it (``E[(X - R)^2] = (X - I)^2 + v_r`` for ``X`` independent of ``R``) and pulls the
+"true" ratio toward 1 (advise's estimate subtracts ``P``'s variance, so it does not). The
+corrected ratio subtracts it pixel by pixel: ``v_r`` from ``P``'s measured variance
+(``sigma^2 / n_P`` per pixel, :func:`gdpt.reconstruct.reference_free.half_variance`; ``P`` is
+the same plain path tracing as the reference), scaled by ``n_P / n_r`` (replicates' ``P``
+averaged); ``n_r`` from the reference's name. This is the per-pixel form of the study's
+``relmse-corrected`` (``benchmarks/study_summary.py``), which subtracts the same term summed
+over the image, estimated from the ``pt`` cell's error. The intervals are counted against the
+corrected ratio (``inside``) and, beside it, against the raw one (``inside_raw``).
+
+**Time.** Each case records advise's seconds and their ratio to the budget per candidate
+(``seconds / (budget * candidates)``; the bar: 6x at 4 s, 128 px).
+
 With ``--study`` (a ``gdpt evaluate`` run with paired replicates of both methods on the same
 scenes and budgets), each case also gets the study's verdict: ``lower``/``higher`` where the
 paired 95% interval of the ratio (geometric mean over replicates,
 :func:`gdpt.statistics.mean_interval` of the log ratios) excludes 1, else ``none``; advise's
 verdict is the same from its own interval, and ``match`` says whether the two agree.
 
-Prints one Markdown row per case, the count of cases whose interval covers the true ratio and
-of verdicts that match; writes every number, the advice's report and the machine to ``--out``
-(JSON).
+Prints one Markdown row per case, the count of cases whose interval covers the corrected and
+the raw true ratio, of verdicts that match, and the range of the time per candidate over the
+budget; writes every number, the advice's report and the machine to ``--out`` (JSON).
 """
 
 from __future__ import annotations
@@ -34,6 +49,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import time
 from pathlib import Path
 
@@ -69,11 +85,44 @@ def reference(folder: Path, name: str, size: tuple[int, int], depth: int):
     return load_image(found[-1]), found[-1].name
 
 
-def squared_error(image, ref, weights=None) -> float:
-    """Sum of the per-pixel relMSE terms: reference weights, else ``weights``."""
-    if weights is None:
+def reference_spp(file_name: str) -> int:
+    """The sample count in a reference's name (``...-8192spp-seed1000003.exr``)."""
+    found = re.search(r"-(\d+)spp-", file_name)
+    if found is None:
+        raise ValueError(f"no sample count (-<N>spp-) in the reference's name {file_name}")
+    return int(found.group(1))
+
+
+def reference_variance(plains: list[dict], spp: int):
+    """The reference's per-pixel variance (channel mean, ``(H, W, 1)``) from the plain renders
+    ``P`` (:func:`gdpt.study.estimate.plain_render`; ``variance`` is ``sigma^2 / n_P``) for a
+    reference of ``spp`` samples: ``sigma^2 / spp``, averaged over the ``P``'s."""
+    scaled = [p["variance"].double() * sum(p["counts"]) / spp for p in plains]
+    return sum(scaled) / len(scaled)
+
+
+def squared_error(image, ref, weights=None, ref_variance=None) -> float:
+    """Sum of the per-pixel relMSE terms: reference weights, else ``weights``; with
+    ``ref_variance`` (``(H, W, 1)``), the reference's own noise subtracted in every pixel."""
+    if weights is None and ref_variance is None:
         return relmse(image, ref) * ref.shape[0] * ref.shape[1]
-    return float((weights * (image - ref).square().mean(-1, keepdim=True)).sum())
+    if weights is None:
+        weights = relmse_weights(ref)
+    squared = (image.double() - ref.double()).square().mean(-1, keepdim=True)
+    if ref_variance is not None:
+        squared = squared - ref_variance
+    return float((weights.double() * squared).sum())
+
+
+def ratio(errors: list[float]) -> float:
+    """``errors[1] / errors[0]`` (``nan`` where the baseline's error is not positive, as a
+    corrected one can be when the reference's noise is most of it)."""
+    return errors[1] / errors[0] if errors[0] > 0 else math.nan
+
+
+def covers(estimate, value: float) -> bool:
+    """Whether the estimate's interval covers ``value`` (a finite one)."""
+    return estimate is not None and math.isfinite(value) and estimate.low <= value <= estimate.high
 
 
 def verdict(low: float, high: float) -> str:
@@ -125,10 +174,11 @@ def main() -> None:
     gdpt.set_variant()
     cases = []
     print(
-        "| scene | budget s | estimate | 95% interval | true | true (estimator's weights) "
-        "| inside | advise | study | recommended | spp tuned/fuse/P | advise s |"
+        "| scene | budget s | estimate | 95% interval | true, corrected | true (raw) "
+        "| corrected, estimator's weights | inside corrected / raw | advise | study "
+        "| recommended | spp tuned/fuse/P | advise s | per candidate / budget |"
     )
-    print("|---|---:|---:|---|---:|---:|---|---|---|---|---|---:|")
+    print("|---|---:|---:|---|---:|---:|---:|---|---|---|---|---|---:|---:|")
     for budget in args.budgets:  # every scene at the first budget first
         for name in args.scenes:
             scene, ref_name, box = source(name)
@@ -147,47 +197,70 @@ def main() -> None:
             ref, ref_file = reference(
                 args.references, ref_name, advice.resolution, advice.max_depth
             )
-            true = [sum(squared_error(x, ref) for x in images[n]) for n in (BASELINE, CANDIDATE)]
+            ref_spp = reference_spp(ref_file)
+            noise = reference_variance(advice.plains, ref_spp) if advice.plains else None
+            pairs = [
+                list(zip(images[n], images[BASELINE], strict=True)) for n in (BASELINE, CANDIDATE)
+            ]
+            true = [sum(squared_error(x, ref) for x, _ in p) for p in pairs]
+            corrected = [
+                sum(squared_error(x, ref, ref_variance=noise) for x, _ in p) for p in pairs
+            ]
             own = [
-                sum(
-                    squared_error(x, ref, relmse_weights(b))
-                    for x, b in zip(images[n], images[BASELINE], strict=True)
-                )
-                for n in (BASELINE, CANDIDATE)
+                sum(squared_error(x, ref, relmse_weights(b), noise) for x, b in p) for p in pairs
             ]
             e = fuse.estimate
+            per_candidate = seconds / (budget * len(advice.methods))
             case = {
                 "scene": name,
                 "budget": budget,
                 "reference": ref_file,
+                "reference_spp": ref_spp,
                 "spp": {m.name: m.spp for m in advice.methods},
                 "plain_spp": advice.plain_spp,
+                "calibrations": advice.calibrations,
                 "estimate": None if e is None else [e.ratio, e.low, e.high, e.z],
-                "true_ratio": true[1] / true[0],
-                "true_ratio_estimator_weights": own[1] / own[0],
-                "inside": e is not None and e.low <= true[1] / true[0] <= e.high,
+                "true_ratio": ratio(true),
+                "true_ratio_corrected": ratio(corrected),
+                "true_ratio_corrected_estimator_weights": ratio(own),
+                "reference_noise_share": [1 - c / t for c, t in zip(corrected, true, strict=True)],
+                "inside": covers(e, ratio(corrected)),
+                "inside_raw": covers(e, ratio(true)),
                 "recommended": advice.recommended,
                 "advise_verdict": "none" if e is None else verdict(e.low, e.high),
                 "study_verdict": study_verdict(study, ref_name, budget),
                 "seconds": seconds,
+                "seconds_per_candidate_over_budget": per_candidate,
                 "report": advice.lines,
             }
             cases.append(case)
             write(args, cases)  # after every case: an interrupted run keeps what it measured
             interval = "n/a" if e is None else f"{e.low:.2f}-{e.high:.2f}"
+            yes = lambda flag: "yes" if flag else "no"  # noqa: E731
             print(
                 f"| {name} | {budget:g} | {'n/a' if e is None else f'{e.ratio:.2f}'} | {interval} "
-                f"| {case['true_ratio']:.2f} | {case['true_ratio_estimator_weights']:.2f} "
-                f"| {'yes' if case['inside'] else 'no'} | {case['advise_verdict']} "
+                f"| {case['true_ratio_corrected']:.2f} | {case['true_ratio']:.2f} "
+                f"| {case['true_ratio_corrected_estimator_weights']:.2f} "
+                f"| {yes(case['inside'])} / {yes(case['inside_raw'])} | {case['advise_verdict']} "
                 f"| {case['study_verdict'] or 'n/a'} | {advice.recommended} "
-                f"| {case['spp'][BASELINE]}/{fuse.spp}/{advice.plain_spp} | {seconds:.0f} |",
+                f"| {case['spp'][BASELINE]}/{fuse.spp}/{advice.plain_spp} | {seconds:.0f} "
+                f"| {per_candidate:.1f}x |",
                 flush=True,
             )
-    inside = sum(c["inside"] for c in cases)
-    print(f"\ninterval covers the true ratio in {inside} of {len(cases)} cases")
+    print()
+    for label, key in (("corrected", "inside"), ("raw", "inside_raw")):
+        inside = sum(c[key] for c in cases)
+        print(f"interval covers the {label} true ratio in {inside} of {len(cases)} cases")
     compared = [c for c in cases if c["study_verdict"] is not None]
     matches = sum(c["advise_verdict"] == c["study_verdict"] for c in compared)
     print(f"advise's verdict matches the study's in {matches} of {len(compared)} cases")
+    for budget in args.budgets:
+        ratios = [c["seconds_per_candidate_over_budget"] for c in cases if c["budget"] == budget]
+        if ratios:
+            print(
+                f"advise at {budget:g} s: {min(ratios):.1f}-{max(ratios):.1f}x the budget per "
+                "candidate"
+            )
     print(f"wrote {args.out}")
 
 

@@ -15,12 +15,21 @@ errors from 8 px block sums, replicates pooled)::
     print(advice)                 # the report, one line per method, then "recommended: ..."
     advice.recommended            # a study method name, e.g. "gdpt+fuse"
 
+Candidates that render the same samples and differ only in their reconstruction
+(``pt+oidn-tuned`` and ``pt+oidn``) share one calibration of the render: the later ones take its
+seconds per sample and its fixed seconds shifted by the difference of their reconstructions'
+seconds (each the median of 3 runs at 1 spp, :func:`_shared_model`), instead of a calibration of
+their own (2-3 budgets each, the untimed warm-up renders included).
+
 ``P``'s sample count: the plain samples that fill ``plain_budget`` seconds (default: the
-candidates' budget, so ``P`` costs as much as one candidate; with ``spp``, ``plain_spp``
-defaults to that count). ``P``'s noise adds to a difference's variance in proportion to
-``1 / n`` (:func:`gdpt.reconstruct.reference_free.plain_share`, measured from ``P``'s halves
-and reported per method): where it is more than half of it, a larger ``plain_budget`` tightens
-the interval most; else more ``replicates`` (each renders every method and ``P`` again).
+candidates' budget, so ``P`` costs about as much as one candidate; with ``spp``, ``plain_spp``
+defaults to that count), at the cost per sample of the first candidate that renders plain
+samples (``P`` renders no features and reconstructs nothing, so it takes a little less than
+``plain_budget``); only where no candidate renders plain samples is ``pt`` calibrated for it.
+``P``'s noise adds to a difference's variance in proportion to ``1 / n``
+(:func:`gdpt.reconstruct.reference_free.plain_share`, measured from ``P``'s halves and reported
+per method): where it is more than half of it, a larger ``plain_budget`` tightens the interval
+most; else more ``replicates`` (each renders every method and ``P`` again).
 
 Bad input fails with a ``ValueError`` of one line before any render (``spp`` and ``budget``
 together, an unknown or unavailable method, a scene that does not load), or after the
@@ -35,6 +44,7 @@ from __future__ import annotations
 import math
 import os
 import shlex
+import statistics
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -43,6 +53,8 @@ if TYPE_CHECKING:
     import torch
 
     from gdpt.reconstruct.reference_free import RatioEstimate
+    from gdpt.study.calibration import TimeModel
+    from gdpt.study.methods import EvalMethod
     from gdpt.study.scenes import EvalScene
 
 __all__ = ["DEFAULT_BUDGET", "DEFAULT_METHODS", "Advice", "MethodAdvice", "advise"]
@@ -100,6 +112,12 @@ class Advice:
         command: a command that renders the recommended method (``None``: none).
         images: each method's outputs, one per replicate: ``(H, W, 3)`` float32 linear
             radiance on the CPU (empty where the plain render stopped it).
+        plains: each plain render ``P`` that scored them, one per replicate
+            (:func:`gdpt.study.estimate.plain_render`: ``image``, ``variance`` ``(H, W, 1)``,
+            ``halves``, ``counts``).
+        calibrations: per candidate, how its sample count was found: ``"calibrated"``,
+            ``"shared with NAME"`` (the same render, its reconstruction timed apart) or
+            ``"spp"`` (given); and ``"P"``: the same for ``P``.
     """
 
     scene: str
@@ -114,6 +132,8 @@ class Advice:
     seconds: float = 0.0
     command: str | None = None
     images: dict[str, list[torch.Tensor]] = field(default_factory=dict)
+    plains: list[dict[str, Any]] = field(default_factory=list)
+    calibrations: dict[str, str] = field(default_factory=dict)
 
     def __str__(self) -> str:
         return "\n".join(self.lines)
@@ -231,6 +251,7 @@ def _render_and_score(
             advice.lines.append("recommended: none (nothing to compare)")
             return
         plains.append(plain)
+    advice.plains = plains
     images: list[list[torch.Tensor]] = [[] for _ in candidates]
     for r in range(advice.replicates):
         for m, (method, record) in enumerate(zip(candidates, advice.methods, strict=True)):
@@ -317,6 +338,79 @@ def _method_line(method: MethodAdvice, base: str, width: int) -> str:
     return f"{head}  {e.ratio:.2f} [{e.low:.2f}, {e.high:.2f}] {verdict} (z {e.z:+.1f}{share})"
 
 
+def _reconstruction_seconds(
+    method: EvalMethod, scene: EvalScene, seed: int, repeats: int = 3
+) -> float:
+    """The median reconstruction seconds of ``repeats`` runs of ``method`` at 1 spp, after an
+    untimed one (its reconstruction's first call: weights loaded, kernels compiled)."""
+    method.run(scene, spp=1, seed=seed + repeats)
+    return statistics.median(
+        method.run(scene, spp=1, seed=seed + i).reconstruct_seconds for i in range(repeats)
+    )
+
+
+def _shared_model(model: TimeModel, difference: float) -> TimeModel:
+    """``model`` of a render with another reconstruction, ``difference`` seconds slower (or
+    faster): the same seconds per sample, every timing shifted by ``difference``."""
+    from gdpt.study.calibration import TimeModel
+
+    return TimeModel(
+        fixed=max(0.0, model.fixed + difference),
+        per_spp=model.per_spp,
+        measurements=[(spp, max(1e-9, t + difference)) for spp, t in model.measurements],
+    )
+
+
+def _calibration_plan(
+    candidates: list[EvalMethod], plain: bool
+) -> tuple[dict[str, EvalMethod], dict[str, str], str | None]:
+    """Which configurations :func:`advise` calibrates and which share another's render.
+
+    Returns:
+        ``(to_calibrate, shared, plain_key)``: ``to_calibrate`` maps a configuration key
+        (:func:`~gdpt.study.calibration.configuration_key`, ``"total"``) to the method timed
+        for it; ``shared`` maps the key of a candidate that renders what an earlier one
+        renders, with another reconstruction, to that one's key (both can be split into render
+        and reconstruction: :attr:`~gdpt.study.methods.EvalMethod.render`); ``plain_key``
+        (with ``plain``: ``P``'s count is wanted): the key whose calibration gives ``P``'s
+        count, the first candidate rendering plain samples, else ``pt``'s (added to
+        ``to_calibrate``).
+    """
+    from gdpt.study.calibration import calibration_runner, configuration_key
+    from gdpt.study.methods import EVAL_METHODS
+
+    to_calibrate: dict[str, EvalMethod] = {}
+    shared: dict[str, str] = {}
+    by_render: dict[str, str] = {}  # render configuration -> the key calibrated for it
+    for method in candidates:
+        key = configuration_key(method, "total")
+        if key in to_calibrate or key in shared:
+            continue
+        runner = calibration_runner(method, "total")
+        render = configuration_key(runner, "render-time")
+        if runner.render is not None and render in by_render:
+            shared[key] = by_render[render]
+            continue
+        to_calibrate[key] = runner
+        if runner.render is not None:
+            by_render.setdefault(render, key)
+    plain_key = None
+    if plain:
+        plain_key = next(
+            (
+                key
+                for key, runner in to_calibrate.items()
+                if runner.configuration is not None
+                and runner.configuration().get("gradients") is False
+            ),
+            None,
+        )
+        if plain_key is None:
+            plain_key = configuration_key(EVAL_METHODS["pt"], "total")
+            to_calibrate.setdefault(plain_key, EVAL_METHODS["pt"])
+    return to_calibrate, shared, plain_key
+
+
 def advise(
     scene: Any,
     *,
@@ -361,7 +455,7 @@ def advise(
     import drjit as dr
     from tqdm.auto import tqdm
 
-    from gdpt.study.calibration import calibrate, calibration_runner, configuration_key
+    from gdpt.study.calibration import calibrate, configuration_key
     from gdpt.study.config import EvaluateConfig
     from gdpt.study.methods import EVAL_METHODS
     from gdpt.study.results import cell_seed
@@ -372,14 +466,13 @@ def advise(
         raise ValueError("give plain_budget or plain_spp, not both")
     loaded = _load(scene, long_side, box_filter, max_depth)
     candidates = [EVAL_METHODS[n] for n in names]
-    plain_key = configuration_key(EVAL_METHODS["pt"], "total")
-    to_calibrate = {}
+    to_calibrate: dict[str, EvalMethod] = {}
+    shared: dict[str, str] = {}
+    plain_key = None
     if budget is not None:
-        to_calibrate = {configuration_key(m, "total"): m for m in candidates}
-        if plain_spp is None:
-            to_calibrate.setdefault(plain_key, EVAL_METHODS["pt"])
+        to_calibrate, shared, plain_key = _calibration_plan(candidates, plain_spp is None)
     bar = tqdm(
-        total=len(to_calibrate) + replicates * (len(candidates) + 1),
+        total=len(to_calibrate) + len(shared) + replicates * (len(candidates) + 1),
         unit="render",
         desc="advise",
         disable=not progress,
@@ -388,9 +481,8 @@ def advise(
     history_flag = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
-        models = {}
-        for key, method in to_calibrate.items():
-            runner = calibration_runner(method, "total")
+        models: dict[str, TimeModel] = {}
+        for key, runner in to_calibrate.items():
             bar.set_postfix_str(f"calibrating {runner.name}")
             models[key] = calibrate(
                 runner,
@@ -398,6 +490,18 @@ def advise(
                 budget=budget,
                 seed=cell_seed(seed, loaded.name, runner.name, "calibration"),
             )
+            bar.update(1)
+        runners = {configuration_key(m, "total"): m for m in candidates}
+        reconstruction: dict[str, float] = {}
+        for key, base in shared.items():  # the same render: only the reconstruction timed
+            bar.set_postfix_str(f"timing {runners[key].name}'s reconstruction")
+            for k in (base, key):
+                if k not in reconstruction:
+                    runner = to_calibrate.get(k, runners[k])
+                    reconstruction[k] = _reconstruction_seconds(
+                        runner, loaded, cell_seed(seed, loaded.name, runner.name, "reconstruct")
+                    )
+            models[key] = _shared_model(models[base], reconstruction[key] - reconstruction[base])
             bar.update(1)
         for method in candidates:  # each candidate's one sample within the budget
             model = models.get(configuration_key(method, "total"))
@@ -411,6 +515,16 @@ def advise(
                 )
         if plain_spp is None:
             plain_spp = spp if budget is None else models[plain_key].spp_for(plain_budget or budget)
+        calibrations = {"P": "given"}
+        for m in candidates:
+            key = configuration_key(m, "total")
+            calibrations[m.name] = "spp" if budget is None else "calibrated"
+            if key in shared:
+                calibrations[m.name] = f"shared with {runners[shared[key]].name}"
+        if plain_key is not None:
+            calibrations["P"] = (
+                f"the cost per sample of {runners.get(plain_key, EVAL_METHODS['pt']).name}"
+            )
         advice = Advice(
             str(scene),
             loaded.resolution,
@@ -422,6 +536,7 @@ def advise(
             ],
             plain_spp,
             replicates,
+            calibrations=calibrations,
         )
         if plain_spp < 2:
             raise ValueError(

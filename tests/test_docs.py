@@ -92,6 +92,33 @@ def test_readme_quick_start_commands_run(tmp_path):
         assert result.returncode == 0, f"{command}: {result.stderr[-2000:]}"
 
 
+def test_readme_auto_example_shows_a_route(variant):
+    """The quick start's ``auto`` commands (``render-and-denoise`` without ``--method``) render
+    at least :func:`gdpt.auto_route.pilot_threshold` spp on a film with enough whole 16 px tiles
+    for a pilot (:func:`gdpt.auto_route.tile_count`): each shows a route, not "no pilot"."""
+    from gdpt.auto_route import pilot_threshold, tile_count
+    from gdpt.scenes.loading import read_scene
+
+    autos = [
+        shlex.split(c)
+        for c in _quick_start_commands()
+        if c.startswith("gdpt render-and-denoise ") and "--method" not in c
+    ]
+    assert autos, "the quick start has no auto example"
+    for words in autos:
+        options = dict(zip(words[3:-1], words[4:], strict=True))
+        spp = int(options.get("--spp", 64))  # the command's default
+        long_side = options.get("--long-side")
+        loaded = read_scene(
+            words[2],
+            box_filter="--box-filter" in words,
+            long_side=None if long_side is None else int(long_side),
+        )
+        width, height = loaded.resolution
+        assert spp >= pilot_threshold(), (words, pilot_threshold())
+        assert tile_count(height, width) > 0, (words, loaded.resolution)
+
+
 def _markdown_table(text: str) -> dict[str, dict[str, str]]:
     """The first markdown table in ``text``: first cell -> {column header: cell}."""
     lines = re.search(r"^\|.*?(?=^[^|]|\Z)", text, re.M | re.S).group(0).splitlines()

@@ -83,6 +83,65 @@ def test_feature_api_at_a_budget_with_replicates():
     assert advice.command.startswith("gdpt render") and "builtin:cbox-demo" in advice.command
 
 
+def test_feature_calibration_plan_shares_the_render_of_equal_samples():
+    """``pt+oidn`` renders what ``pt+oidn-tuned`` renders: it shares that calibration, and ``P``
+    takes its count from it; without a plain candidate ``pt`` is calibrated for ``P``."""
+    from gdpt.advice import DEFAULT_METHODS, _calibration_plan
+    from gdpt.study.calibration import configuration_key
+    from gdpt.study.methods import EVAL_METHODS
+
+    key = {n: configuration_key(EVAL_METHODS[n], "total") for n in ("pt", *DEFAULT_METHODS)}
+    candidates = [EVAL_METHODS[n] for n in DEFAULT_METHODS]
+    to_calibrate, shared, plain_key = _calibration_plan(candidates, plain=True)
+    assert [m.name for m in to_calibrate.values()] == ["pt+oidn-tuned", "gdpt+fuse"]
+    assert shared == {key["pt+oidn"]: key["pt+oidn-tuned"]}
+    assert plain_key == key["pt+oidn-tuned"]
+    to_calibrate, shared, plain_key = _calibration_plan([EVAL_METHODS["gdpt+fuse"]], plain=True)
+    assert [m.name for m in to_calibrate.values()] == ["gdpt+fuse", "pt"] and not shared
+    assert plain_key == key["pt"]
+    to_calibrate, _, plain_key = _calibration_plan(candidates[:2], plain=False)
+    assert plain_key is None and len(to_calibrate) == 2
+
+
+def test_feature_shared_model_shifts_the_fixed_seconds():
+    from gdpt.advice import _shared_model
+    from gdpt.study.calibration import TimeModel
+
+    model = TimeModel.fit([(1, 0.11), (10, 0.2), (100, 1.1)])
+    slower = _shared_model(model, 0.5)
+    assert slower.per_spp == model.per_spp
+    assert slower.fixed == pytest.approx(model.fixed + 0.5)
+    assert slower.spp_for(2.0) == model.spp_for(1.5)
+    assert _shared_model(model, -10.0).fixed == 0.0
+
+
+def test_feature_budget_calibrates_each_render_once(monkeypatch):
+    """At a budget, two calibrations for three candidates (``pt+oidn`` shares
+    ``pt+oidn-tuned``'s render, ``P`` its cost per sample), and the report keeps ``P``."""
+    import gdpt.study.calibration
+
+    timed = []
+    calibrate = gdpt.study.calibration.calibrate
+
+    def spy(method, *args, **kwargs):
+        timed.append(method.name)
+        return calibrate(method, *args, **kwargs)
+
+    monkeypatch.setattr(gdpt.study.calibration, "calibrate", spy)
+    advice = gdpt.advise(
+        "builtin:cbox-demo", budget=0.2, methods=METHODS, long_side=32, progress=False
+    )
+    assert timed == ["pt+oidn-tuned", "pt"]
+    assert advice.calibrations == {
+        "pt+oidn-tuned": "calibrated",
+        "pt": "calibrated",
+        "pt+oidn": "shared with pt+oidn-tuned",
+        "P": "the cost per sample of pt+oidn-tuned",
+    }
+    assert advice.plain_spp >= 2 and advice.methods[2].spp >= 1
+    assert len(advice.plains) == 1 and advice.plains[0]["variance"].shape[-1] == 1
+
+
 @pytest.mark.parametrize(
     ("extra", "match"),
     [
