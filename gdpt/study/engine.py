@@ -157,9 +157,9 @@ class RayEngine:
                 f"node with: ray start ... --resources='{{\"{CELL_RESOURCE}\": 1}}'"
             )
         self._chunk = ray.remote(num_cpus=1, max_retries=MAX_RETRIES)(_chunk_task)
-        self._cell = ray.remote(
-            num_cpus=1, resources={CELL_RESOURCE: 1}, max_retries=MAX_RETRIES
-        )(_cell_task)
+        self._cell = ray.remote(num_cpus=1, resources={CELL_RESOURCE: 1}, max_retries=MAX_RETRIES)(
+            _cell_task
+        )
         self._stop = threading.Event()
 
     def close(self) -> None:

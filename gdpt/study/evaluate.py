@@ -465,8 +465,10 @@ def _evaluate_scene(
     per_scene = len(cfg.budgets) * cfg.seeds
     todo = cells_to_run(entry, runnable, cfg)
     bar.update(per_scene - todo)
-    if entry.get("status") == "ok" and not todo and not any(
-        pending_cells(entry, runnable, cfg, set())
+    if (
+        entry.get("status") == "ok"
+        and not todo
+        and not any(pending_cells(entry, runnable, cfg, set()))
     ):
         return
     stage = "load"
