@@ -53,7 +53,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--scenes",
         nargs="+",
-        default=[str(SCENES / "cornell-box"), str(SCENES / "living-room-2")],
+        default=[os.path.relpath(SCENES / n) for n in ("cornell-box", "living-room-2")],
+        help="scene folders (default: cornell-box and living-room-2 of ../shared/scenes)",
     )
     parser.add_argument("--references", type=Path, required=True, help="reference cache folder")
     parser.add_argument("--out", type=Path, default=Path("out/study-under-load"))

@@ -30,7 +30,7 @@ from typing import Any
 
 from gdpt.study.cells import pending_cells, run_cell, set_threads, worker_scene
 from gdpt.study.config import EvaluateConfig
-from gdpt.study.references import ReferenceChunk, render_chunk
+from gdpt.study.references import ReferenceChunk, reference_seed, render_chunk, render_reference
 from gdpt.study.results import budget_key, write_json
 from gdpt.study.scenes import SceneSpec
 
@@ -215,7 +215,7 @@ class RayEngine:
         tasks, results merged and written by this process; the reference-free estimates
         last, in this process, after every timed cell."""
         from gdpt.backend import ensure_variant
-        from gdpt.study import evaluate as study
+        from gdpt.study import driver as study
         from gdpt.study.estimate import estimate_scene
         from gdpt.study.methods import EVAL_METHODS
 
@@ -227,6 +227,8 @@ class RayEngine:
 
         def submit(state: dict[str, Any]) -> None:
             entry, runnable = state["entry"], state["runnable"]
+            if not runnable:
+                return
             chosen = {m: EVAL_METHODS[m] for m in runnable}
             for budget, replicate, added in list(
                 pending_cells(entry, runnable, cfg, state["attempted"])
@@ -266,12 +268,12 @@ class RayEngine:
                 states[spec.name] = state
                 if cfg.reference:
                     job = pool.submit(
-                        study.render_reference,
+                        render_reference,
                         scene,
                         cache,
                         spp=cfg.reference_spp,
                         chunk_spp=cfg.reference_chunk_spp,
-                        seed=study.reference_seed(cfg.seed),
+                        seed=reference_seed(cfg.seed),
                         source=spec.source,
                         run_chunks=self._chunks(spec, cfg, variant),
                     )

@@ -135,6 +135,19 @@ def _legacy_partial(cache_dir: Path, stem: str, chunk_spp: int) -> tuple[int, Pa
     return max(found) if found else None
 
 
+def _same_source(recorded: str | None, source: str) -> bool:
+    """Whether a cached reference's recorded source is ``source``: equal, or the same file
+    named from another working directory (``../shared/x/scene.xml`` and its absolute path)."""
+    if recorded == source:
+        return True
+    if not recorded or not source or ":" in recorded.split("/")[0] or ":" in source.split("/")[0]:
+        return False  # builtin:NAME, random:SEED differ by name
+    try:
+        return Path(recorded).resolve(strict=True) == Path(source).resolve(strict=True)
+    except OSError:
+        return False
+
+
 #: ``run(scene, chunks) -> iterator of (chunk, image)`` in any order: how the chunks that are
 #: missing get rendered (default: one after the other in this process).
 ChunkRunner = Callable[[EvalScene, list[ReferenceChunk]], Iterator[tuple[ReferenceChunk, Any]]]
@@ -194,7 +207,11 @@ def render_reference(
         "method": "pt (gdpt integrator, gradients=False)",
     }
     old = json.loads(sidecar.read_text()) if sidecar.is_file() else None
-    if old is not None and all(old.get(k) == meta[k] for k in ("source", "film_filter")):
+    if (
+        old is not None
+        and _same_source(old.get("source"), source)
+        and old.get("film_filter") == meta["film_filter"]
+    ):
         if final.is_file() and old.get("complete"):
             return load_image(final), {**old, "path": str(final), "cached": True}
         meta["seconds"] = old.get("seconds", 0.0)

@@ -257,6 +257,25 @@ def test_chunked_reference_is_bit_identical_in_any_order_and_resumes_after_a_kil
     assert not list(cache.glob("*.chunk-*.exr"))
 
 
+def test_cached_reference_is_found_under_another_name_of_the_same_file(
+    variant, tmp_path, monkeypatch
+):
+    """A reference recorded with a relative scene path is the same scene given by its absolute
+    path (a study run from another folder); another file of that name is not."""
+    scene = load_eval_scene(SceneSpec("cbox", "builtin:cbox-demo"), resolution=8)
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "scene.xml").write_text("<scene/>")
+    (tmp_path / "b.xml").write_text("<scene/>")
+    monkeypatch.chdir(tmp_path / "a")
+    kwargs = dict(spp=2, chunk_spp=1, seed=1)
+    _, meta = render_reference(scene, tmp_path / "refs", source="../a/scene.xml", **kwargs)
+    assert not meta["cached"]
+    same = str(tmp_path / "a" / "scene.xml")
+    assert render_reference(scene, tmp_path / "refs", source=same, **kwargs)[1]["cached"]
+    other = str(tmp_path / "b.xml")
+    assert not render_reference(scene, tmp_path / "refs", source=other, **kwargs)[1]["cached"]
+
+
 # --------------------------------------------------------------------------------------- ray
 def test_ray_address_that_does_not_answer_is_one_line_before_any_work(tmp_path, capsys):
     out = tmp_path / "report"
