@@ -188,7 +188,17 @@ def _run_evaluate(args: argparse.Namespace) -> int:
     cfg = dataclasses.replace(cfg, **{k: v for k, v in changes.items() if v is not None})
     if args.references_only:
         cache = args.references or args.out / "references"
-        status = render_references(args.scenes, cache, cfg, progress=not args.no_progress)
+        try:
+            status = render_references(
+                args.scenes,
+                cache,
+                cfg,
+                progress=not args.no_progress,
+                workers=args.workers,
+                ray_address=args.ray_address,
+            )
+        except ConnectionError as error:  # before any work
+            raise UsageError(str(error)) from None
         for scene, path in status.items():
             print(f"{scene}: {path}")
         return 1 if any(p.startswith("failed:") for p in status.values()) else 0

@@ -182,7 +182,9 @@ class RayEngine:
             "per_worker": "set per task to its share of the node: cell_runs[*].worker.threads",
         }
 
-    def _chunks(self, spec: SceneSpec, cfg: EvaluateConfig, variant: str) -> Any:
+    def chunks(self, spec: SceneSpec, cfg: EvaluateConfig, variant: str) -> Any:
+        """A ``run_chunks`` of :func:`~gdpt.study.references.render_reference`: the chunks
+        of ``spec``'s reference as tasks, yielded as they finish."""
         ray = self._ray
 
         def run(scene: Any, chunks: list[ReferenceChunk]) -> Any:
@@ -275,7 +277,7 @@ class RayEngine:
                         chunk_spp=cfg.reference_chunk_spp,
                         seed=reference_seed(cfg.seed),
                         source=spec.source,
-                        run_chunks=self._chunks(spec, cfg, variant),
+                        run_chunks=self.chunks(spec, cfg, variant),
                     )
                     references[job] = spec.name
                 else:

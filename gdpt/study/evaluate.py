@@ -141,7 +141,12 @@ def _as_specs(scenes: Sequence[str | os.PathLike[str] | SceneSpec]) -> list[Scen
 
 
 def _study_reference(
-    scene: EvalScene, spec: SceneSpec, cfg: EvaluateConfig, cache: Path, bar: Any
+    scene: EvalScene,
+    spec: SceneSpec,
+    cfg: EvaluateConfig,
+    cache: Path,
+    bar: Any,
+    run_chunks: Any = None,
 ) -> tuple[torch.Tensor, dict[str, Any]]:
     """:func:`render_reference` with the study's settings (shared by every entry point)."""
     return render_reference(
@@ -152,6 +157,7 @@ def _study_reference(
         seed=reference_seed(cfg.seed),
         source=spec.source,
         progress=bar,
+        run_chunks=run_chunks,
     )
 
 
@@ -299,6 +305,8 @@ def render_references(
     cfg: EvaluateConfig | None = None,
     *,
     progress: bool = True,
+    workers: int | None = None,
+    ray_address: str | None = None,
 ) -> dict[str, str]:
     """Render (or finish) the cached references of a study without timing anything.
 
@@ -312,26 +320,44 @@ def render_references(
         cfg: options (``resolution``, ``max_depth``, ``reference_spp``, ``reference_chunk_spp``,
             ``seed``); default :data:`PRESETS` ``["full"]``.
         progress: show a progress bar over the scenes.
+        workers: render the chunks as tasks of a local Ray instance with this many workers
+            (one CPU each); ``None``: in this process.
+        ray_address: render them on the Ray cluster at this address.
 
     Returns:
         Scene name -> path of its reference EXR, or ``"failed: <error>"`` for a scene that does
         not load or render (the others still run).
+
+    Raises:
+        ConnectionError: ``ray_address`` does not answer (before any work).
     """
     from tqdm.auto import tqdm
 
+    from gdpt.backend import ensure_variant
+
     cfg = cfg or PRESETS["full"]
     specs = _as_specs(scenes)
+    engine = None
+    if workers is not None or ray_address is not None:
+        from gdpt.study.engine import RayEngine
+
+        engine = RayEngine(workers=workers, address=ray_address)
     done: dict[str, str] = {}
     bar = tqdm(specs, unit="scene", desc="references", disable=not progress, dynamic_ncols=True)
-    for spec in bar:
-        try:
-            scene = load_eval_scene(spec, resolution=cfg.resolution, max_depth=cfg.max_depth)
-            _, meta = _study_reference(scene, spec, cfg, Path(cache_dir), bar)
-            done[spec.name] = meta["path"]
-        except Exception as err:  # reported, the other scenes still run
-            if caused_by_interrupt(err):  # Ctrl-C inside a Dr.Jit frozen function
-                raise
-            done[spec.name] = f"failed: {type(err).__name__}: {err}"
+    try:
+        for spec in bar:
+            try:
+                scene = load_eval_scene(spec, resolution=cfg.resolution, max_depth=cfg.max_depth)
+                chunks = None if engine is None else engine.chunks(spec, cfg, ensure_variant())
+                _, meta = _study_reference(scene, spec, cfg, Path(cache_dir), bar, chunks)
+                done[spec.name] = meta["path"]
+            except Exception as err:  # reported, the other scenes still run
+                if caused_by_interrupt(err):  # Ctrl-C inside a Dr.Jit frozen function
+                    raise
+                done[spec.name] = f"failed: {type(err).__name__}: {err}"
+    finally:
+        if engine is not None:
+            engine.close()
     return done
 
 
