@@ -70,6 +70,7 @@ from gdpt.study.cells import (
 )
 from gdpt.study.config import PRESETS, EvaluateConfig
 from gdpt.study.driver import (
+    StudyFailure,
     cells_to_run,
     finish_cell,
     load_into,
@@ -90,6 +91,8 @@ from gdpt.study.results import (
     write_json,
 )
 from gdpt.study.scenes import EvalScene, SceneSpec, load_eval_scene, resolve_scenes
+
+__all__ = ["PROTOCOL_TEXT", "StudyFailure", "evaluate", "failures", "render_references"]
 
 #: What a budget pays for, per protocol, in the words of the results.
 PROTOCOL_TEXT = {
