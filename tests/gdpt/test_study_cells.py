@@ -257,6 +257,37 @@ def test_chunked_reference_is_bit_identical_in_any_order_and_resumes_after_a_kil
     assert not list(cache.glob("*.chunk-*.exr"))
 
 
+def test_running_mean_partial_of_an_older_version_resumes_as_its_first_chunks(variant, tmp_path):
+    """A ``<stem>.partial-<done>.exr`` of the former running-mean reference (same seeds) counts
+    as the first ``done / chunk_spp`` chunks: only the rest is rendered."""
+    from gdpt.io.exr import save_image
+    from gdpt.study.references import merge_chunks, reference_stem, render_chunk
+
+    scene = load_eval_scene(SceneSpec("cbox", "builtin:cbox-demo"), resolution=8)
+    chunks = reference_chunks(8, 2, seed=1)
+    first = merge_chunks([(c.spp, render_chunk(scene, c)) for c in chunks[:2]])
+    stem = reference_stem(scene, 8, 1)
+    cache = tmp_path / "refs"
+    cache.mkdir()
+    save_image(cache / f"{stem}.partial-4.exr", first, force=True)
+    sidecar = {"source": "builtin:cbox-demo", "film_filter": scene.film_filter, "seconds": 1.0}
+    (cache / f"{stem}.json").write_text(json.dumps(sidecar))
+    rendered = []
+
+    def counting(scene, todo):
+        for chunk in todo:
+            rendered.append(chunk.index)
+            yield chunk, render_chunk(scene, chunk)
+
+    image, meta = render_reference(
+        scene, cache, spp=8, chunk_spp=2, seed=1, source="builtin:cbox-demo", run_chunks=counting
+    )
+    assert rendered == [2, 3] and not meta["cached"]
+    whole = merge_chunks([(c.spp, render_chunk(scene, c)) for c in chunks]).float()
+    assert torch.allclose(image, whole, rtol=1e-5, atol=1e-7)
+    assert not list(cache.glob("*.partial-*")) and not list(cache.glob("*.chunk-*"))
+
+
 def test_cached_reference_is_found_under_another_name_of_the_same_file(
     variant, tmp_path, monkeypatch
 ):
