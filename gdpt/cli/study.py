@@ -124,6 +124,20 @@ def _add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
         help="record a scene, method or budget cell that fails and continue (exit status 0); "
         "without it the study stops at the first failure with exit status 1",
     )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="run reference chunks and cells as tasks of a local Ray instance with N workers "
+        "(at most one timed cell at a time; references beside it); default: one after the "
+        "other in this process",
+    )
+    parser.add_argument(
+        "--ray-address",
+        metavar="ADDR",
+        help="run them on the Ray cluster at ADDR (HOST:PORT, ray://HOST:PORT or auto; each "
+        "node started with --resources='{\"gdpt_timed_cell\": 1}')",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -166,21 +180,41 @@ def _run_evaluate(args: argparse.Namespace) -> int:
         "keep_going": args.keep_going,
         "reference": False if args.no_reference else None,
     }
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers must be >= 1, got {args.workers}")
     if args.no_reference and args.methods is not None and BASELINE not in args.methods:
         raise UsageError(f"--no-reference estimates ratios to {BASELINE}: add it to --methods")
     cfg = PRESETS["quick" if args.quick else "full"]
     cfg = dataclasses.replace(cfg, **{k: v for k, v in changes.items() if v is not None})
     if args.references_only:
         cache = args.references or args.out / "references"
-        status = render_references(args.scenes, cache, cfg, progress=not args.no_progress)
+        try:
+            status = render_references(
+                args.scenes,
+                cache,
+                cfg,
+                progress=not args.no_progress,
+                workers=args.workers,
+                ray_address=args.ray_address,
+            )
+        except ConnectionError as error:  # before any work
+            raise UsageError(str(error)) from None
         for scene, path in status.items():
             print(f"{scene}: {path}")
         return 1 if any(p.startswith("failed:") for p in status.values()) else 0
     command = shlex.join(["gdpt", *sys.argv[1:]]) if sys.argv[1:2] == ["evaluate"] else None
     try:
         results = evaluate(
-            args.scenes, args.out, cfg, progress=not args.no_progress, command=command
+            args.scenes,
+            args.out,
+            cfg,
+            progress=not args.no_progress,
+            command=command,
+            workers=args.workers,
+            ray_address=args.ray_address,
         )
+    except ConnectionError as error:  # a Ray address that does not answer: before any work
+        raise UsageError(str(error)) from None
     except StudyFailure as failure:
         message = " ".join(str(failure).split())
         print(

@@ -19,22 +19,23 @@ Protocol, per scene:
 2. Render the reference once: path tracing (``gdpt`` primal only) at ``reference_spp``, in
    chunks whose running mean is saved, so an interrupted reference resumes; the finished file
    is cached with its spp, seed and resolution in its name and metadata.
-3. Per render configuration (:func:`~gdpt.study.calibration.configuration_key`: methods that
-   render the same thing, such as ``auto`` on its plain route and ``pt+oidn-tuned``, share
-   it; recorded per scene in ``calibrations``), timed with its
+3. Cells (:mod:`gdpt.study.cells`): per budget and replicate seed, every method is calibrated
+   and run back to back in one cell, the order reversed on odd replicates; each render
+   configuration (:func:`~gdpt.study.calibration.configuration_key`: methods that render the
+   same thing, such as ``auto`` on its plain route and ``pt+oidn-tuned``, share it; recorded
+   per scene in ``calibrations``) is calibrated inside the cell by its
    :func:`~gdpt.study.calibration.calibration_runner`: warm up (1 and 2 spp, untimed, compiles
-   the kernels), then fit
-   ``t(spp) = a + b * spp`` from a median of 1-spp runs and geometrically growing probe runs
-   (:func:`calibrate`), solve for each budget, render and check the achieved time; if it is off
-   by more than ``tolerance`` the model is corrected and the cell rendered again
-   (``max_rounds`` times at most). Every method of the configuration renders its replicates at
-   that sample count, its own times recorded. Every timed render follows an untimed render of
-   the same method at the same spp: the integrators record a frozen pass per spp per pass and
-   replay it afterwards, so the timed render pays neither kernel compilation nor the Python
-   tracing of the path loop, as a repeated render of that configuration does not. Achieved
-   times, every attempt and kernel compilation (excluded from the times) are recorded.
-4. Metrics of every cell; ``results.json`` is rewritten after each cell, so an interrupted run
-   resumes without recomputing finished cells.
+   the kernels), fit ``t(spp) = a + b * spp`` from a median of 1-spp runs and geometrically
+   growing probe runs (:func:`~gdpt.study.calibration.calibrate`), render at the budget and
+   correct (:func:`~gdpt.study.calibration.run_at_budget`). Every timed render follows an
+   untimed render of the same method at the same spp: the integrators record a frozen pass per
+   spp per pass and replay it afterwards, so the timed render pays neither kernel compilation
+   nor the Python tracing of the path loop. A replicate that misses its budget by more than
+   :data:`~gdpt.study.cells.MISS_TOLERANCE` is redone once, then flagged.
+4. Metrics of every replicate; ``results.json`` is rewritten (atomically) after each cell, so
+   an interrupted run resumes without recomputing finished cells. With ``workers`` or
+   ``ray_address`` the reference chunks and the cells run as Ray tasks
+   (:mod:`gdpt.study.engine`), with the same results.
 5. The reference-free estimate of every cell's relMSE ratio to ``pt+oidn-tuned``
    (:mod:`gdpt.study.estimate`), beside the true one; with ``cfg.reference`` off (``gdpt
    evaluate --no-reference``) step 2 and the metrics are skipped and the estimate is the result.
@@ -60,38 +61,38 @@ from typing import Any
 import torch
 
 from gdpt.interrupt import caused_by_interrupt
-from gdpt.study.calibration import (
-    TimeModel,
-    calibrate,
-    calibration_runner,
-    charged_seconds,
-    configuration_key,
-    run_at_budget,
-    timed_run,
+from gdpt.study.cells import (
+    MISS_TOLERANCE,
+    pending_cells,
+    run_cell,
+    set_threads,
+    thread_counts,
 )
 from gdpt.study.config import PRESETS, EvaluateConfig
+from gdpt.study.driver import (
+    StudyFailure,
+    cells_to_run,
+    finish_cell,
+    load_into,
+    reference_ready,
+    runnable_methods,
+    scene_failed,
+)
 from gdpt.study.estimate import estimate_scene
-from gdpt.study.methods import EVAL_METHODS, EvalMethod, MethodResult, MethodUnavailable
+from gdpt.study.methods import EVAL_METHODS, EvalMethod
 from gdpt.study.references import reference_seed, render_reference
 from gdpt.study.results import (
     CONVENTIONS,
     budget_key,
-    cell_seed,
     cells_done,
     load_results,
     machine_info,
-    replicate_seed,
     versions,
     write_json,
 )
 from gdpt.study.scenes import EvalScene, SceneSpec, load_eval_scene, resolve_scenes
-from gdpt.study.scoring import interval_too_wide, replicate_record, score, summarise
 
-
-class StudyFailure(RuntimeError):
-    """A scene or method of the study failed and ``keep_going`` is off (the failure is recorded
-    in ``results.json`` first, so that a resumed run retries it)."""
-
+__all__ = ["PROTOCOL_TEXT", "StudyFailure", "evaluate", "failures", "render_references"]
 
 #: What a budget pays for, per protocol, in the words of the results.
 PROTOCOL_TEXT = {
@@ -113,6 +114,8 @@ def failures(results: dict[str, Any]) -> list[str]:
                 lines.append(f"{scene} / {method}: calibration failed: {info['note']}")
             for key, error in info.get("errors", {}).items():
                 lines.append(f"{scene} / {method} at {key} s: {error}")
+        for unit, error in entry.get("cell_errors", {}).items():
+            lines.append(f"{scene}: cell {unit} (budget/replicate): {error}")
     return lines
 
 
@@ -141,7 +144,12 @@ def _as_specs(scenes: Sequence[str | os.PathLike[str] | SceneSpec]) -> list[Scen
 
 
 def _study_reference(
-    scene: EvalScene, spec: SceneSpec, cfg: EvaluateConfig, cache: Path, bar: Any
+    scene: EvalScene,
+    spec: SceneSpec,
+    cfg: EvaluateConfig,
+    cache: Path,
+    bar: Any,
+    run_chunks: Any = None,
 ) -> tuple[torch.Tensor, dict[str, Any]]:
     """:func:`render_reference` with the study's settings (shared by every entry point)."""
     return render_reference(
@@ -152,6 +160,7 @@ def _study_reference(
         seed=reference_seed(cfg.seed),
         source=spec.source,
         progress=bar,
+        run_chunks=run_chunks,
     )
 
 
@@ -163,6 +172,8 @@ def evaluate(
     progress: bool = True,
     report: bool = True,
     command: str | None = None,
+    workers: int | None = None,
+    ray_address: str | None = None,
 ) -> dict[str, Any]:
     """Run the equal-time study and write its report into ``out_dir``.
 
@@ -175,6 +186,10 @@ def evaluate(
         progress: show a progress bar over all cells of the study.
         report: write ``results.md``, plots, crops and ``index.html`` at the end.
         command: the command line that started the run (recorded in the results).
+        workers: run the reference chunks and cells as tasks of a local Ray instance with this
+            many workers (:mod:`gdpt.study.engine`); ``None`` and no ``ray_address``: one cell
+            after the other in this process (Ray is not imported).
+        ray_address: run them on the Ray cluster at this address (checked before any work).
 
     Returns:
         The content of ``results.json``. A resumed study says on stderr how many of its cells
@@ -182,18 +197,41 @@ def evaluate(
 
     Raises:
         ValueError: unknown methods or metrics, or ``out_dir`` holds an incompatible study.
+        ConnectionError: ``ray_address`` does not answer (before any work).
     """
-    import drjit as dr
-    from tqdm.auto import tqdm
-
-    from gdpt.backend import ensure_variant
     from gdpt.metrics import METRICS
 
     cfg = _current_methods(cfg or PRESETS["full"])
     METRICS.check(cfg.metrics)
     methods = _method_list(cfg)
     specs = _as_specs(scenes)
-    out = Path(out_dir)
+    engine = None
+    if workers is not None or ray_address is not None:  # connected before any work
+        from gdpt.study.engine import RayEngine
+
+        engine = RayEngine(workers=workers, address=ray_address)
+    try:
+        return _evaluate(specs, methods, Path(out_dir), cfg, progress, report, command, engine)
+    finally:
+        if engine is not None:
+            engine.close()
+
+
+def _evaluate(
+    specs: list[SceneSpec],
+    methods: list[str],
+    out: Path,
+    cfg: EvaluateConfig,
+    progress: bool,
+    report: bool,
+    command: str | None,
+    engine: Any,
+) -> dict[str, Any]:
+    import drjit as dr
+    from tqdm.auto import tqdm
+
+    from gdpt.backend import ensure_variant
+
     out.mkdir(parents=True, exist_ok=True)
     (out / "images").mkdir(exist_ok=True)
     results_path = out / "results.json"
@@ -208,11 +246,14 @@ def evaluate(
         methods={m: _method_info(EVAL_METHODS[m]) for m in methods},
         protocol=(
             f"{PROTOCOL_TEXT[cfg.protocol]}; "
-            "per scene and budget, each render configuration's spp is calibrated by timing on "
-            "this machine in this run, once, and shared by every method that renders it "
-            "('calibrations' per scene; t = a + b*spp fitted to 1-spp medians and growing "
-            f"probes, then verified and re-rendered if off by more than {cfg.tolerance:.0%}); "
-            "every timed "
+            "per scene, budget and replicate seed, one cell calibrates and runs every method back "
+            "to back on one worker (order reversed on odd replicates; timings compare only "
+            "within a cell); each render configuration's spp is calibrated by timing inside "
+            "the cell and shared by every method that renders it ('calibrations' per scene; "
+            "t = a + b*spp fitted to 1-spp medians and growing probes, then verified and "
+            f"re-rendered if off by more than {min(cfg.tolerance, MISS_TOLERANCE):.0%}); a "
+            f"replicate that misses its budget by more than {MISS_TOLERANCE:.0%} is redone "
+            "once, then flagged (missed_budget); every timed "
             "render follows an untimed one at the same spp (kernel compilation and frozen-pass "
             "recording are paid once per configuration, not timed); reference: "
             f"path tracing at {cfg.reference_spp} spp on the same box-filtered film"
@@ -231,13 +272,23 @@ def evaluate(
     done = cells_done(results, [s.name for s in specs], methods, cfg.budgets)
     if done:  # to stderr, as the progress bar
         print(f"{results_path}: resuming: {done} of {total} cells done", file=sys.stderr)
-    bar = tqdm(total=total, unit="cell", desc="evaluate", disable=not progress, dynamic_ncols=True)
+    units = len(specs) * len(cfg.budgets) * cfg.seeds  # one cell: every method of a seed
+    bar = tqdm(total=units, unit="cell", desc="evaluate", disable=not progress, dynamic_ncols=True)
     history_flag = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
+    before = thread_counts()
     try:
-        for spec in specs:
-            _evaluate_scene(spec, methods, cfg, results, results_path, cache, out, bar)
+        if engine is None:  # this process owns the machine's usable cores
+            owned = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+            threads = set_threads(owned or os.cpu_count() or 1)
+            results["threads"] = {"engine": "sequential", "workers": 1, "per_worker": threads}
+            for spec in specs:
+                _evaluate_scene(spec, methods, cfg, results, results_path, cache, out, bar)
+        else:
+            results["threads"] = engine.describe()
+            engine.run_study(specs, methods, cfg, results, results_path, cache, out, bar)
     finally:
+        set_threads_back(before)
         dr.set_flag(dr.JitFlag.KernelHistory, history_flag)
         bar.close()
         results["runs"][-1]["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
@@ -257,6 +308,8 @@ def render_references(
     cfg: EvaluateConfig | None = None,
     *,
     progress: bool = True,
+    workers: int | None = None,
+    ray_address: str | None = None,
 ) -> dict[str, str]:
     """Render (or finish) the cached references of a study without timing anything.
 
@@ -270,45 +323,58 @@ def render_references(
         cfg: options (``resolution``, ``max_depth``, ``reference_spp``, ``reference_chunk_spp``,
             ``seed``); default :data:`PRESETS` ``["full"]``.
         progress: show a progress bar over the scenes.
+        workers: render the chunks as tasks of a local Ray instance with this many workers
+            (one CPU each); ``None``: in this process.
+        ray_address: render them on the Ray cluster at this address.
 
     Returns:
         Scene name -> path of its reference EXR, or ``"failed: <error>"`` for a scene that does
         not load or render (the others still run).
+
+    Raises:
+        ConnectionError: ``ray_address`` does not answer (before any work).
     """
     from tqdm.auto import tqdm
 
+    from gdpt.backend import ensure_variant
+
     cfg = cfg or PRESETS["full"]
     specs = _as_specs(scenes)
+    engine = None
+    if workers is not None or ray_address is not None:
+        from gdpt.study.engine import RayEngine
+
+        engine = RayEngine(workers=workers, address=ray_address)
     done: dict[str, str] = {}
     bar = tqdm(specs, unit="scene", desc="references", disable=not progress, dynamic_ncols=True)
-    for spec in bar:
-        try:
-            scene = load_eval_scene(spec, resolution=cfg.resolution, max_depth=cfg.max_depth)
-            _, meta = _study_reference(scene, spec, cfg, Path(cache_dir), bar)
-            done[spec.name] = meta["path"]
-        except Exception as err:  # reported, the other scenes still run
-            if caused_by_interrupt(err):  # Ctrl-C inside a Dr.Jit frozen function
-                raise
-            done[spec.name] = f"failed: {type(err).__name__}: {err}"
+    try:
+        for spec in bar:
+            try:
+                scene = load_eval_scene(spec, resolution=cfg.resolution, max_depth=cfg.max_depth)
+                chunks = None if engine is None else engine.chunks(spec, cfg, ensure_variant())
+                _, meta = _study_reference(scene, spec, cfg, Path(cache_dir), bar, chunks)
+                done[spec.name] = meta["path"]
+            except Exception as err:  # reported, the other scenes still run
+                if caused_by_interrupt(err):  # Ctrl-C inside a Dr.Jit frozen function
+                    raise
+                done[spec.name] = f"failed: {type(err).__name__}: {err}"
+    finally:
+        if engine is not None:
+            engine.close()
     return done
+
+
+def set_threads_back(counts: dict[str, int]) -> None:
+    """Restore torch's and Dr.Jit's thread counts (:func:`~gdpt.study.cells.thread_counts`)."""
+    import drjit as dr
+
+    torch.set_num_threads(counts["torch"])
+    dr.set_thread_count(counts["drjit"])
 
 
 def _method_info(method: EvalMethod) -> dict[str, Any]:
     reason = method.check()
     return {"description": method.description, "available": reason is None, "note": reason}
-
-
-def _scene_done(entry: dict[str, Any], methods: list[str], cfg: EvaluateConfig) -> bool:
-    if entry.get("status") != "ok":
-        return False
-    for m in methods:
-        info = entry["methods"].get(m, {})
-        # skipped because unavailable (package, model): done; skipped after an error: retried
-        if info.get("status") == "skipped" and EVAL_METHODS[m].check() is not None:
-            continue
-        if any(budget_key(b) not in info.get("cells", {}) for b in cfg.budgets):
-            return False
-    return True
 
 
 def _evaluate_scene(
@@ -321,248 +387,50 @@ def _evaluate_scene(
     out: Path,
     bar: Any,
 ) -> None:
-    """Reference, calibration and cells of one scene (results updated and saved in place)."""
+    """Reference and cells of one scene, one cell after the other in this process (results
+    updated and saved in place)."""
     entry = results["scenes"].setdefault(spec.name, {"source": spec.source, "methods": {}})
     entry.setdefault("methods", {})
-    if _scene_done(entry, methods, cfg):
-        bar.update(len(methods) * len(cfg.budgets))
+    runnable = runnable_methods(methods, entry)
+    per_scene = len(cfg.budgets) * cfg.seeds
+    todo = cells_to_run(entry, runnable, cfg)
+    bar.update(per_scene - todo)
+    if (
+        entry.get("status") == "ok"
+        and not todo
+        and not any(pending_cells(entry, runnable, cfg, set()))
+    ):
         return
     stage = "load"
     try:
         bar.set_postfix_str(f"{spec.name}: loading")
-        scene = load_eval_scene(spec, resolution=cfg.resolution, max_depth=cfg.max_depth)
-        entry.update(
-            resolution=list(scene.resolution),
-            max_depth=scene.max_depth,
-            notes=scene.notes,
-            film_filter=scene.film_filter,
-        )
+        scene = load_into(spec, cfg, entry)
         stage = "reference"
         no_reference = (None, None)
         reference, ref_meta = (
             _study_reference(scene, spec, cfg, cache, bar) if cfg.reference else no_reference
         )
     except Exception as err:  # a broken scene is a result, not the end of the study
-        if caused_by_interrupt(err):  # Ctrl-C inside a Dr.Jit frozen function
-            raise
-        entry.update(status="failed", stage=stage, error=f"{type(err).__name__}: {err}")
-        entry.pop("reference", None)
-        write_json(results_path, results)
-        bar.update(len(methods) * len(cfg.budgets))
-        if not cfg.keep_going:
-            raise StudyFailure(f"{spec.name}: {stage} failed: {entry['error']}") from err
+        try:
+            scene_failed(spec.name, entry, stage, err, cfg)
+        finally:
+            write_json(results_path, results)
+            bar.update(todo)
         return
-    entry.update(status="ok", reference=ref_meta)
-    entry.pop("error", None)
-    entry.pop("stage", None)
+    reference_ready(spec.name, entry, reference, ref_meta, out)
     write_json(results_path, results)
-    image_dir = out / "images" / spec.name
-    image_dir.mkdir(parents=True, exist_ok=True)
-    from gdpt.io.exr import save_image
-    from gdpt.io.images import save_png
-
-    if reference is not None:
-        save_image(image_dir / "reference.exr", reference, metadata=ref_meta, force=True)
-        save_png(image_dir / "reference.png", reference, force=True)
-    for name in methods:
-        _evaluate_method(
-            EVAL_METHODS[name], scene, reference, cfg, entry, results, results_path, image_dir, bar
-        )
+    chosen = {m: EVAL_METHODS[m] for m in runnable}
+    attempted: set[str] = set()
+    while runnable and (cell := next(pending_cells(entry, runnable, cfg, attempted), None)):
+        budget, replicate, added = cell
+        attempted.add(f"{budget_key(budget)}/{replicate}")
+        if added:
+            bar.total += 1
+        bar.set_postfix_str(f"{spec.name}: {budget_key(budget)} s, replicate {replicate}")
+        output = run_cell(scene, reference, chosen, budget, replicate, cfg, added=added)
+        try:
+            finish_cell(spec.name, entry, output, runnable, cfg, results, results_path, out)
+        finally:
+            bar.update(1)
     estimate_scene(scene, entry, cfg, out, bar)  # the reference-free estimate of every cell
     write_json(results_path, results)
-
-
-#: Fields of a cell record that describe the timed run itself (the evaluated method's, where
-#: the sample count came from a shared calibration).
-RUN_FIELDS = ("seconds", "render_seconds", "reconstruct_seconds", "compile_seconds")
-
-
-def _shared_calibration(
-    method: EvalMethod, scene: EvalScene, cfg: EvaluateConfig, entry: dict[str, Any], todo: list
-) -> tuple[EvalMethod, str, dict[str, Any], TimeModel]:
-    """The calibration ``method`` shares on this scene (:func:`configuration_key`): its runner,
-    key, record in ``entry["calibrations"]`` (``runner``, ``configuration``, ``model``,
-    ``budgets``: the :func:`run_at_budget` record per budget) and the time model, fitted by
-    timing the runner unless an earlier method of the configuration did.
-
-    Raises:
-        MethodUnavailable: the runner cannot run here.
-    """
-    runner = calibration_runner(method, cfg.protocol)
-    key = configuration_key(method, cfg.protocol)
-    shared = entry.setdefault("calibrations", {}).setdefault(key, {"budgets": {}})
-    if "model" in shared:
-        model = TimeModel(
-            shared["model"]["fixed"],
-            shared["model"]["per_spp"],
-            [(int(s), float(t)) for s, t in shared["model"]["measurements"]],
-        )
-    else:
-        model = calibrate(
-            runner,
-            scene,
-            budget=min(todo),
-            seed=cell_seed(cfg.seed, scene.name, runner.name, "calibration"),
-            probe_fraction=cfg.probe_fraction,
-            protocol=cfg.protocol,
-        )
-    configuration = method.configuration() if method.configuration is not None else None
-    shared.update(runner=runner.name, configuration=configuration, model=dataclasses.asdict(model))
-    shared.setdefault("methods", [])
-    if method.name not in shared["methods"]:
-        shared["methods"].append(method.name)
-    return runner, key, shared, model
-
-
-def _run_replicates(
-    method: EvalMethod,
-    scene: EvalScene,
-    calibration: tuple[EvalMethod, str, dict[str, Any], TimeModel],
-    budget: float,
-    cfg: EvaluateConfig,
-) -> tuple[MethodResult, dict[str, Any], list[dict[str, Any]]]:
-    """One budget cell: the sample count that fills ``budget`` for the method's configuration
-    (:func:`run_at_budget` on the calibration's runner, once per configuration, scene and
-    budget), then ``cfg.seeds`` replicates of ``method`` at that count with the paired seeds of
-    :func:`~gdpt.study.results.replicate_seed`.
-
-    Returns:
-        The first replicate's result (its image is saved), the cell record (the
-        :func:`run_at_budget` record, its timings those of ``method``'s first replicate, plus
-        ``calibration``: the configuration key and ``calibrated_by``: the runner) and per
-        replicate ``{"seed", "spp", "seconds", "render_seconds", "reconstruct_seconds",
-        "result"}``.
-    """
-    runner, config_key, shared, model = calibration
-    key = budget_key(budget)
-    seeds = [replicate_seed(cfg.seed, scene.name, key, r) for r in range(cfg.seeds)]
-    first: MethodResult | None = None
-    if key not in shared["budgets"]:
-        result, record = run_at_budget(
-            runner,
-            scene,
-            model,
-            budget=budget,
-            seed=seeds[0],
-            tolerance=cfg.tolerance,
-            max_rounds=cfg.max_rounds,
-            protocol=cfg.protocol,
-        )
-        shared["budgets"][key] = record
-        shared["model"] = dataclasses.asdict(model)
-        if runner is method and record["seed"] == seeds[0]:
-            first = result
-    record = {**shared["budgets"][key], "calibration": config_key, "calibrated_by": runner.name}
-    spp = record["spp"]
-    runs = [first] + [None] * (cfg.seeds - 1)
-    runs = [r or timed_run(method, scene, spp, seed) for r, seed in zip(runs, seeds, strict=True)]
-    if first is None:  # the timings of this method's own run
-        charged = charged_seconds(runs[0], cfg.protocol)
-        record.update({f: getattr(runs[0], f) for f in RUN_FIELDS})
-        record.update(charged_seconds=charged, relative_error=(charged - budget) / budget)
-        record["within_tolerance"] = abs(record["relative_error"]) <= cfg.tolerance
-    replicates = [
-        {**replicate_record(run, seed, spp), "result": run}
-        for run, seed in zip(runs, seeds, strict=True)
-    ]
-    record["seed"] = seeds[0]
-    return runs[0], record, replicates
-
-
-def _evaluate_method(
-    method: EvalMethod,
-    scene: EvalScene,
-    reference: torch.Tensor | None,
-    cfg: EvaluateConfig,
-    entry: dict[str, Any],
-    results: dict[str, Any],
-    results_path: Path,
-    image_dir: Path,
-    bar: Any,
-) -> None:
-    """Calibrate one method on one scene and fill its missing budget cells."""
-    from gdpt.io.exr import save_image
-    from gdpt.io.images import save_png
-
-    info = entry["methods"].setdefault(method.name, {"cells": {}})
-    info.setdefault("cells", {})
-    todo = [b for b in cfg.budgets if budget_key(b) not in info["cells"]]
-    bar.update(len(cfg.budgets) - len(todo))
-    if not todo:
-        return
-    bar.set_postfix_str(f"{scene.name}/{method.name}: calibrating")
-    reason = method.check()
-    calibration = None
-    error = None
-    if reason is None:
-        try:
-            calibration = _shared_calibration(method, scene, cfg, entry, todo)
-        except MethodUnavailable as err:
-            reason = str(err)
-        except Exception as err:  # e.g. a model that fails to load, an unsupported plugin
-            if caused_by_interrupt(err):  # Ctrl-C inside a Dr.Jit frozen function
-                raise
-            reason = f"could not run: {type(err).__name__}: {' '.join(str(err).split())}"
-            error = err
-    if calibration is None:
-        info.update(status="skipped", note=reason, failed=error is not None)
-        write_json(results_path, results)
-        bar.update(len(todo))
-        if error is not None and not cfg.keep_going:
-            raise StudyFailure(f"{scene.name} / {method.name}: calibration: {reason}") from error
-        return
-    model = calibration[3]
-    info.update(
-        status="ok",
-        note=None,
-        failed=False,
-        calibration=dataclasses.asdict(model),
-        calibration_key=calibration[1],
-    )
-    for budget in todo:
-        key = budget_key(budget)
-        bar.set_postfix_str(f"{scene.name}/{method.name}: {key} s")
-        try:
-            result, record, replicates = _run_replicates(method, scene, calibration, budget, cfg)
-        except Exception as err:  # e.g. out of memory at a large spp: report, retry on resume
-            if caused_by_interrupt(err):  # Ctrl-C inside a Dr.Jit frozen function
-                raise
-            info.setdefault("errors", {})[key] = f"{type(err).__name__}: {err}"
-            write_json(results_path, results)
-            bar.update(1)
-            if not cfg.keep_going:
-                message = f"{scene.name} / {method.name} at {key} s: {info['errors'][key]}"
-                raise StudyFailure(message) from err
-            continue
-        info.get("errors", {}).pop(key, None)
-        for replicate in replicates:
-            skipped = score(replicate, replicate.pop("result").image, reference, cfg)
-        while interval_too_wide(replicates, cfg) and len(replicates) < cfg.max_seeds:
-            seed = replicate_seed(cfg.seed, scene.name, key, len(replicates))
-            run = timed_run(method, scene, record["spp"], seed)
-            replicate = {**replicate_record(run, seed, record["spp"]), "added": "until_interval"}
-            score(replicate, run.image, reference, cfg)
-            replicates.append(replicate)
-        record.update(budget=budget, **summarise(replicates))
-        record.update(
-            replicates=replicates,
-            skipped_metrics=skipped,
-            nonfinite_pixels=int((~torch.isfinite(result.image)).any(-1).sum()),
-            image=f"images/{scene.name}/{method.name}-{key}s.exr",
-        )
-        save_image(
-            image_dir / f"{method.name}-{key}s.exr",
-            result.image,
-            metadata={
-                "method": method.name,
-                "spp": record["spp"],
-                "budget": budget,
-                "seed": record["seed"],
-            },
-            force=True,
-        )
-        save_png(image_dir / f"{method.name}-{key}s.png", result.image, force=True)
-        info["cells"][key] = record
-        info["calibration"] = dataclasses.asdict(model)
-        write_json(results_path, results)
-        bar.update(1)

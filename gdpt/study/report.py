@@ -175,6 +175,48 @@ def _skips(entry: dict[str, Any]) -> list[str]:
     return out
 
 
+def _missed(entry: dict[str, Any]) -> list[str]:
+    """One line per replicate kept although it missed its budget after one redo."""
+    out = []
+    for name, info in entry.get("methods", {}).items():
+        for key, cell in info.get("cells", {}).items():
+            for index in cell.get("missed_budget", []):
+                replicate = cell["replicates"][index]
+                redone = replicate.get("redone", {})
+                out.append(
+                    f"{name} at {key} s, replicate {index}: missed the budget "
+                    f"({replicate['charged_seconds']:.2f} s charged, "
+                    f"{replicate['relative_error']:+.0%}"
+                    + (f"; first run {redone['relative_error']:+.0%}" if redone else "")
+                    + f"; load {replicate.get('loadavg_1min')}, CPU/wall "
+                    f"{_seconds(replicate.get('cpu_per_wall'))})"
+                )
+    return out
+
+
+def _cells_line(results: dict[str, Any]) -> str | None:
+    """How the cells ran (studies before cells: ``None``)."""
+    threads = results.get("threads")
+    if threads is None:
+        return None
+    hosts = sorted(
+        {
+            run["worker"]["host"]
+            for _, entry in _scenes(results)
+            for run in entry.get("cell_runs", {}).values()
+        }
+    )
+    engine = threads.get("engine")
+    return (
+        "Cells: each (scene, budget, replicate seed) calibrated and ran every method back to "
+        "back on one worker, the order reversed on odd replicates; compare timings only within "
+        f"a cell (workers may differ in speed). Engine: {engine}"
+        + (f", {threads.get('workers')} workers" if threads.get("workers") else "")
+        + (f", cluster {threads.get('address')}" if threads.get("address") else "")
+        + f"; threads per worker: {threads.get('per_worker')}; hosts: {', '.join(hosts) or 'n/a'}."
+    )
+
+
 def _run_summary(results: dict[str, Any]) -> list[str]:
     cfg, machine, versions = results["config"], results["machine"], results["versions"]
     runs = results.get("runs", [])
@@ -189,6 +231,8 @@ def _run_summary(results: dict[str, Any]) -> list[str]:
         "Versions: " + ", ".join(f"{k} {v}" for k, v in versions.items() if v) + ".",
         "Protocol: " + results.get("protocol", ""),
     ]
+    if cells := _cells_line(results):
+        lines.append(cells)
     if command:
         lines.insert(0, f"Command: `{command}`")
     return lines
@@ -241,6 +285,9 @@ def _markdown(results: dict[str, Any], plots: dict[str, str], crops: dict[str, s
             out += ["", *estimates]
         if skips := _skips(entry):
             out += [""] + [f"- {s}" for s in skips]
+        if missed := _missed(entry):
+            out += ["", "Replicates kept although they missed the budget after one redo:", ""]
+            out += [f"- {m}" for m in missed]
         for figure in (plots.get(scene), crops.get(scene)):
             if figure:
                 out += ["", f"![{scene}]({figure})"]
@@ -291,6 +338,9 @@ def _html(results: dict[str, Any], plots: dict[str, str], crops: dict[str, str])
         parts.append(_html_table(*_scene_table(results, entry)))
         if skips := _skips(entry):
             parts += ["<ul>", *(f"<li>{esc(s)}</li>" for s in skips), "</ul>"]
+        if missed := _missed(entry):
+            parts += ["<p>Replicates kept although they missed the budget after one redo:</p>"]
+            parts += ["<ul>", *(f"<li>{esc(m)}</li>" for m in missed), "</ul>"]
         for figure in (plots.get(scene), crops.get(scene)):
             if figure:
                 parts.append(f"<p><img src='{esc(figure)}' alt='{esc(scene)}'></p>")

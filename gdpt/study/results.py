@@ -22,7 +22,13 @@ from gdpt.io.atomic import atomic_write
 from gdpt.machine import cpu_name
 from gdpt.study.config import EvaluateConfig
 
-RESULTS_FORMAT = "gdpt-evaluate/1"
+#: Format 2 adds the cells (``scenes[*]["cell_runs"]``: every method of one budget and
+#: replicate seed, :mod:`gdpt.study.cells`), per-replicate load and budget records and
+#: ``threads``; the per-method ``cells`` are those of format 1, which is read as it is.
+RESULTS_FORMAT = "gdpt-evaluate/2"
+
+#: Formats :func:`read_results` reads (a format-1 study resumes as format 2).
+READABLE_FORMATS = ("gdpt-evaluate/1", RESULTS_FORMAT)
 
 
 #: Config fields that must match for a run directory to be resumed.
@@ -138,7 +144,7 @@ def read_results(path: str | os.PathLike[str]) -> dict[str, Any]:
         ValueError: the file is not a gdpt evaluation (its format tag).
     """
     results = json.loads(Path(path).read_text())
-    if results.get("format") != RESULTS_FORMAT:
+    if results.get("format") not in READABLE_FORMATS:
         raise ValueError(f"{path} is not a gdpt evaluation ({results.get('format')!r})")
     current = EVAL_METHOD_ALIASES
     for entry in [*results.get("scenes", {}).values(), results]:
@@ -163,5 +169,5 @@ def load_results(path: Path, cfg: EvaluateConfig) -> dict[str, Any]:
                 f"{path} was made with different settings ({', '.join(diff)}); use another "
                 "--out folder or delete it"
             )
-        return old
+        return {**old, "format": RESULTS_FORMAT}
     return {"format": RESULTS_FORMAT, "scenes": {}, "runs": []}

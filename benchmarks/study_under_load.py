@@ -1,0 +1,226 @@
+"""Does the equal-time study hold on a busy machine? The same quick study idle and loaded.
+
+Runs ``gdpt evaluate`` twice with the same settings (default: cornell-box and living-room-2
+from ``../shared/scenes``; budgets 2 and 4 s; 3 paired seeds; ``pt+oidn-tuned``, ``gdpt+fuse``,
+``auto``; 128 px; 8192-spp references from ``--references``): once on the idle machine, once
+with one busy-loop process at normal priority beside it (a Python ``while True`` loop, started
+before the study and ended after it, by its process id). Each run is its own process and
+output folder (``OUT/idle``, ``OUT/loaded``); a run whose ``results.json`` is complete is
+reused (``--force``: run again).
+
+It then prints, and writes to ``OUT/summary.md`` and ``OUT/summary.json`` (with the commit,
+versions and machine):
+
+* per cell (scene, budget, replicate seed; every method of a cell ran back to back on one
+  worker, ``gdpt.study.cells``) the relMSE ratio of each method to ``pt+oidn-tuned`` in the
+  same cell, idle and loaded, and loaded / idle;
+* per method, the geometric mean over cells of the ratio, idle and loaded, and their agreement
+  ``loaded / idle`` (bar: within 10%, i.e. 0.909-1.1);
+* every replicate flagged for missing its budget (``missed_budget``, after one redo), per run,
+  with its charged seconds, the 1-minute load average and CPU / wall time of its timed run.
+
+The timing bar of the study (``gdpt.study.cells.MISS_TOLERANCE``) is the tolerance; this script
+only reads what the study recorded. Run it on an otherwise idle machine (the second run adds
+its own load)::
+
+    .venv/bin/python benchmarks/study_under_load.py --references /work/main/out/refs128 \\
+        --out out/study-under-load
+
+``--workers N`` passes ``--workers N`` to both studies (Ray; default: sequential).
+``--summary-only`` recomputes the tables from existing runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SCENES = REPO.parent / "shared" / "scenes"
+BASELINE = "pt+oidn-tuned"
+AGREEMENT = 0.10  # the bar: loaded / idle geometric means within 10%
+BURNER = "while True:\n    pass\n"
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--scenes",
+        nargs="+",
+        default=[os.path.relpath(SCENES / n) for n in ("cornell-box", "living-room-2")],
+        help="scene folders (default: cornell-box and living-room-2 of ../shared/scenes)",
+    )
+    parser.add_argument("--references", type=Path, required=True, help="reference cache folder")
+    parser.add_argument("--out", type=Path, default=Path("out/study-under-load"))
+    parser.add_argument("--budgets", type=float, nargs="+", default=[2.0, 4.0])
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--methods", nargs="+", default=[BASELINE, "gdpt+fuse", "auto"])
+    parser.add_argument("--resolution", type=int, default=128)
+    parser.add_argument("--reference-spp", type=int, default=8192)
+    parser.add_argument("--workers", type=int, help="pass --workers N to gdpt evaluate (Ray)")
+    parser.add_argument("--force", action="store_true", help="run again even if complete")
+    parser.add_argument("--summary-only", action="store_true", help="only read existing runs")
+    return parser.parse_args(argv)
+
+
+def study_command(args: argparse.Namespace, out: Path) -> list[str]:
+    """The ``gdpt evaluate`` command line of one run."""
+    command = [sys.executable, "-m", "gdpt", "evaluate", "--quick", "--scenes", *args.scenes]
+    command += ["--out", str(out), "--references", str(args.references)]
+    command += ["--budgets", *(f"{b:g}" for b in args.budgets), "--seeds", str(args.seeds)]
+    command += ["--methods", *args.methods, "--resolution", str(args.resolution)]
+    command += ["--reference-spp", str(args.reference_spp), "--no-progress"]
+    if args.workers:
+        command += ["--workers", str(args.workers)]
+    return command
+
+
+def complete(out: Path, args: argparse.Namespace) -> bool:
+    path = out / "results.json"
+    if not path.is_file():
+        return False
+    results = json.loads(path.read_text())
+    finished = results.get("runs", [{}])[-1].get("finished")
+    cells = [
+        entry.get("cell_runs", {})
+        for entry in results.get("scenes", {}).values()
+        if entry.get("status") == "ok"
+    ]
+    wanted = len(args.budgets) * args.seeds
+    return (
+        bool(finished) and len(cells) == len(args.scenes) and all(len(c) >= wanted for c in cells)
+    )
+
+
+def run_study(args: argparse.Namespace, out: Path, loaded: bool) -> dict:
+    """One study run (with a busy loop beside it when ``loaded``); returns its timing."""
+    if complete(out, args) and not args.force:
+        print(f"{out}: complete, reused", flush=True)
+        return {}
+    burner = None
+    if loaded:  # normal priority, as any other program a user runs
+        burner = subprocess.Popen([sys.executable, "-c", BURNER])
+    start = time.perf_counter()
+    load_start = os.getloadavg()
+    try:
+        status = subprocess.run(study_command(args, out), check=False).returncode
+    finally:
+        if burner is not None:
+            burner.terminate()
+            burner.wait()
+    if status != 0:
+        raise SystemExit(f"{out}: gdpt evaluate exited with status {status}")
+    return {"seconds": time.perf_counter() - start, "loadavg_start": list(load_start)}
+
+
+def cell_ratios(results: dict) -> dict[tuple[str, str, int], dict[str, float]]:
+    """``(scene, budget, replicate) -> {method: relMSE / relMSE of pt+oidn-tuned}`` from the
+    cells (``cell_runs``) of a study."""
+    out = {}
+    for scene, entry in results["scenes"].items():
+        for unit, run in entry.get("cell_runs", {}).items():
+            budget, replicate = unit.split("/")
+            reps = run["replicates"]
+            base = reps.get(BASELINE, {}).get("metrics", {}).get("relmse")
+            if not base:
+                continue
+            out[(scene, budget, int(replicate))] = {
+                m: r["metrics"]["relmse"] / base
+                for m, r in reps.items()
+                if m != BASELINE and r.get("metrics", {}).get("relmse") is not None
+            }
+    return out
+
+
+def geomean(values: list[float]) -> float:
+    return math.exp(sum(math.log(v) for v in values) / len(values)) if values else math.nan
+
+
+def flagged(results: dict) -> list[str]:
+    lines = []
+    for scene, entry in results["scenes"].items():
+        for unit, run in sorted(entry.get("cell_runs", {}).items()):
+            for method, rep in run["replicates"].items():
+                if rep.get("missed_budget"):
+                    lines.append(
+                        f"{scene} {unit} {method}: {rep['charged_seconds']:.2f} s charged "
+                        f"({rep['relative_error']:+.0%}), load {rep.get('loadavg_1min')}, "
+                        f"CPU/wall {rep.get('cpu_per_wall') or float('nan'):.2f}"
+                    )
+    return lines
+
+
+def summarise(idle: dict, loaded: dict) -> tuple[str, dict]:
+    """The Markdown tables and their numbers."""
+    ratios = {"idle": cell_ratios(idle), "loaded": cell_ratios(loaded)}
+    cells = sorted(set(ratios["idle"]) & set(ratios["loaded"]))
+    methods = sorted({m for r in ratios["idle"].values() for m in r})
+    lines = [f"Per cell: relMSE / relMSE of `{BASELINE}` in the same cell.", ""]
+    head = "| scene | budget s | seed | " + " | ".join(
+        f"{m} idle | {m} loaded | loaded/idle" for m in methods
+    )
+    lines += [head + " |", "|---|---:|---:|" + "---:|" * (3 * len(methods))]
+    for cell in cells:
+        row = [cell[0], cell[1], str(cell[2])]
+        for m in methods:
+            a, b = ratios["idle"][cell].get(m), ratios["loaded"][cell].get(m)
+            row += [f"{a:.3f}" if a else "n/a", f"{b:.3f}" if b else "n/a"]
+            row.append(f"{b / a:.3f}" if a and b else "n/a")
+        lines.append("| " + " | ".join(row) + " |")
+    numbers: dict = {"cells": len(cells), "methods": {}}
+    lines += ["", "| method | cells | geomean idle | geomean loaded | loaded / idle | within 10% |"]
+    lines += ["|---|---:|---:|---:|---:|---|"]
+    for m in methods:
+        both = [c for c in cells if m in ratios["idle"][c] and m in ratios["loaded"][c]]
+        gi = geomean([ratios["idle"][c][m] for c in both])
+        gl = geomean([ratios["loaded"][c][m] for c in both])
+        agree = gl / gi
+        ok = 1 / (1 + AGREEMENT) <= agree <= 1 + AGREEMENT
+        numbers["methods"][m] = {"cells": len(both), "idle": gi, "loaded": gl, "agreement": agree}
+        numbers["methods"][m]["within_bar"] = ok
+        lines.append(
+            f"| {m} | {len(both)} | {gi:.3f} | {gl:.3f} | {agree:.3f} | {'yes' if ok else 'NO'} |"
+        )
+    for name, results in (("idle", idle), ("loaded", loaded)):
+        missed = flagged(results)
+        numbers[f"flagged_{name}"] = missed
+        lines += ["", f"Replicates flagged for missing the budget, {name}: {len(missed)}"]
+        lines += [f"- {line}" for line in missed]
+    return "\n".join(lines) + "\n", numbers
+
+
+def metadata() -> dict:
+    from gdpt.study.results import machine_info, versions
+
+    commit = subprocess.run(
+        ["git", "-C", str(REPO), "rev-parse", "HEAD"], capture_output=True, text=True, check=False
+    ).stdout.strip()
+    return {"commit": commit, "versions": versions(), "machine": machine_info()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    timing = {}
+    if not args.summary_only:
+        for name, loaded in (("idle", False), ("loaded", True)):
+            print(f"== {name}: {' '.join(study_command(args, args.out / name))}", flush=True)
+            timing[name] = run_study(args, args.out / name, loaded)
+    runs = {n: json.loads((args.out / n / "results.json").read_text()) for n in ("idle", "loaded")}
+    text, numbers = summarise(runs["idle"], runs["loaded"])
+    print(text)
+    (args.out / "summary.md").write_text(text)
+    record = {**metadata(), "args": {k: str(v) for k, v in vars(args).items()}, "runs": timing}
+    (args.out / "summary.json").write_text(json.dumps({**record, **numbers}, indent=1))
+    print(f"wrote {args.out}/summary.md and summary.json")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
