@@ -9,7 +9,7 @@ Tests of the shared real scenes (marker ``shared_scenes``, :mod:`shared_scenes`)
 the path in the reason when the folder is missing, except in CI (``CI=true``), where the run
 fails at collection with the path it looked at; the terminal summary counts how many ran.
 
-``--burn N`` (``make test-burn``, ``BURN=N``): N busy-loop processes at normal priority beside
+``--burn N`` (``make test-burn``, ``BURN=N``): N busy-loop processes at pytest's priority beside
 the whole session (:mod:`cpu_burner`), so the suite can be checked on a loaded machine (no test
 may depend on the machine's speed); the terminal summary says how much CPU time they took.
 """
@@ -40,8 +40,8 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         type=int,
         default=0,
         metavar="N",
-        help="run N busy-loop processes (normal priority) beside the session: the suite under "
-        "CPU load",
+        help="run N busy-loop processes (at pytest's priority) beside the session: the suite "
+        "under CPU load",
     )
 
 
