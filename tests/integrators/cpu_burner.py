@@ -1,5 +1,6 @@
-"""CPU load beside the test suite: busy-loop processes at normal priority (``pytest --burn N``,
-``make test-burn``), so that the suite can be checked on a loaded machine.
+"""CPU load beside the test suite: busy-loop processes at the priority of the process that
+starts them (``pytest --burn N``, ``make test-burn``), so that the suite can be checked on a
+loaded machine.
 
 Each burner is ``python -c BURNER``: a loop of pure Python that checks every few milliseconds
 whether its parent (the process that started it) is still there and ends when it is not, so a
