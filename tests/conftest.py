@@ -9,6 +9,9 @@ Tests of the shared real scenes (marker ``shared_scenes``, :mod:`shared_scenes`)
 the path in the reason when the folder is missing, except in CI (``CI=true``), where the run
 fails at collection with the path it looked at; the terminal summary counts how many ran.
 
+Property tests (hypothesis) run without its clocks (profile ``gdpt``: no deadline, no
+``too_slow`` health check), so that they do not depend on the machine's speed either.
+
 ``--burn N`` (``make test-burn``, ``BURN=N``): N busy-loop processes at pytest's priority beside
 the whole session (:mod:`cpu_burner`), so the suite can be checked on a loaded machine (no test
 may depend on the machine's speed); the terminal summary says how much CPU time they took.
@@ -22,9 +25,16 @@ from collections.abc import Callable, Iterable, Iterator
 import cpu_burner
 import pytest
 import torch
+from hypothesis import HealthCheck, settings
 from shared_scenes import MARKER, SHARED_SCENES, in_ci
 
 from gdpt.buffers import CHANNELS, GradientBuffers
+
+# Hypothesis's two clocks off for every property test: no per-example deadline and no
+# "generation too slow" health check (both depend on the machine's speed and load; test_exr.py's
+# round trip, which draws thousands of floats per example, failed beside a CPU burner).
+settings.register_profile("gdpt", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("gdpt")
 
 #: Outcomes (passed, failed, skipped) of the ``shared_scenes`` tests of this run.
 _SHARED_OUTCOMES: Counter[str] = Counter()
