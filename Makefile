@@ -19,7 +19,7 @@ TORCH       := $(TORCH_SPEC)$(if $(TORCH_INDEX), --index-url $(TORCH_INDEX))
 TORCH_STAMP := $(VENV)/.torch-spec
 STAMP       := $(VENV)/.installed
 
-.PHONY: setup cpu lint test test-all test-gpu demo bench clean FORCE
+.PHONY: setup cpu lint test test-burn test-all test-gpu demo bench clean FORCE
 # `make` alone (e.g. `make TORCH_INDEX=...`) sets up .venv, not only its torch.
 .DEFAULT_GOAL := setup
 
@@ -47,8 +47,14 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
+# --durations=15: the slowest 15 tests and their seconds, printed after the run (CI too).
 test: $(STAMP) lint
-	$(PY) -m pytest -m "not slow" -q
+	$(PY) -m pytest -m "not slow" -q --durations=15
+
+# The same tests with BURN busy-loop processes beside them (pytest --burn): a loaded machine.
+BURN ?= 1
+test-burn: $(STAMP)
+	$(PY) -m pytest -m "not slow" -q --durations=15 --burn $(BURN)
 
 test-all: $(STAMP)
 	$(PY) -m pytest -q

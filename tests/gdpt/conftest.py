@@ -1,4 +1,4 @@
-"""Fixtures of the dataset, training, fine-tuning and model-report tests.
+"""Fixtures of the dataset, training, fine-tuning, model-report and study tests.
 
 * ``tiny_dataset_config``: a factory of :class:`~gdpt.training.preprocess.DatasetConfig` for
   16x16 crops of one-object scenes (fast kernels): 1 scene, 2 views, 1-4 spp, 8-spp targets,
@@ -18,10 +18,14 @@
   :class:`~gdpt.training.config.TrainConfig` with a tiny schedule: 3 steps of batch 2, no
   warm-up, decay from step 1 with half-life 2, validation every 2 steps on 2 crops (so at
   steps 2 and 3), a checkpoint every step; ``data`` also validates.
+* ``cost_clock``: a function ``(name, fixed, per_spp)`` that makes the study method ``name``
+  report ``seconds = fixed + per_spp * spp`` for the rest of the test (it still renders and
+  reconstructs): calibrated sample counts that do not depend on the machine's speed or load.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -158,3 +162,39 @@ def make_tiny_run_config(data: Path, out: Path, **changes) -> TrainConfig:
 def tiny_run_config() -> Callable[..., TrainConfig]:
     """:func:`make_tiny_run_config`, as a fixture."""
     return make_tiny_run_config
+
+
+@pytest.fixture
+def cost_clock(monkeypatch) -> Callable[[str, float, float], None]:
+    """A function ``(name, fixed, per_spp)``: the study method ``name``
+    (:data:`gdpt.study.methods.EVAL_METHODS`) renders and reconstructs as before but reports
+    ``seconds = fixed + per_spp * spp`` (``render_seconds = per_spp * spp``,
+    ``reconstruct_seconds = fixed``) instead of its wall time, until the test ends.
+
+    The calibration then finds the same sample counts on any machine under any load (counts
+    a test may assert exactly); the wall clock stays in the tests that time real runs (e.g.
+    ``tests/gdpt/test_nfor_method.py``).
+    """
+    from gdpt.study.methods import EVAL_METHODS
+
+    def use(name: str, fixed: float, per_spp: float) -> None:
+        method = EVAL_METHODS[name]
+
+        def run(scene, *, spp: int, seed: int):
+            result = method.run(scene, spp=spp, seed=seed)
+            return dataclasses.replace(
+                result,
+                seconds=fixed + per_spp * spp,
+                render_seconds=per_spp * spp,
+                reconstruct_seconds=fixed,
+            )
+
+        def render(scene, *, spp: int, seed: int):
+            result = method.render(scene, spp=spp, seed=seed)
+            seconds = per_spp * spp
+            return dataclasses.replace(result, seconds=seconds, render_seconds=seconds)
+
+        replaced = dataclasses.replace(method, run=run, render=method.render and render)
+        monkeypatch.setitem(EVAL_METHODS, name, replaced)
+
+    return use

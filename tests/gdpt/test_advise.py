@@ -61,8 +61,12 @@ def test_smoke_cli_at_equal_spp(capsys):
     assert "render it: gdpt render-and-denoise builtin:cbox-demo --method " in out
 
 
-def test_feature_api_at_a_budget_with_replicates():
-    """At a budget every method gets a calibrated count; replicates pool their blocks."""
+def test_feature_api_at_a_budget_with_replicates(cost_clock):
+    """At a budget every method gets a calibrated count; replicates pool their blocks. The
+    methods' clocks are cost models (``cost_clock``: the counts hold under any load): pt
+    4 ms + 4 ms/spp, pt+oidn-tuned 40 ms more for the denoiser."""
+    cost_clock("pt", 0.004, 0.004)
+    cost_clock("pt+oidn-tuned", 0.04, 0.004)
     advice = gdpt.advise(
         "builtin:cbox-demo",
         budget=0.2,
@@ -73,7 +77,8 @@ def test_feature_api_at_a_budget_with_replicates():
         progress=False,
     )
     base, plain = advice.methods
-    assert base.spp >= 1 and plain.spp >= base.spp  # pt reconstructs nothing: more samples
+    # the counts that fill 0.2 s; pt reconstructs nothing: more samples
+    assert (base.spp, plain.spp) == (40, 49)
     assert len(base.seconds) == len(plain.seconds) == 2
     assert plain.estimate is not None and plain.estimate.blocks == 2 * 16
     assert advice.plain_spp == 256 and math.isfinite(plain.estimate.ratio)

@@ -119,7 +119,11 @@ def _tiny_cfg(**changes) -> EvaluateConfig:
     return EvaluateConfig(**{**base, **changes})
 
 
-def test_quick_cli_writes_every_output(variant, tmp_path, capsys):
+def test_quick_cli_writes_every_output(variant, tmp_path, capsys, cost_clock):
+    """Every output of a quick study; the methods' clocks are cost models (``cost_clock``), so
+    their sample counts hold under any load: pt 4 + 4 ms/spp, gdpt+l2 10 + 8 ms/spp."""
+    cost_clock("pt", 0.004, 0.004)
+    cost_clock("gdpt+l2", 0.01, 0.008)
     out = tmp_path / "report"
     status = main(
         [
@@ -154,6 +158,8 @@ def test_quick_cli_writes_every_output(variant, tmp_path, capsys):
         cells = info["cells"]
         assert info["status"] == "ok" and not info.get("errors"), (method, info)
         assert set(cells) == {"0.1", "0.2"} and cells["0.2"]["spp"] > cells["0.1"]["spp"]
+        expected = {"pt": (24, 49), "gdpt+l2": (11, 24)}[method]  # (budget - fixed) / per spp
+        assert (cells["0.1"]["spp"], cells["0.2"]["spp"]) == expected, method
         assert set(cells["0.1"]["metrics"]) == {"relmse", "smape", "one_minus_ssim", "flip_ldr"}
         for cell in cells.values():
             assert (out / cell["image"]).is_file(), (method, cell["image"])

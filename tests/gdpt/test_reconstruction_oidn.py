@@ -1,5 +1,5 @@
 """The ``oidn`` reconstruction method, the study's ``pt+oidn``, and ``gdpt.reconstruct_image``
-with its deprecated alias ``gdpt.denoise.reconstruct``."""
+(its deprecated alias ``gdpt.denoise.reconstruct``: ``tests/gdpt/test_deprecated.py``)."""
 
 from __future__ import annotations
 
@@ -7,10 +7,9 @@ import pytest
 import torch
 
 import gdpt
-from gdpt import denoise
 from gdpt.cli import main
 from gdpt.io.exr import load_image, save_buffers
-from gdpt.methods import METHODS, reconstruct_image
+from gdpt.methods import METHODS, Method, reconstruct_image
 
 try:
     import mitsuba_oidn
@@ -123,14 +122,6 @@ def test_reconstruct_image_is_the_top_level_name():
     assert "reconstruct_image" in gdpt.__all__
 
 
-def test_deprecated_reconstruct_warns_and_returns_the_same(random_buffers):
-    buffers = random_buffers(names=("primal", "dx", "dy"))
-    message = r"gdpt\.denoise\.reconstruct is deprecated; use gdpt\.reconstruct_image"
-    with pytest.warns(DeprecationWarning, match=message):
-        old = denoise.reconstruct(buffers, "l2", alpha=0.5)
-    assert torch.equal(old, reconstruct_image(buffers, "l2", alpha=0.5))
-
-
 @needs_oidn  # the study checks that the real method could run before it renders
 def test_pt_oidn_runs_the_registered_method(variant, monkeypatch):
     """The study's ``pt+oidn`` renders features without gradients and reconstructs through
@@ -144,7 +135,7 @@ def test_pt_oidn_runs_the_registered_method(variant, monkeypatch):
         seen.append(buffers)
         return torch.full_like(buffers.primal, 7.0)
 
-    monkeypatch.setitem(METHODS, "oidn", denoise.Method(stand_in, False, True, "stand-in"))
+    monkeypatch.setitem(METHODS, "oidn", Method(stand_in, False, True, "stand-in"))
     scene = load_eval_scene(SceneSpec("cbox", "builtin:cbox-demo"), resolution=16)
     result = EVAL_METHODS["pt+oidn"].run(scene, spp=1, seed=0)
     assert torch.equal(result.image, torch.full((16, 16, 3), 7.0))
