@@ -85,13 +85,21 @@ def thread_counts() -> dict[str, int]:
     return {"torch": torch.get_num_threads(), "drjit": int(dr.thread_count())}
 
 
+#: torch's intra-op threads in a study, whatever the worker owns: the reconstructions' tensors
+#: are small (128-512 px) and two torch threads beside a busy process wait for each other
+#: (``benchmarks/study_under_load.py``, 2 cores, one busy loop: ``fuse``'s reconstruction took
+#: 0.13-0.43 s instead of 0.09 s, and the cell's calibration gave it 0.54x its idle count).
+TORCH_THREADS = 1
+
+
 def set_threads(count: int) -> dict[str, int]:
-    """Give torch (``torch.set_num_threads``) and Dr.Jit (``drjit.set_thread_count``, the pool
-    Mitsuba's LLVM variants render with) ``count`` threads; returns :func:`thread_counts`."""
+    """Give Dr.Jit (``drjit.set_thread_count``, the pool Mitsuba's LLVM variants render with)
+    ``count`` threads and torch (``torch.set_num_threads``) at most :data:`TORCH_THREADS`;
+    returns :func:`thread_counts`."""
     import drjit as dr
 
     count = max(1, int(count))
-    torch.set_num_threads(count)
+    torch.set_num_threads(min(count, TORCH_THREADS))
     dr.set_thread_count(count)
     return thread_counts()
 

@@ -153,22 +153,22 @@ def test_a_denoiser_that_leaves_nothing_to_fix_makes_fuse_lose(scene, monkeypatc
 
 def test_the_statistics_time_is_charged_to_the_main_render(scene, monkeypatch):
     """Statistics made to take one second leave the main render that second's worth of plain
-    samples fewer (at the pilot's measured seconds per sample) than statistics that take none."""
+    samples fewer (at the pilot's measured seconds per sample): the pilot's cost is its render's
+    time and its statistics' time, and the plain route renders what is left of ``spp``. Checked
+    within each render (no comparison of wall times between renders: it holds under load)."""
     spp = 3000  # the pilot keeps ~60% of it: a second's charge fits in the rest
-    kept = []
-    for seconds in (0.0, 0.0, 1.0):  # the first records the frozen passes of these counts
+    for seconds in (0.0, 1.0):
         _forced_terms(monkeypatch, 1.0, seconds)
         choice, pilot = route.run_pilot(scene, spp=spp, seed=3, tile=TILE)
         buffers = route.render_route(scene, choice, pilot, spp=spp, seed=4)
         assert choice.route == "plain" and not buffers.has_gradients
-        charge = choice.pilot["statistics_seconds"] / choice.pilot["seconds_per_spp"]
-        assert choice.pilot["statistics_seconds"] >= seconds
-        rest = buffers.metadata["merged_spp"][1]
-        assert rest == max(1, round(spp - choice.pilot["cost_spp"]))
-        kept.append((rest, charge))
-    (rest_0, charge_0), (rest_1, charge_1) = kept[1:]
-    assert charge_1 - charge_0 > 10  # a second is many samples of this film
-    assert rest_0 - rest_1 == pytest.approx(charge_1 - charge_0, rel=0.5, abs=3)
+        info = choice.pilot
+        per_spp = info["seconds_per_spp"]
+        assert info["statistics_seconds"] >= seconds
+        render_cost = pilot.render.metadata["render_seconds"] / per_spp
+        assert info["cost_spp"] == pytest.approx(render_cost + info["statistics_seconds"] / per_spp)
+        assert buffers.metadata["merged_spp"][1] == max(1, round(spp - info["cost_spp"]))
+    assert info["statistics_seconds"] / per_spp > 10  # a second is many samples of this film
 
 
 def test_no_pilot_below_its_threshold_or_on_a_film_with_too_few_tiles(monkeypatch):

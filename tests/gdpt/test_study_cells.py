@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from gdpt.cli import main
-from gdpt.study.cells import MISS_TOLERANCE, method_order
+from gdpt.study.cells import MISS_TOLERANCE, TORCH_THREADS, method_order
 from gdpt.study.config import EvaluateConfig
 from gdpt.study.evaluate import evaluate
 from gdpt.study.methods import EVAL_METHODS, EvalMethod, MethodResult
@@ -169,10 +169,10 @@ def test_threads_are_set_recorded_and_restored(tmp_path, monkeypatch):
     assert results["threads"] == {
         "engine": "sequential",
         "workers": 1,
-        "per_worker": {"torch": owned, "drjit": owned},
+        "per_worker": {"torch": min(owned, TORCH_THREADS), "drjit": owned},
     }
     (run,) = results["scenes"]["random-3"]["cell_runs"].values()
-    assert run["worker"]["threads"] == {"torch": owned, "drjit": owned}
+    assert run["worker"]["threads"] == {"torch": min(owned, TORCH_THREADS), "drjit": owned}
 
 
 def test_format_1_results_are_read_and_resumed(tmp_path, monkeypatch):
