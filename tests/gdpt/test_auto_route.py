@@ -47,12 +47,14 @@ class RenderLog:
 
     def __init__(self, monkeypatch):
         self.calls: list[dict] = []
+        self.results: list = []
         self._render = gdpt.rendering.render
         monkeypatch.setattr(gdpt.rendering, "render", self)
 
     def __call__(self, scene, **kwargs):
         self.calls.append(kwargs)
-        return self._render(scene, **kwargs)
+        self.results.append(self._render(scene, **kwargs))
+        return self.results[-1]
 
 
 def _forced_terms(monkeypatch, value: float, seconds: float = 0.0) -> None:
@@ -348,19 +350,22 @@ def test_statistics_run_on_crops_around_few_tiles():
 
 
 def test_a_gradient_route_sizes_the_scenes_next_pilot(scene, monkeypatch):
-    """The gradient route's render measures the cost ratio (not where it recorded its passes:
-    their tracing is in its time); the next pilot of the same scene and properties is sized by
+    """The gradient route's render measures the cost ratio, not where it recorded its passes
+    (their tracing is in its time); the next pilot of the same scene and properties is sized by
     it (``G`` and ``route.cost_ratio``), another ``max_depth`` is not."""
     _forced_terms(monkeypatch, -1.0)
-    for recorded in (True, False):
-        first, pilot = route.run_pilot(scene, spp=300, seed=3, tile=TILE, max_depth=4)
+    log = RenderLog(monkeypatch)
+    for _ in range(3):  # the first render of these counts records its passes, a repeat replays
+        first, pilot = route.run_pilot(scene, spp=300, seed=3, tile=TILE)
         assert first.cost_ratio == route.DEFAULT_COST_RATIO
-        route.render_route(scene, first, pilot, spp=300, seed=4, max_depth=4, progress=False)
-        if recorded:
-            assert route.learned_cost_ratio(scene, {"max_depth": 4}) is None
-    learned = route.learned_cost_ratio(scene, {"max_depth": 4})
+        route.render_route(scene, first, pilot, spp=300, seed=4)
+        gradient = log.results[-2]  # the rest: offsets outside the tiles, then plain samples
+        learned = route.learned_cost_ratio(scene, {})
+        if not gradient.metadata["recorded_passes"]:
+            break
+        assert learned is None
     assert learned is not None and route.COST_RATIO_RANGE[0] <= learned <= route.COST_RATIO_RANGE[1]
-    second, _ = route.run_pilot(scene, spp=300, seed=5, tile=TILE, max_depth=4)
+    second, _ = route.run_pilot(scene, spp=300, seed=5, tile=TILE)
     assert second.cost_ratio == learned
     assert second.pilot["gradient_spp"] == route.gradient_spp_for(300, learned)
     other, _ = route.run_pilot(scene, spp=300, seed=5, tile=TILE, max_depth=5)
