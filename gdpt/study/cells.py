@@ -20,8 +20,11 @@ cell:
   ``cpu_seconds`` / ``wall_seconds`` / ``cpu_per_wall`` of the timed run (the process's CPU
   time over its wall time: near the thread count when the machine is free, lower when other
   work takes the cores). A replicate that misses its budget by more than
-  :data:`MISS_TOLERANCE` is rendered once more (same spp and seed); if it misses again it is
-  kept with ``missed_budget: true`` and the report lists it.
+  :data:`MISS_TOLERANCE` is rendered once more with the same seed: at the same spp when the
+  method ran its own calibration (its miss is the machine's: a slow-down that passed), at a
+  count corrected by the miss when it shares another method's calibration (its miss is its
+  own cost: :func:`redo_spp`); if it misses again it is kept with ``missed_budget: true`` and
+  the report lists it.
 
 :func:`run_cell` returns plain data (the cell record and the first replicate's images), written
 into ``results.json`` by the driver (:func:`apply_cell`) in one atomic write, so a worker that
@@ -59,6 +62,7 @@ __all__ = [
     "apply_cell",
     "method_order",
     "pending_cells",
+    "redo_spp",
     "run_cell",
     "set_threads",
     "thread_counts",
@@ -147,6 +151,17 @@ def _measured(method: EvalMethod) -> tuple[EvalMethod, dict[int, dict[str, Any]]
     return dataclasses.replace(method, run=run), log
 
 
+def redo_spp(spp: int, charged: float, budget: float, per_spp: float) -> int:
+    """The sample count of a redo of a method that ran at a count calibrated for another
+    (``auto`` at ``pt+oidn-tuned``'s): ``spp`` less the seconds it missed ``budget`` by
+    (``charged - budget``, negative when under) at the calibration's ``per_spp`` seconds per
+    sample, at least 1. Its own fixed costs stay in the redo, so they are what it is charged
+    beyond the other method's."""
+    if per_spp <= 0.0:
+        return spp
+    return max(1, spp - round((charged - budget) / per_spp))
+
+
 def _timed_replicate(
     method: EvalMethod,
     scene: EvalScene,
@@ -155,15 +170,21 @@ def _timed_replicate(
     budget: float,
     protocol: str,
     done: tuple[MethodResult, dict[str, Any]] | None,
+    shared_per_spp: float | None = None,
 ) -> tuple[dict[str, Any], MethodResult]:
     """One replicate's timed run (``done``: the calibration's run of this seed, reused), redone
-    once if it misses ``budget`` by more than :data:`MISS_TOLERANCE`."""
+    once if it misses ``budget`` by more than :data:`MISS_TOLERANCE`: at the same ``spp``, or,
+    for a method that shares another method's calibration (``shared_per_spp``: that
+    calibration's seconds per sample), at :func:`redo_spp`."""
     attempts: list[dict[str, Any]] = []
     run = None
     for attempt in range(2):
         if attempt == 0 and done is not None:
             run, measured = done
         else:
+            if attempt == 1 and shared_per_spp is not None:
+                first = attempts[0]
+                spp = redo_spp(spp, first["charged_seconds"], budget, shared_per_spp)
             wrapped, log = _measured(method)
             run = timed_run(wrapped, scene, spp, seed)
             measured = log[seed]
@@ -188,9 +209,8 @@ def _timed_replicate(
     assert run is not None
     record = attempts[-1]
     if len(attempts) > 1:
-        record["redone"] = {k: attempts[0][k] for k in ("seconds", "charged_seconds")} | {
-            k: attempts[0][k] for k in ("relative_error", "loadavg_1min", "cpu_per_wall")
-        }
+        kept = ("spp", "seconds", "charged_seconds", "relative_error", "loadavg_1min", "cpu_per_wall")
+        record["redone"] = {k: attempts[0][k] for k in kept}
     record["missed_budget"] = abs(record["relative_error"]) > MISS_TOLERANCE
     return record, run
 
@@ -288,6 +308,7 @@ def run_cell(
             record["calibrations"][config_key]["methods"].append(name)
             stage = "run"
             reuse = runner.name == name and at_budget["seed"] == seed
+            shared = runner.name != name
             replicate_record, run = _timed_replicate(
                 method,
                 scene,
@@ -296,6 +317,7 @@ def run_cell(
                 budget,
                 cfg.protocol,
                 (result, log[seed]) if reuse else None,
+                record["calibrations"][config_key]["model"]["per_spp"] if shared else None,
             )
         except MethodUnavailable as err:
             record["skipped"][name] = str(err)
