@@ -151,6 +151,17 @@ def _measured(method: EvalMethod) -> tuple[EvalMethod, dict[int, dict[str, Any]]
     return dataclasses.replace(method, run=run), log
 
 
+#: What a replicate keeps of its first run when it was redone (under ``redone``).
+_REDONE_KEYS = (
+    "spp",
+    "seconds",
+    "charged_seconds",
+    "relative_error",
+    "loadavg_1min",
+    "cpu_per_wall",
+)
+
+
 def redo_spp(spp: int, charged: float, budget: float, per_spp: float) -> int:
     """The sample count of a redo of a method that ran at a count calibrated for another
     (``auto`` at ``pt+oidn-tuned``'s): ``spp`` less the seconds it missed ``budget`` by
@@ -183,8 +194,7 @@ def _timed_replicate(
             run, measured = done
         else:
             if attempt == 1 and shared_per_spp is not None:
-                first = attempts[0]
-                spp = redo_spp(spp, first["charged_seconds"], budget, shared_per_spp)
+                spp = redo_spp(spp, attempts[0]["charged_seconds"], budget, shared_per_spp)
             wrapped, log = _measured(method)
             run = timed_run(wrapped, scene, spp, seed)
             measured = log[seed]
@@ -209,8 +219,7 @@ def _timed_replicate(
     assert run is not None
     record = attempts[-1]
     if len(attempts) > 1:
-        kept = ("spp", "seconds", "charged_seconds", "relative_error", "loadavg_1min", "cpu_per_wall")
-        record["redone"] = {k: attempts[0][k] for k in kept}
+        record["redone"] = {k: attempts[0][k] for k in _REDONE_KEYS}
     record["missed_budget"] = abs(record["relative_error"]) > MISS_TOLERANCE
     return record, run
 
