@@ -27,6 +27,11 @@ its own load)::
         --out out/study-under-load
 
 ``--workers N`` passes ``--workers N`` to both studies (Ray; default: sequential).
+``--compare-workers N`` adds a third run, idle, with ``--workers N`` (``OUT/workers-N``), and
+compares it with the idle sequential run: the key structure of ``results.json`` (every key
+path, the values aside) and the report files, and per method the cells' ratios, workers over
+sequential: their geometric mean and its 95% t interval over the cells (the two runs' seeds are
+the same, their noise is not: "within the noise" means the interval holds 1).
 ``--summary-only`` recomputes the tables from existing runs.
 """
 
@@ -40,6 +45,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 SCENES = REPO.parent / "shared" / "scenes"
@@ -64,20 +70,26 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--reference-spp", type=int, default=8192)
     parser.add_argument("--workers", type=int, help="pass --workers N to gdpt evaluate (Ray)")
+    parser.add_argument(
+        "--compare-workers",
+        type=int,
+        metavar="N",
+        help="also run the study idle with --workers N and compare it with the sequential run",
+    )
     parser.add_argument("--force", action="store_true", help="run again even if complete")
     parser.add_argument("--summary-only", action="store_true", help="only read existing runs")
     return parser.parse_args(argv)
 
 
-def study_command(args: argparse.Namespace, out: Path) -> list[str]:
-    """The ``gdpt evaluate`` command line of one run."""
+def study_command(args: argparse.Namespace, out: Path, workers: int | None = None) -> list[str]:
+    """The ``gdpt evaluate`` command line of one run (``workers``: instead of ``--workers``)."""
     command = [sys.executable, "-m", "gdpt", "evaluate", "--quick", "--scenes", *args.scenes]
     command += ["--out", str(out), "--references", str(args.references)]
     command += ["--budgets", *(f"{b:g}" for b in args.budgets), "--seeds", str(args.seeds)]
     command += ["--methods", *args.methods, "--resolution", str(args.resolution)]
     command += ["--reference-spp", str(args.reference_spp), "--no-progress"]
-    if args.workers:
-        command += ["--workers", str(args.workers)]
+    if workers or args.workers:
+        command += ["--workers", str(workers or args.workers)]
     return command
 
 
@@ -98,7 +110,9 @@ def complete(out: Path, args: argparse.Namespace) -> bool:
     )
 
 
-def run_study(args: argparse.Namespace, out: Path, loaded: bool) -> dict:
+def run_study(
+    args: argparse.Namespace, out: Path, loaded: bool, workers: int | None = None
+) -> dict:
     """One study run (with a busy loop beside it when ``loaded``); returns its timing."""
     if complete(out, args) and not args.force:
         print(f"{out}: complete, reused", flush=True)
@@ -109,7 +123,7 @@ def run_study(args: argparse.Namespace, out: Path, loaded: bool) -> dict:
     start = time.perf_counter()
     load_start = os.getloadavg()
     try:
-        status = subprocess.run(study_command(args, out), check=False).returncode
+        status = subprocess.run(study_command(args, out, workers), check=False).returncode
     finally:
         if burner is not None:
             burner.terminate()
@@ -195,6 +209,69 @@ def summarise(idle: dict, loaded: dict) -> tuple[str, dict]:
     return "\n".join(lines) + "\n", numbers
 
 
+def key_paths(value: Any, prefix: str = "") -> set[str]:
+    """Every key path of a JSON value; the keys of ``scenes``, ``cell_runs``, ``calibrations``
+    and ``cells`` (names, units) and list positions are written ``*``."""
+    paths: set[str] = set()
+    if isinstance(value, dict):
+        wild = prefix.rsplit(".", 1)[-1] in {"scenes", "cell_runs", "calibrations", "cells"}
+        for key, item in value.items():
+            path = f"{prefix}.{'*' if wild else key}"
+            paths |= {path} | key_paths(item, path)
+    elif isinstance(value, list):
+        for item in value:
+            paths |= key_paths(item, f"{prefix}[]")
+    return paths
+
+
+#: Key paths whose presence depends on the run, not on the engine: timing records only a redo
+#: or a flag writes, the engine's own description.
+RUN_DEPENDENT = ("redone", "missed_budget", "engine", "added", "worker.")
+
+
+def compare_workers(sequential: dict, parallel: dict, out: Path, workers: Path) -> tuple[str, dict]:
+    """The ``--compare-workers`` table: structure, report files, ratios workers / sequential."""
+    from gdpt.statistics import mean_interval
+
+    a, b = key_paths(sequential), key_paths(parallel)
+    only = sorted(p for p in a ^ b if not any(w in p for w in RUN_DEPENDENT))
+    files = sorted(p.name for p in out.iterdir() if p.is_file())
+    missing = [f for f in files if not (workers / f).is_file()]
+    ratios = {"sequential": cell_ratios(sequential), "workers": cell_ratios(parallel)}
+    cells = sorted(set(ratios["sequential"]) & set(ratios["workers"]))
+    methods = sorted({m for r in ratios["sequential"].values() for m in r})
+    lines = [
+        f"Workers ({workers.name}) against the sequential idle run: results.json key paths "
+        f"only in one: {len(only)}; report files missing: {missing or 'none'}.",
+        *(f"- {p} ({'sequential' if p in a else 'workers'} only)" for p in only),
+        "",
+        "| method | cells | geomean sequential | geomean workers | workers / sequential | "
+        "95% interval | within the noise |",
+        "|---|---:|---:|---:|---:|---|---|",
+    ]
+    numbers: dict = {"key_paths_only_in_one": only, "missing_files": missing, "methods": {}}
+    for m in methods:
+        both = [c for c in cells if m in ratios["sequential"][c] and m in ratios["workers"][c]]
+        logs = [math.log(ratios["workers"][c][m] / ratios["sequential"][c][m]) for c in both]
+        mean, low, high = (math.exp(v) for v in mean_interval(logs))
+        gs = geomean([ratios["sequential"][c][m] for c in both])
+        gw = geomean([ratios["workers"][c][m] for c in both])
+        ok = low <= 1.0 <= high
+        numbers["methods"][m] = {
+            "cells": len(both),
+            "sequential": gs,
+            "workers": gw,
+            "ratio": mean,
+            "interval": [low, high],
+            "within_noise": ok,
+        }
+        lines.append(
+            f"| {m} | {len(both)} | {gs:.3f} | {gw:.3f} | {mean:.3f} | "
+            f"{low:.3f}-{high:.3f} | {'yes' if ok else 'NO'} |"
+        )
+    return "\n".join(lines) + "\n", numbers
+
+
 def metadata() -> dict:
     from gdpt.study.results import machine_info, versions
 
@@ -212,8 +289,22 @@ def main(argv: list[str] | None = None) -> int:
         for name, loaded in (("idle", False), ("loaded", True)):
             print(f"== {name}: {' '.join(study_command(args, args.out / name))}", flush=True)
             timing[name] = run_study(args, args.out / name, loaded)
+        if args.compare_workers:
+            name, out = (
+                f"workers-{args.compare_workers}",
+                args.out / f"workers-{args.compare_workers}",
+            )
+            print(f"== {name}: {' '.join(study_command(args, out, args.compare_workers))}")
+            timing[name] = run_study(args, out, False, args.compare_workers)
     runs = {n: json.loads((args.out / n / "results.json").read_text()) for n in ("idle", "loaded")}
     text, numbers = summarise(runs["idle"], runs["loaded"])
+    if args.compare_workers:
+        workers = args.out / f"workers-{args.compare_workers}"
+        parallel = json.loads((workers / "results.json").read_text())
+        table, numbers["workers"] = compare_workers(
+            runs["idle"], parallel, args.out / "idle", workers
+        )
+        text += "\n" + table
     print(text)
     (args.out / "summary.md").write_text(text)
     record = {**metadata(), "args": {k: str(v) for k, v in vars(args).items()}, "runs": timing}

@@ -173,7 +173,9 @@ def render_reference(
 
     The files are named by ``<stem>`` (:func:`reference_stem`): the finished image
     ``<stem>.exr``, its metadata ``<stem>.json`` (``complete``: true when finished) and, while
-    it renders, one ``<stem>.chunk-<i>-of-<n>.exr`` per finished chunk (removed once merged).
+    it renders, one ``<stem>.chunk-<i>-of-<n>.exr`` per finished chunk (removed once merged);
+    the temporary file of a write that was killed (``.<stem>...tmp``) is removed on the next
+    call.
     Cached files of another ``source`` or film filter under the same name are discarded.
 
     Args:
@@ -223,6 +225,8 @@ def render_reference(
         meta["seconds"] = 0.0
     write_json(sidecar, meta)
 
+    for stale in cache_dir.glob(f".{stem}.*.tmp"):  # a write killed mid-way (atomic_path)
+        stale.unlink(missing_ok=True)
     chunks = reference_chunks(spp, chunk_spp, seed)
     legacy = _legacy_partial(cache_dir, stem, chunk_spp) if old is not None else None
     first = legacy[0] // chunk_spp if legacy else 0

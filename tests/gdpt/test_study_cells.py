@@ -225,7 +225,7 @@ def test_chunked_reference_is_bit_identical_in_any_order_and_resumes_after_a_kil
 ):
     """The same reference whatever the order and thread count the chunks were rendered with
     (one worker of 2 threads, chunks in order; "two workers" of one thread each, in reverse),
-    and after a render killed mid-way (finished chunks kept, a torn temporary file ignored)."""
+    and after a render killed mid-way (finished chunks kept, a torn temporary file removed)."""
     import drjit as dr
 
     from gdpt.study.references import render_chunk
@@ -268,7 +268,7 @@ def test_chunked_reference_is_bit_identical_in_any_order_and_resumes_after_a_kil
     _, meta = render_reference(scene, cache, run_chunks=counting, **kwargs)
     assert rendered == [1, 2, 3, 4, 5]  # resumed chunk by chunk
     assert _sha(Path(meta["path"])) == expected
-    assert not list(cache.glob("*.chunk-*.exr"))
+    assert not list(cache.glob("*.chunk-*.exr")) and not list(cache.glob(".*.tmp"))
 
 
 def test_running_mean_partial_of_an_older_version_resumes_as_its_first_chunks(variant, tmp_path):
