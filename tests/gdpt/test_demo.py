@@ -15,7 +15,15 @@ def _tiny(out, **kw) -> DemoConfig:
     )
 
 
-def test_demo_writes_montage_images_and_table(tmp_path, capsys):
+@pytest.fixture
+def clocked(cost_clock):
+    """Both methods' seconds from a cost model, not the wall clock: small sample counts, the
+    same on a busy machine."""
+    cost_clock("gdpt+l1", 0.05, 0.01)
+    cost_clock("pt", 0.01, 0.005)
+
+
+def test_demo_writes_montage_images_and_table(tmp_path, capsys, clocked):
     results = run_demo(_tiny(tmp_path), progress=False)
     cells = results["scenes"]["cbox-demo"]["methods"]
     assert set(cells) == {"gdpt+l1", "pt"}
@@ -30,7 +38,7 @@ def test_demo_writes_montage_images_and_table(tmp_path, capsys):
     assert "gdpt+l1" in printed and "relMSE" in printed
 
 
-def test_demo_refuses_to_overwrite_and_force_keeps_reference(tmp_path):
+def test_demo_refuses_to_overwrite_and_force_keeps_reference(tmp_path, clocked):
     run_demo(_tiny(tmp_path), progress=False)
     with pytest.raises(FileExistsError, match="--force"):
         run_demo(_tiny(tmp_path), progress=False)

@@ -358,26 +358,38 @@ def _dies_once(flag: str):
     return run
 
 
+def _noisy(scene, *, spp: int, seed: int) -> MethodResult:
+    width, height = scene.resolution
+    value = 1.0 + (seed % 7) / 3  # a different error per seed: a wide interval
+    return MethodResult(torch.full((height, width, 3), value), seconds=0.05 + 0.01 * spp)
+
+
 @pytest.mark.slow
 def test_ray_workers_give_the_sequential_results_and_rerun_a_killed_cell(
     variant, tmp_path, monkeypatch
 ):
     """``--workers 2``: the same results.json keys as the sequential study, the same reference
-    bits (chunks from two workers), a cell whose worker was killed run again."""
+    bits (chunks from two workers), a cell whose worker was killed run again, and replicates
+    added while an interval is wide (``until_interval``) as in the sequential study."""
     import ray.cloudpickle
 
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
     flag = tmp_path / "killed"
     method = EvalMethod("fake-dies", "killed once", _dies_once(str(flag)))
     monkeypatch.setitem(EVAL_METHODS, "fake-dies", method)
-    cfg = _cfg(methods=("pt", "fake-dies"), budgets=(0.1,), reference_spp=16, seeds=2)
+    monkeypatch.setitem(EVAL_METHODS, "fake-noisy", EvalMethod("fake-noisy", "noisy", _noisy))
+    cfg = _cfg(methods=("pt", "fake-dies", "fake-noisy"), budgets=(0.1,), reference_spp=16, seeds=2)
+    cfg = dataclasses.replace(cfg, until_interval=0.01, max_seeds=3)
     flag.write_text("not in the sequential run")
     alone = evaluate(["builtin:cbox-demo"], tmp_path / "seq", cfg, progress=False)
     flag.unlink()
     ray_run = evaluate(["builtin:cbox-demo"], tmp_path / "ray", cfg, progress=False, workers=2)
     assert flag.is_file()  # a worker died ...
     entry = ray_run["scenes"]["cbox-demo"]
-    assert set(entry["cell_runs"]) == {"0.1/0", "0.1/1"} and not entry.get("cell_errors")
+    units = {"0.1/0", "0.1/1", "0.1/2"}  # the third added: fake-noisy's interval is wide
+    assert set(entry["cell_runs"]) == set(alone["scenes"]["cbox-demo"]["cell_runs"]) == units
+    assert entry["cell_runs"]["0.1/2"]["replicates"]["pt"]["added"] == "until_interval"
+    assert not entry.get("cell_errors")
     assert _keys(alone) - {"threads.per_worker.torch", "threads.per_worker.drjit"} == _keys(
         ray_run
     ) - {"threads.address", "threads.cluster_cpus", "threads.timed_cell_slots"}
