@@ -229,3 +229,30 @@ def test_long_side_resizes_a_scene_dict_and_refuses_a_loaded_scene():
         gdpt.load_scene(gdpt.load_scene(wide), long_side=16)
     with pytest.raises(ValueError, match="'width' and 'height'"):
         gdpt.load_scene({"type": "scene", "sensor": {"type": "perspective"}}, long_side=16)
+
+
+def test_meshes_that_share_a_bsdf_load_unmerged(tmp_path):
+    """Every mesh of a scene file and of a scene dict stays its own shape (Mitsuba's merging,
+    whose triangle order changes between processes, is off: ``MERGE_MESHES``)."""
+    import gdpt
+
+    triangle = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
+    for k in range(3):
+        (tmp_path / f"m{k}.obj").write_text(triangle)
+    meshes = "".join(
+        f'<shape type="obj"><string name="filename" value="m{k}.obj"/><ref id="grey"/></shape>'
+        for k in range(3)
+    )
+    (tmp_path / "scene.xml").write_text(
+        '<scene version="3.0.0"><bsdf type="diffuse" id="grey"/>'
+        '<sensor type="perspective"><film type="hdrfilm"><integer name="width" value="8"/>'
+        '<integer name="height" value="8"/><rfilter type="box"/></film></sensor>'
+        f"{meshes}</scene>"
+    )
+    assert len(gdpt.load_scene(tmp_path / "scene.xml").shapes()) == 3
+    grey = {"type": "diffuse"}
+    shapes = {
+        f"m{k}": {"type": "obj", "filename": str(tmp_path / f"m{k}.obj"), "bsdf": grey}
+        for k in range(3)
+    }
+    assert len(gdpt.load_scene({"type": "scene", **shapes}).shapes()) == 3
