@@ -299,9 +299,13 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         # tests/gdpt/test_rendering.py checks that a repeated render replays. The 32 most
         # recently used recordings are kept.
         self._frozen_pass = dr.freeze(self._trace_pass, limit=32, warn_after=2**31 - 1)
-        #: Frozen-pass recordings made by ``render()`` so far (a render that adds some traced
-        #: those passes anew: its time includes the tracing, and kernel compilation if new).
+        # Pass keys whose recording Dr.Jit refused (:meth:`_pass_or_trace`): traced from then on.
+        self._unrecordable: set[tuple] = set()
+        #: Frozen-pass recordings made by ``render()`` so far, and passes traced because their
+        #: recording was refused (a render that adds some traced those passes anew: its time
+        #: includes the tracing, and kernel compilation if new).
         self.recordings = 0
+        self._traced_unrecordable = 0
         #: Optional ``callable(spp_done, spp_total)`` called after every pass (progress bars).
         self.pass_callback = None
         #: How often each numerical guard fired in the last ``render()``: ``sample_nonfinite``
@@ -405,7 +409,6 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
 
         acc = _Accumulator(n_pix, self.gradients, self.features, self.variance, self.halves)
         self.guard_counts = acc.guard_counts
-        trace = self._frozen_pass if self.freeze else self._trace_pass
         key = (*self._pass_key(), width, height, *(int(v) for v in film.crop_offset()))
         if mask is not None:  # (padded pixel indices, pixels, offsets, seed salt) per wavefront
             quantum = -(-n_pix // WAVEFRONT_BUCKETS)
@@ -418,16 +421,15 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         for index, spp_pass in enumerate(passes):
             pass_seed = (int(seed) * 0x9E3779B1 + index) & 0xFFFFFFFF
             if mask is None:
-                sums, counts = self._pass(
-                    trace, scene, sensor, pass_seed, done, spp_pass, key, None, self.gradients
+                sums, counts = self._pass_or_trace(
+                    scene, sensor, pass_seed, done, spp_pass, key, None, self.gradients
                 )
             else:
                 parts = [
                     (
                         pixels,
                         count,
-                        *self._pass(
-                            trace,
+                        *self._pass_or_trace(
                             scene,
                             sensor,
                             pass_seed ^ salt,
@@ -457,7 +459,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             )
         traced = None if mask is None else traced_gradients(mask)
         if self.freeze:
-            self.recordings = self._frozen_pass.n_recordings
+            self.recordings = self._frozen_pass.n_recordings + self._traced_unrecordable
         return acc.finish(width, height, self.channels(), traced)
 
     def _pixel_mask(self, width: int, height: int) -> np.ndarray | None:
@@ -483,6 +485,34 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
                 f"{self.plugin_name}: gradient_mask must be {expected}, got shape {mask.shape}"
             )
         return None if mask.all() else mask.copy()
+
+    def _pass_or_trace(self, scene, sensor, seed, done, spp, key, pixels, offsets, count=0):
+        """:meth:`_pass`, frozen unless ``freeze`` is off or the pass's recording was refused.
+
+        Dr.Jit refuses to record a pass whose virtual calls reach object instances it cannot
+        find in the pass's inputs (``record(): validate(): ... virtual function call``): seen
+        when the objects of another scene are alive in the process (a serialized-mesh scene
+        loaded beside another, meshes unmerged). Such a pass is traced instead, the same
+        kernels and result, with a ``RuntimeWarning`` the first time per settings; it counts in
+        :attr:`recordings` (its time includes the tracing)."""
+        args = (scene, sensor, seed, done, spp, key, pixels, offsets, count)
+        if not self.freeze:
+            return self._pass(self._trace_pass, *args)
+        if key not in self._unrecordable:
+            try:
+                return self._pass(self._frozen_pass, *args)
+            except RuntimeError as err:
+                if "recording a frozen function" not in str(err):
+                    raise
+                self._unrecordable.add(key)
+                warnings.warn(
+                    f"{self.plugin_name}: Dr.Jit could not record a frozen pass ({err}); passes "
+                    "of these settings are traced instead (the same result, each traced anew)",
+                    RuntimeWarning,
+                    stacklevel=4,
+                )
+        self._traced_unrecordable += 1
+        return self._pass(self._trace_pass, *args)
 
     def _pass(
         self, trace, scene, sensor, seed: int, done: int, spp: int, key, pixels, offsets, count=0

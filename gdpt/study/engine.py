@@ -149,7 +149,13 @@ class RayEngine:
                     ray.init(address=address, log_to_driver=False)
             except (ConnectionError, TimeoutError, RuntimeError) as err:
                 first = (str(err).strip().splitlines() or [type(err).__name__])[0]
-                raise ConnectionError(f"Ray address {address}: {first}") from None
+                hint = (
+                    ""
+                    if address is None
+                    else " (it answers: are the Ray versions the same, "
+                    "and has this process the head's token, RAY_AUTH_TOKEN_PATH?)"
+                )
+                raise ConnectionError(f"Ray address {address}: {first}{hint}") from None
         if not ray.cluster_resources().get(CELL_RESOURCE):
             self.close()
             raise ConnectionError(

@@ -329,3 +329,35 @@ def test_render_and_denoise_renders_only_what_the_method_reads(variant):
         gdpt.render_and_denoise(scene, spp=1, method="l3")
     with pytest.raises(ValueError, match="needs dx and dy"):
         gdpt.render_and_denoise(scene, spp=1, method="l1", gradients=False)
+
+
+@pytest.mark.shared_scenes
+def test_a_pass_dr_jit_will_not_record_is_traced(variant):
+    """With torus's objects alive, Dr.Jit refuses to record veach-bidir's frozen pass (its
+    virtual calls reach instances outside the pass's inputs): the integrator warns once, traces
+    those passes, counts them in ``recordings`` and gives what tracing gives."""
+    import mitsuba as mi
+    from shared_scenes import SHARED_SCENES
+
+    from gdpt.scenes.loading import load_scene
+
+    def load(name):
+        return load_scene(SHARED_SCENES / name / "scene.xml", box_filter=True, long_side=16)
+
+    torus = load("torus")
+    mi.render(torus, integrator=mi.load_dict({"type": "gdpt", "max_depth": 2}), spp=2)
+    scene = load("veach-bidir")
+    frozen = mi.load_dict({"type": "gdpt", "max_depth": 2})
+    with pytest.warns(RuntimeWarning, match="could not record a frozen pass"):
+        first = np.array(mi.render(scene, integrator=frozen, spp=2, seed=3))
+    again = np.array(mi.render(scene, integrator=frozen, spp=2, seed=3))  # no second warning
+    traced = mi.render(
+        scene,
+        integrator=mi.load_dict({"type": "gdpt", "max_depth": 2, "freeze": False}),
+        spp=2,
+        seed=3,
+    )
+    np.testing.assert_array_equal(first, np.array(traced))
+    np.testing.assert_array_equal(again, first)
+    assert frozen.recordings == 3  # the refused recording, then both renders' pass traced
+    del torus
