@@ -33,6 +33,7 @@ built-in scene for both integrators and more half-vector thresholds.
 
 from __future__ import annotations
 
+import gc
 from functools import cache
 
 import numpy as np
@@ -103,9 +104,18 @@ def _load(name: str):
     return load_scene(f"builtin:{name}", long_side=BUILTIN_RES)
 
 
-@cache
+_LOADED: dict = {}
+
+
 def _scene(name: str):
-    return _load(name)
+    """The last scene loaded; the one before is freed first (with another scene's objects
+    alive Dr.Jit may refuse to record a frozen pass, which the integrators then trace, much
+    slower: torus before veach-bidir)."""
+    if name not in _LOADED:
+        _LOADED.clear()
+        gc.collect()
+        _LOADED[name] = _load(name)
+    return _LOADED[name]
 
 
 @cache
