@@ -46,6 +46,7 @@ _LAZY: dict[str, str] = {
     "render_and_denoise": "gdpt.pipeline",
     "render_differentiable": "gdpt.differentiable",
     "reconstruct_image": "gdpt.methods",
+    "release_scene": "gdpt.pipeline",
 }
 
 __all__ = [
@@ -56,6 +57,7 @@ __all__ = [
     "load_buffers",
     "load_scene",
     "reconstruct_image",
+    "release_scene",
     "render",
     "render_and_denoise",
     "render_differentiable",
@@ -71,7 +73,7 @@ if TYPE_CHECKING:
     from gdpt.differentiable import render_differentiable
     from gdpt.io.exr import load_buffers, save_buffers
     from gdpt.methods import reconstruct_image
-    from gdpt.pipeline import render_and_denoise
+    from gdpt.pipeline import release_scene, render_and_denoise
     from gdpt.rendering import render
     from gdpt.scenes.loading import load_scene
 

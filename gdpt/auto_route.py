@@ -358,6 +358,12 @@ def learned_cost_ratio(scene: Any, props: dict[str, Any]) -> float | None:
     return _LEARNED[key][1]
 
 
+def forget_cost_ratios(scene: Any) -> None:
+    """Drop the cost ratios learned on ``scene`` (and the reference to it)."""
+    for key in [k for k, (kept, _) in _LEARNED.items() if kept is scene]:
+        del _LEARNED[key]
+
+
 def learn_cost_ratio(scene: Any, props: dict[str, Any], ratio: float) -> None:
     """Remember ``ratio`` for ``scene`` and ``props`` where none is remembered or it differs from
     the remembered one by more than :data:`RELEARN` of it."""

@@ -8,6 +8,7 @@ stay on the GPU. ``method="auto"`` lets a pilot render choose the route
 
 from __future__ import annotations
 
+import gc
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -17,7 +18,7 @@ import torch
 from gdpt import auto_route
 from gdpt.buffers import GradientBuffers
 from gdpt.methods import METHODS, reconstruct_image
-from gdpt.rendering import render
+from gdpt.rendering import forget_integrators, render
 from gdpt.scenes.loading import load_scene
 
 
@@ -38,6 +39,21 @@ class RenderResult:
     buffers: GradientBuffers
     timings: dict[str, float] = field(default_factory=dict)
     route: auto_route.RouteChoice | None = None
+
+
+def release_scene(scene: Any) -> None:
+    """Forget what gdpt keeps for ``scene`` (an ``mi.Scene``): its integrators and their frozen
+    passes (:func:`gdpt.rendering.shared_integrator`) and ``auto``'s learned cost ratios, then
+    collect garbage; the scene is freed once the caller drops its own references.
+
+    Render one scene after another in a process? Release each when done: while another scene's
+    objects are alive, Dr.Jit may refuse to record a frozen pass (its virtual calls reach
+    instances it cannot find in the pass's inputs) and the integrator traces every pass of those
+    settings, much slower (``docs/architecture.md``).
+    """
+    forget_integrators(scene)
+    auto_route.forget_cost_ratios(scene)
+    gc.collect()
 
 
 #: Mixed into the seed of the pilot render of ``method="auto"`` (independent of the main render).

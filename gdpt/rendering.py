@@ -54,6 +54,13 @@ _SHARED: OrderedDict[tuple, tuple[Any, Any]] = OrderedDict()
 _SHARED_SIZE = 8
 
 
+def forget_integrators(scene: Any) -> None:
+    """Drop the integrators :func:`shared_integrator` keeps for ``scene`` (and its reference to
+    the scene)."""
+    for key in [k for k, (kept, _) in _SHARED.items() if kept is scene]:
+        del _SHARED[key]
+
+
 #: Mixed into the seed of the primal-only render that ``render(..., primal_spp=N)`` pools in, so
 #: that its samples are independent of the gradient render's (the integrators derive every pass
 #: seed from ``seed``).

@@ -507,7 +507,9 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
                 self._unrecordable.add(key)
                 warnings.warn(
                     f"{self.plugin_name}: Dr.Jit could not record a frozen pass ({err}); passes "
-                    "of these settings are traced instead (the same result, each traced anew)",
+                    "of these settings are traced instead (the same result, each traced anew). "
+                    "Another scene alive in this process can cause it: free the scenes you are "
+                    "done with (gdpt.release_scene)",
                     RuntimeWarning,
                     stacklevel=4,
                 )

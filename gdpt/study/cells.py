@@ -34,6 +34,7 @@ dies mid-cell leaves nothing half-written and the cell is run again.
 from __future__ import annotations
 
 import dataclasses
+import gc
 import os
 import platform
 import time
@@ -43,6 +44,7 @@ from typing import Any
 import torch
 
 from gdpt.interrupt import caused_by_interrupt
+from gdpt.pipeline import release_scene
 from gdpt.study.calibration import (
     calibrate,
     calibration_runner,
@@ -124,7 +126,10 @@ def worker_scene(spec: SceneSpec, resolution: int, max_depth: int | None) -> Eva
     """:func:`~gdpt.study.scenes.load_eval_scene`, loaded once per process."""
     key = (spec, resolution, max_depth)
     if key not in _SCENES:
-        _SCENES.clear()  # one scene at a time: scenes can be large
+        for old in _SCENES.values():  # one scene at a time: scenes can be large, and another
+            release_scene(old.scene)  # scene alive can stop Dr.Jit recording frozen passes
+        _SCENES.clear()
+        gc.collect()
         _SCENES[key] = load_eval_scene(spec, resolution=resolution, max_depth=max_depth)
     return _SCENES[key]
 

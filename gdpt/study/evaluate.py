@@ -61,6 +61,7 @@ from typing import Any
 import torch
 
 from gdpt.interrupt import caused_by_interrupt
+from gdpt.pipeline import release_scene
 from gdpt.study.cells import (
     MISS_TOLERANCE,
     pending_cells,
@@ -419,6 +420,25 @@ def _evaluate_scene(
         return
     reference_ready(spec.name, entry, reference, ref_meta, out)
     write_json(results_path, results)
+    try:
+        _run_cells(spec, scene, reference, runnable, entry, cfg, results, results_path, out, bar)
+    finally:  # the next scene renders with this one freed (frozen passes record; see there)
+        release_scene(scene.scene)
+
+
+def _run_cells(
+    spec: SceneSpec,
+    scene: EvalScene,
+    reference: torch.Tensor | None,
+    runnable: list[str],
+    entry: dict[str, Any],
+    cfg: EvaluateConfig,
+    results: dict[str, Any],
+    results_path: Path,
+    out: Path,
+    bar: Any,
+) -> None:
+    """The cells of one loaded scene, one after the other, then its reference-free estimates."""
     chosen = {m: EVAL_METHODS[m] for m in runnable}
     attempted: set[str] = set()
     while runnable and (cell := next(pending_cells(entry, runnable, cfg, attempted), None)):

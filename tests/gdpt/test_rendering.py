@@ -70,3 +70,29 @@ def test_a_render_reports_the_passes_it_recorded(scene):
 def _copy(buffers) -> dict[str, torch.Tensor]:
     """Copies of the primal and gradients (the render's tensors are views that may be reused)."""
     return {name: getattr(buffers, name).clone() for name in ("primal", "dx", "dy")}
+
+
+@pytest.mark.shared_scenes
+def test_release_scene_frees_it_for_the_next_scene_s_frozen_passes(variant):
+    """``gdpt.release_scene``: ``render`` keeps a scene's integrator (and the scene); released
+    and dropped, the next scene records its frozen passes, where with the first one alive
+    Dr.Jit refuses (torus before veach-bidir, tests/integrators/test_gdpt_api.py)."""
+    from shared_scenes import SHARED_SCENES
+
+    import gdpt
+    from gdpt import rendering
+    from gdpt.scenes.loading import load_scene
+
+    def load(name):
+        return load_scene(SHARED_SCENES / name / "scene.xml", box_filter=True, long_side=16)
+
+    torus = load("torus")
+    gdpt.render(torus, spp=2, max_depth=2)
+    assert any(kept is torus for kept, _ in rendering._SHARED.values())
+    gdpt.release_scene(torus)
+    assert not any(kept is torus for kept, _ in rendering._SHARED.values())
+    del torus
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # no traced fallback
+        buffers = gdpt.render(load("veach-bidir"), spp=2, max_depth=2)
+    assert buffers.metadata["recorded_passes"] >= 1
