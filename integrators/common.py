@@ -502,7 +502,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             try:
                 return self._pass(self._frozen_pass, *args)
             except RuntimeError as err:
-                if "recording a frozen function" not in str(err):
+                if not _refused_recording(err):  # e.g. Ctrl-C inside the recording
                     raise
                 self._unrecordable.add(key)
                 warnings.warn(
@@ -601,6 +601,23 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             rays.append(ray)
             weights.append(weight)
         return rays, weights
+
+
+def _refused_recording(err: BaseException) -> bool:
+    """Whether ``err`` is Dr.Jit refusing to record a frozen function because its virtual
+    calls reach instances outside its inputs (its cause says ``validate()`` and ``virtual
+    function call``), and not something else raised while recording (a ``KeyboardInterrupt``
+    anywhere in the chain: no)."""
+    refused, chain = False, []
+    seen: BaseException | None = err
+    while seen is not None and all(seen is not e for e in chain):
+        if isinstance(seen, KeyboardInterrupt):
+            return False
+        text = str(seen)
+        refused |= "validate()" in text and "virtual function call" in text
+        chain.append(seen)
+        seen = seen.__cause__ or seen.__context__
+    return refused
 
 
 #: Mixed into a pass's seed for the primary-ray sampler (independent of the path sampler's).
