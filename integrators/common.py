@@ -42,6 +42,7 @@ al. 2016).
 
 from __future__ import annotations
 
+import gc
 import warnings
 from dataclasses import dataclass, field
 
@@ -494,11 +495,19 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         when the objects of another scene are alive in the process (a serialized-mesh scene
         loaded beside another, meshes unmerged). Such a pass is traced instead, the same
         kernels and result, with a ``RuntimeWarning`` the first time per settings; it counts in
-        :attr:`recordings` (its time includes the tracing)."""
+        :attr:`recordings` (its time includes the tracing).
+
+        Python's cyclic garbage collector is paused during the frozen call: an integrator is
+        freed only by it (its frozen pass holds its bound method), and an integrator freed while
+        another records a pass aborted the process (``Fatal Python error: Aborted`` with
+        ``Garbage-collecting`` on top of a recording: seen when a test file whose integrators
+        failed to construct ran before one that records)."""
         args = (scene, sensor, seed, done, spp, key, pixels, offsets, count)
         if not self.freeze:
             return self._pass(self._trace_pass, *args)
         if key not in self._unrecordable:
+            collecting = gc.isenabled()
+            gc.disable()  # no garbage collection inside a recording: see below
             try:
                 return self._pass(self._frozen_pass, *args)
             except RuntimeError as err:
@@ -513,6 +522,9 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
                     RuntimeWarning,
                     stacklevel=4,
                 )
+            finally:
+                if collecting:
+                    gc.enable()
         self._traced_unrecordable += 1
         return self._pass(self._trace_pass, *args)
 

@@ -361,3 +361,26 @@ def test_a_pass_dr_jit_will_not_record_is_traced(variant):
     np.testing.assert_array_equal(again, first)
     assert frozen.recordings == 3  # the refused recording, then both renders' pass traced
     del torus
+
+
+@pytest.mark.slow
+def test_no_garbage_collection_inside_a_recording():
+    """The interrupt tests, then this file, in one process (the abort was found so:
+    ``Fatal Python error: Aborted`` with ``Garbage-collecting`` on top of a frozen recording in
+    ``test_shift_threshold_selects_the_half_vector_shift``; the integrators now pause the
+    collector while a pass records)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    files = ["tests/gdpt/test_interrupt.py", "tests/integrators/test_gdpt_api.py"]
+    run = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *files, "-m", "not slow"],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=900,
+        check=False,
+    )
+    assert "Fatal Python error" not in run.stderr + run.stdout, run.stderr[-2000:]
