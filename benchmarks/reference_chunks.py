@@ -79,7 +79,7 @@ def reference_of(cache: Path) -> tuple[str, float]:
     """``(sha256 of the merged reference's pixels, its recorded seconds)`` in ``cache``."""
     from gdpt.io.exr import load_image
 
-    (sidecar,) = [p for p in cache.glob("*spp-seed*.json")]
+    (sidecar,) = cache.glob("*spp-seed*.json")
     meta = json.loads(sidecar.read_text())
     assert meta.get("complete"), f"{sidecar}: not complete"
     pixels = load_image(sidecar.with_suffix(".exr")).numpy().tobytes()

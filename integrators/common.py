@@ -507,7 +507,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             return self._pass(self._trace_pass, *args)
         if key not in self._unrecordable:
             collecting = gc.isenabled()
-            gc.disable()  # no garbage collection inside a recording: see below
+            gc.disable()  # no garbage collection inside a recording (docstring)
             try:
                 return self._pass(self._frozen_pass, *args)
             except RuntimeError as err:

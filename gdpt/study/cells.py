@@ -34,7 +34,6 @@ dies mid-cell leaves nothing half-written and the cell is run again.
 from __future__ import annotations
 
 import dataclasses
-import gc
 import os
 import platform
 import time
@@ -129,7 +128,6 @@ def worker_scene(spec: SceneSpec, resolution: int, max_depth: int | None) -> Eva
         for old in _SCENES.values():  # one scene at a time: scenes can be large, and another
             release_scene(old.scene)  # scene alive can stop Dr.Jit recording frozen passes
         _SCENES.clear()
-        gc.collect()
         _SCENES[key] = load_eval_scene(spec, resolution=resolution, max_depth=max_depth)
     return _SCENES[key]
 
