@@ -1,9 +1,9 @@
 """The error-versus-time plots of ``docs/eval/`` redrawn from the full tables of
-``docs/evaluation.md``.
+``docs/lab/2026-12-evaluation-history.md`` (the nine-scene study of 2026-12-03).
 
-The study's ``results.json`` is not kept in the repository; its per-scene tables in
-``docs/evaluation.md`` ("Full tables": method, budget, spp, achieved time, relMSE, SMAPE,
-1-SSIM, LDR-FLIP, replicate means) hold every point of the plots. This script reads them back
+The study's ``results.json`` is not kept in the repository; its per-scene tables
+("Full tables": method, budget, spp, achieved time, relMSE, SMAPE, 1-SSIM, LDR-FLIP, replicate
+means) hold every point of the plots. This script reads them back
 into the shape of a ``results.json`` and draws them with the study's own report
 (:func:`gdpt.study.report.plot_scene`), so method names and style are the current ones.
 Rounded as printed (times to 0.01 s, metrics to 4 digits). Usage::
@@ -52,7 +52,8 @@ def scene_table(text: str, scene: str) -> dict[str, Any]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("scenes", nargs="+", help="scene sections of the full tables")
-    parser.add_argument("--doc", type=Path, default=ROOT / "docs" / "evaluation.md")
+    history = ROOT / "docs" / "lab" / "2026-12-evaluation-history.md"
+    parser.add_argument("--doc", type=Path, default=history)
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "eval")
     args = parser.parse_args()
     text = args.doc.read_text()
