@@ -28,6 +28,13 @@ def _add_demo_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--resolution", type=int, default=192, help="image width and height")
     parser.add_argument(
+        "--gradient-budget",
+        type=float,
+        default=8.0,
+        help="seconds per image of the second run (auto, pt+oidn-tuned, gdpt+fuse on the diffuse "
+        "box at 128 px, where auto takes the gradient route; default: 8; 0 leaves it out)",
+    )
+    parser.add_argument(
         "--reference-spp", type=int, default=4096, help="path-traced reference spp (default: 4096)"
     )
     parser.add_argument("--force", action="store_true", help="overwrite an earlier demo's outputs")
@@ -41,6 +48,7 @@ def _run_demo(args: argparse.Namespace) -> int:
             out=args.out,
             budget=args.budget,
             resolution=args.resolution,
+            gradient_budget=args.gradient_budget,
             reference_spp=args.reference_spp,
             force=args.force,
         )
