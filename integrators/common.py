@@ -209,16 +209,59 @@ def _bsdf_tree(bsdf: mi.BSDF) -> list[mi.BSDF]:
     return [bsdf, *(b for child in children.found for b in _bsdf_tree(child))]
 
 
+def check_variant(plugin: str) -> None:
+    """Refuse a Mitsuba variant the integrators do not render correctly.
+
+    The buffers are three colour channels per pixel (:data:`~.channels.CHANNELS`) computed from
+    an RGB ``mi.Spectrum``: spectral variants sample wavelengths the buffers do not carry (an
+    ``IndexError`` in Mitsuba 3.9.1), ``mono`` ones hold one channel and polarized ones a
+    Mueller matrix. JIT (``llvm_*``/``cuda_*``) variants only: :func:`gdpt.integrators.register`.
+
+    Raises:
+        ValueError: naming the active variant and the supported ones.
+    """
+    if not mi.is_rgb or mi.is_polarized:
+        raise ValueError(
+            f"{plugin}: the Mitsuba variant '{mi.variant()}' is not supported; the "
+            "integrators render RGB buffers: use llvm_ad_rgb or cuda_ad_rgb"
+        )
+
+
+def _medium_name(medium: mi.Medium) -> str:
+    return f"'{medium.id()}' ({medium.class_name()})" if medium.id() else medium.class_name()
+
+
 def check_scene(scene: mi.Scene, plugin: str) -> None:
     """Refuse scenes with plugins the shift mappings do not handle (instead of a wrong image).
 
+    The paths are traced in vacuum (no medium sampling, no transmittance), so a participating
+    medium anywhere is refused: on a sensor, on an emitter, or inside or outside a shape.
+
     Raises:
-        ValueError: naming the unsupported BSDF, emitter or participating medium and its shape.
+        ValueError: naming the unsupported BSDF, emitter or participating medium and where it is.
     """
+    media = [
+        (sensor.get_medium(), f"on sensor '{sensor.id() or sensor.class_name()}'")
+        for sensor in scene.sensors()
+    ]
+    media += [
+        (emitter.get_medium(), f"on emitter '{emitter.id() or emitter.class_name()}'")
+        for emitter in scene.emitters()
+    ]
     for shape in scene.shapes():
         name = shape.id() or shape.class_name()
-        if shape.is_medium_transition():
-            raise ValueError(f"{plugin}: participating media are not supported (shape '{name}')")
+        media += [
+            (shape.interior_medium(), f"inside shape '{name}'"),
+            (shape.exterior_medium(), f"outside shape '{name}'"),
+        ]
+    for medium, where in media:
+        if medium is not None:
+            raise ValueError(
+                f"{plugin}: participating media are not supported: medium "
+                f"{_medium_name(medium)} {where}"
+            )
+    for shape in scene.shapes():
+        name = shape.id() or shape.class_name()
         for bsdf in _bsdf_tree(shape.bsdf()):
             kind = bsdf.class_name()
             if kind not in SUPPORTED_BSDFS:
@@ -267,6 +310,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         samples_per_pass = int(props.get("samples_per_pass", DEFAULT_SAMPLES_PER_PASS))
         if "samples_per_pass" in props:
             del props["samples_per_pass"]
+        check_variant(self.plugin_name)
         super().__init__(props)
         max_depth = props.get("max_depth", 6)
         if max_depth < 0 and max_depth != -1:
@@ -399,6 +443,15 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         if not develop:
             raise ValueError(f"{self.plugin_name}: develop=False is not supported")
         check_scene(scene, self.plugin_name)
+        sampler = sensor.sampler().class_name()
+        if (self.variance or self.halves) and sampler != "IndependentSampler":
+            # Both are per-pixel statistics of independent samples; a stratified or
+            # low-discrepancy sampler correlates the samples of a pixel (and rounds the pass
+            # sizes of plan_passes to its own counts).
+            raise ValueError(
+                f"{self.plugin_name}: the variance and half-buffers need independent samples, "
+                f"the sensor's sampler is '{sampler}'; use <sampler type=\"independent\"/>"
+            )
         self.prepare(scene)
         spp = int(spp) if spp else int(sensor.sampler().sample_count())
         width, height = (int(v) for v in film.crop_size())
@@ -872,6 +925,7 @@ __all__ = [
     "SHIFTS",
     "GradientIntegratorBase",
     "check_scene",
+    "check_variant",
     "PathSamples",
     "FeatureState",
     "update_features",
