@@ -51,16 +51,11 @@ import mitsuba as mi
 import numpy as np
 
 from .channels import CHANNELS, HALVED
+from .properties import read_properties
 
 #: Pixel shifts of the four offset paths, in film pixels (x right, y down).
 SHIFTS = ((1, 0), (0, 1), (-1, 0), (0, -1))
 RIGHT, DOWN, LEFT, UP = range(4)
-
-#: Roughness at or below which a lobe counts as near-specular (Kettunen et al. 2015 default).
-DEFAULT_SHIFT_THRESHOLD = 0.001
-
-#: Default number of path samples traced per kernel launch (bounds memory and kernel size).
-DEFAULT_SAMPLES_PER_PASS = 1 << 20
 
 #: Mixed into a pass's seed for the samplers of the plain paths of a masked render (their samples
 #: independent of the masked pixels' samples).
@@ -305,36 +300,27 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
     """
 
     def __init__(self, props: mi.Properties):
-        # Taken before the base class sees it: Mitsuba's SamplingIntegrator reads a
+        check_variant(self.plugin_name)
+        #: Every property of :data:`~.properties.PROPERTIES`, typed and checked (the one table
+        #: of names, types, defaults and valid values).
+        self.settings = read_properties(props, self.plugin_name)
+        # Removed before the base class sees it: Mitsuba's SamplingIntegrator reads a
         # 'samples_per_pass' of its own and warns that it is deprecated.
-        samples_per_pass = int(props.get("samples_per_pass", DEFAULT_SAMPLES_PER_PASS))
         if "samples_per_pass" in props:
             del props["samples_per_pass"]
-        check_variant(self.plugin_name)
         super().__init__(props)
-        max_depth = props.get("max_depth", 6)
-        if max_depth < 0 and max_depth != -1:
-            raise ValueError(f"{self.plugin_name}: 'max_depth' must be -1 or >= 0, got {max_depth}")
-        self.max_depth = 0xFFFFFFFF if max_depth == -1 else int(max_depth)
-        self.rr_depth = int(props.get("rr_depth", 5))
-        if self.rr_depth <= 0:
-            raise ValueError(f"{self.plugin_name}: 'rr_depth' must be > 0, got {self.rr_depth}")
-        self.gradients = bool(props.get("gradients", True))
-        self.features = bool(props.get("features", True))
-        self.variance = bool(props.get("variance", False))
-        self.halves = bool(props.get("halves", False))
-        self.samples_per_pass = samples_per_pass
-        if self.samples_per_pass < 1:
-            raise ValueError(f"{self.plugin_name}: 'samples_per_pass' must be >= 1")
-        self.shift_threshold = float(props.get("shift_threshold", DEFAULT_SHIFT_THRESHOLD))
-        if not 0.0 <= self.shift_threshold < float("inf"):
-            raise ValueError(
-                f"{self.plugin_name}: 'shift_threshold' must be a finite roughness >= 0, got "
-                f"{self.shift_threshold}"
-            )
         if props.get("hide_emitters", False):
             raise ValueError(f"{self.plugin_name}: 'hide_emitters' is not supported")
-        self.freeze = bool(props.get("freeze", True))
+        max_depth = self.settings["max_depth"]
+        self.max_depth = 0xFFFFFFFF if max_depth == -1 else max_depth
+        self.rr_depth = self.settings["rr_depth"]
+        self.gradients = self.settings["gradients"]
+        self.features = self.settings["features"]
+        self.variance = self.settings["variance"]
+        self.halves = self.settings["halves"]
+        self.samples_per_pass = self.settings["samples_per_pass"]
+        self.shift_threshold = self.settings["shift_threshold"]
+        self.freeze = self.settings["freeze"]
         # Replays the kernels of a pass without tracing Python again (dr.freeze): the tracing of
         # the large path loop, its virtual calls over every BSDF and emitter and the kernel
         # hashing cost as much as the kernel itself at 128 px. It records again for new film
@@ -382,18 +368,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         """The plugin's properties as a dict for ``mi.load_dict`` (``type`` included): a twin
         with some settings changed is ``mi.load_dict({**self.properties(), "gradients": False})``.
         """
-        return {
-            "type": self.plugin_name,
-            "max_depth": -1 if self.max_depth == 0xFFFFFFFF else self.max_depth,
-            "rr_depth": self.rr_depth,
-            "gradients": self.gradients,
-            "features": self.features,
-            "variance": self.variance,
-            "halves": self.halves,
-            "samples_per_pass": self.samples_per_pass,
-            "shift_threshold": self.shift_threshold,
-            "freeze": self.freeze,
-        }
+        return {"type": self.plugin_name, **self.settings}
 
     def channels(self) -> list[tuple[str, int]]:
         """``(buffer name, channel count)`` in the order ``render()`` stores them."""
