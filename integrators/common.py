@@ -292,7 +292,9 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
     ``samples_per_pass`` (int, 2^20: samples traced per kernel launch),
     ``freeze`` (bool, true: replay the recorded kernels of a pass instead of tracing it again),
     ``shift_threshold`` (float, 0.001: microfacet roughness at or below which a glossy vertex
-    counts as near-specular; used by ``gdpt``, ignored by ``gdpt_rr``).
+    counts as near-specular; used by ``gdpt``, ignored by ``gdpt_rr``). Their names, types,
+    defaults and valid values are one table, :data:`~.properties.PROPERTIES`; the typed values
+    are :attr:`settings`.
 
     Attribute ``gradient_mask`` (not a property: Mitsuba's properties hold no per-pixel array):
     ``None`` (offsets everywhere) or an ``(H, W)`` bool numpy array of the film's crop, set
