@@ -9,6 +9,7 @@ reads it from ``GradientIntegratorBase.settings`` (plain Python, no Mitsuba impo
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -74,14 +75,16 @@ def checked(plugin: str, name: str, value: Any) -> Any:
             type, e.g. a string for an integer).
     """
     prop = PROPERTIES[name]
-    typed: Any = value
-    if prop.kind is float and isinstance(value, int | float) and not isinstance(value, bool):
-        typed = float(value)
-    elif prop.kind is bool and isinstance(value, int) and value in (0, 1):
+    typed: Any = None
+    if isinstance(value, str):
+        typed = value if prop.kind is str else None
+    elif prop.kind is bool and value in (True, False):  # also 0 / 1 and numpy's booleans
         typed = bool(value)
-    if not isinstance(typed, prop.kind) or (prop.kind is int and isinstance(typed, bool)):
-        raise ValueError(f"{plugin}: '{name}' must be {prop.describe()}, got {value!r}")
-    if not prop.valid(typed):
+    elif prop.kind is int and isinstance(value, numbers.Integral) and not isinstance(value, bool):
+        typed = int(value)
+    elif prop.kind is float and isinstance(value, numbers.Real) and not isinstance(value, bool):
+        typed = float(value)
+    if typed is None or not prop.valid(typed):
         raise ValueError(f"{plugin}: '{name}' must be {prop.describe()}, got {value!r}")
     return typed
 
