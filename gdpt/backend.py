@@ -183,12 +183,21 @@ def ensure_variant() -> str:
 
     Returns:
         The active variant name.
+
+    Raises:
+        ValueError: the active variant is not one of :data:`SUPPORTED_VARIANTS` (e.g. a
+            spectral one set with ``mi.set_variant``).
     """
     with interrupts_deferred():  # a Ctrl-C inside Mitsuba's module set-up would abort
         import mitsuba as mi
 
         if mi.variant() is None:
             return _set_variant(None)
+        if mi.variant() not in SUPPORTED_VARIANTS:
+            raise ValueError(
+                f"the Mitsuba variant {mi.variant()!r} is not supported; gdpt renders RGB "
+                f"buffers on {', '.join(SUPPORTED_VARIANTS)} (gdpt.set_variant())"
+            )
         _register_plugins()
         return mi.variant()
 

@@ -20,12 +20,25 @@ from gdpt.scenes.loading import load_scene
 
 
 def make_integrator(name: str = "gdpt", **props: Any):
-    """Instantiate ``gdpt`` / ``gdpt_rr`` with properties (``max_depth``, ``gradients``, ...)."""
+    """Instantiate ``gdpt`` / ``gdpt_rr`` with properties (``max_depth``, ``gradients``, ...).
+
+    Raises:
+        ValueError: an unknown plugin, an unknown property or an invalid value (one line,
+            checked against :data:`gdpt.integrators.properties.PROPERTIES` before Mitsuba
+            loads the plugin).
+    """
     import mitsuba as mi
+
+    from gdpt.integrators.properties import PROPERTIES, checked
 
     if name not in PLUGINS:
         raise ValueError(f"unknown integrator {name!r}; valid: {', '.join(PLUGINS)}")
-    return mi.load_dict({"type": name, **props})
+    if unknown := [k for k in props if k not in PROPERTIES]:
+        raise ValueError(
+            f"unknown {name} integrator property {', '.join(map(repr, unknown))}; valid: "
+            + ", ".join(PROPERTIES)
+        )
+    return mi.load_dict({"type": name, **{k: checked(name, k, v) for k, v in props.items()}})
 
 
 def shared_integrator(scene: Any, name: str = "gdpt", **props: Any):

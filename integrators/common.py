@@ -51,16 +51,11 @@ import mitsuba as mi
 import numpy as np
 
 from .channels import CHANNELS, HALVED
+from .properties import read_properties
 
 #: Pixel shifts of the four offset paths, in film pixels (x right, y down).
 SHIFTS = ((1, 0), (0, 1), (-1, 0), (0, -1))
 RIGHT, DOWN, LEFT, UP = range(4)
-
-#: Roughness at or below which a lobe counts as near-specular (Kettunen et al. 2015 default).
-DEFAULT_SHIFT_THRESHOLD = 0.001
-
-#: Default number of path samples traced per kernel launch (bounds memory and kernel size).
-DEFAULT_SAMPLES_PER_PASS = 1 << 20
 
 #: Mixed into a pass's seed for the samplers of the plain paths of a masked render (their samples
 #: independent of the masked pixels' samples).
@@ -209,16 +204,59 @@ def _bsdf_tree(bsdf: mi.BSDF) -> list[mi.BSDF]:
     return [bsdf, *(b for child in children.found for b in _bsdf_tree(child))]
 
 
+def check_variant(plugin: str) -> None:
+    """Refuse a Mitsuba variant the integrators do not render correctly.
+
+    The buffers are three colour channels per pixel (:data:`~.channels.CHANNELS`) computed from
+    an RGB ``mi.Spectrum``: spectral variants sample wavelengths the buffers do not carry (an
+    ``IndexError`` in Mitsuba 3.9.1), ``mono`` ones hold one channel and polarized ones a
+    Mueller matrix. JIT (``llvm_*``/``cuda_*``) variants only: :func:`gdpt.integrators.register`.
+
+    Raises:
+        ValueError: naming the active variant and the supported ones.
+    """
+    if not mi.is_rgb or mi.is_polarized:
+        raise ValueError(
+            f"{plugin}: the Mitsuba variant '{mi.variant()}' is not supported; the "
+            "integrators render RGB buffers: use llvm_ad_rgb or cuda_ad_rgb"
+        )
+
+
+def _medium_name(medium: mi.Medium) -> str:
+    return f"'{medium.id()}' ({medium.class_name()})" if medium.id() else medium.class_name()
+
+
 def check_scene(scene: mi.Scene, plugin: str) -> None:
     """Refuse scenes with plugins the shift mappings do not handle (instead of a wrong image).
 
+    The paths are traced in vacuum (no medium sampling, no transmittance), so a participating
+    medium anywhere is refused: on a sensor, on an emitter, or inside or outside a shape.
+
     Raises:
-        ValueError: naming the unsupported BSDF, emitter or participating medium and its shape.
+        ValueError: naming the unsupported BSDF, emitter or participating medium and where it is.
     """
+    media = [
+        (sensor.get_medium(), f"on sensor '{sensor.id() or sensor.class_name()}'")
+        for sensor in scene.sensors()
+    ]
+    media += [
+        (emitter.get_medium(), f"on emitter '{emitter.id() or emitter.class_name()}'")
+        for emitter in scene.emitters()
+    ]
     for shape in scene.shapes():
         name = shape.id() or shape.class_name()
-        if shape.is_medium_transition():
-            raise ValueError(f"{plugin}: participating media are not supported (shape '{name}')")
+        media += [
+            (shape.interior_medium(), f"inside shape '{name}'"),
+            (shape.exterior_medium(), f"outside shape '{name}'"),
+        ]
+    for medium, where in media:
+        if medium is not None:
+            raise ValueError(
+                f"{plugin}: participating media are not supported: medium "
+                f"{_medium_name(medium)} {where}"
+            )
+    for shape in scene.shapes():
+        name = shape.id() or shape.class_name()
         for bsdf in _bsdf_tree(shape.bsdf()):
             kind = bsdf.class_name()
             if kind not in SUPPORTED_BSDFS:
@@ -254,7 +292,9 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
     ``samples_per_pass`` (int, 2^20: samples traced per kernel launch),
     ``freeze`` (bool, true: replay the recorded kernels of a pass instead of tracing it again),
     ``shift_threshold`` (float, 0.001: microfacet roughness at or below which a glossy vertex
-    counts as near-specular; used by ``gdpt``, ignored by ``gdpt_rr``).
+    counts as near-specular; used by ``gdpt``, ignored by ``gdpt_rr``). Their names, types,
+    defaults and valid values are one table, :data:`~.properties.PROPERTIES`; the typed values
+    are :attr:`settings`.
 
     Attribute ``gradient_mask`` (not a property: Mitsuba's properties hold no per-pixel array):
     ``None`` (offsets everywhere) or an ``(H, W)`` bool numpy array of the film's crop, set
@@ -262,35 +302,27 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
     """
 
     def __init__(self, props: mi.Properties):
-        # Taken before the base class sees it: Mitsuba's SamplingIntegrator reads a
+        check_variant(self.plugin_name)
+        #: Every property of :data:`~.properties.PROPERTIES`, typed and checked (the one table
+        #: of names, types, defaults and valid values).
+        self.settings = read_properties(props, self.plugin_name)
+        # Removed before the base class sees it: Mitsuba's SamplingIntegrator reads a
         # 'samples_per_pass' of its own and warns that it is deprecated.
-        samples_per_pass = int(props.get("samples_per_pass", DEFAULT_SAMPLES_PER_PASS))
         if "samples_per_pass" in props:
             del props["samples_per_pass"]
         super().__init__(props)
-        max_depth = props.get("max_depth", 6)
-        if max_depth < 0 and max_depth != -1:
-            raise ValueError(f"{self.plugin_name}: 'max_depth' must be -1 or >= 0, got {max_depth}")
-        self.max_depth = 0xFFFFFFFF if max_depth == -1 else int(max_depth)
-        self.rr_depth = int(props.get("rr_depth", 5))
-        if self.rr_depth <= 0:
-            raise ValueError(f"{self.plugin_name}: 'rr_depth' must be > 0, got {self.rr_depth}")
-        self.gradients = bool(props.get("gradients", True))
-        self.features = bool(props.get("features", True))
-        self.variance = bool(props.get("variance", False))
-        self.halves = bool(props.get("halves", False))
-        self.samples_per_pass = samples_per_pass
-        if self.samples_per_pass < 1:
-            raise ValueError(f"{self.plugin_name}: 'samples_per_pass' must be >= 1")
-        self.shift_threshold = float(props.get("shift_threshold", DEFAULT_SHIFT_THRESHOLD))
-        if not 0.0 <= self.shift_threshold < float("inf"):
-            raise ValueError(
-                f"{self.plugin_name}: 'shift_threshold' must be a finite roughness >= 0, got "
-                f"{self.shift_threshold}"
-            )
         if props.get("hide_emitters", False):
             raise ValueError(f"{self.plugin_name}: 'hide_emitters' is not supported")
-        self.freeze = bool(props.get("freeze", True))
+        max_depth = self.settings["max_depth"]
+        self.max_depth = 0xFFFFFFFF if max_depth == -1 else max_depth
+        self.rr_depth = self.settings["rr_depth"]
+        self.gradients = self.settings["gradients"]
+        self.features = self.settings["features"]
+        self.variance = self.settings["variance"]
+        self.halves = self.settings["halves"]
+        self.samples_per_pass = self.settings["samples_per_pass"]
+        self.shift_threshold = self.settings["shift_threshold"]
+        self.freeze = self.settings["freeze"]
         # Replays the kernels of a pass without tracing Python again (dr.freeze): the tracing of
         # the large path loop, its virtual calls over every BSDF and emitter and the kernel
         # hashing cost as much as the kernel itself at 128 px. It records again for new film
@@ -338,18 +370,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         """The plugin's properties as a dict for ``mi.load_dict`` (``type`` included): a twin
         with some settings changed is ``mi.load_dict({**self.properties(), "gradients": False})``.
         """
-        return {
-            "type": self.plugin_name,
-            "max_depth": -1 if self.max_depth == 0xFFFFFFFF else self.max_depth,
-            "rr_depth": self.rr_depth,
-            "gradients": self.gradients,
-            "features": self.features,
-            "variance": self.variance,
-            "halves": self.halves,
-            "samples_per_pass": self.samples_per_pass,
-            "shift_threshold": self.shift_threshold,
-            "freeze": self.freeze,
-        }
+        return {"type": self.plugin_name, **self.settings}
 
     def channels(self) -> list[tuple[str, int]]:
         """``(buffer name, channel count)`` in the order ``render()`` stores them."""
@@ -399,6 +420,15 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         if not develop:
             raise ValueError(f"{self.plugin_name}: develop=False is not supported")
         check_scene(scene, self.plugin_name)
+        sampler = sensor.sampler().class_name()
+        if (self.variance or self.halves) and sampler != "IndependentSampler":
+            # Both are per-pixel statistics of independent samples; a stratified or
+            # low-discrepancy sampler correlates the samples of a pixel (and rounds the pass
+            # sizes of plan_passes to its own counts).
+            raise ValueError(
+                f"{self.plugin_name}: the variance and half-buffers need independent samples, "
+                f"the sensor's sampler is '{sampler}'; use <sampler type=\"independent\"/>"
+            )
         self.prepare(scene)
         spp = int(spp) if spp else int(sensor.sampler().sample_count())
         width, height = (int(v) for v in film.crop_size())
@@ -872,6 +902,7 @@ __all__ = [
     "SHIFTS",
     "GradientIntegratorBase",
     "check_scene",
+    "check_variant",
     "PathSamples",
     "FeatureState",
     "update_features",

@@ -29,7 +29,8 @@ def _add_advise_arguments(parser: argparse.ArgumentParser) -> None:
         default=list(DEFAULT_METHODS),
         metavar="METHOD",
         help="study methods to compare, the first the baseline of every ratio (default: "
-        f"{' '.join(DEFAULT_METHODS)}; gdpt evaluate --help lists them)",
+        f"{' '.join(DEFAULT_METHODS)}; gdpt evaluate --help lists them; METHOD@NAME=VALUE,... "
+        "with gdpt integrator properties)",
     )
     parser.add_argument(
         "--replicates",

@@ -11,10 +11,16 @@ from gdpt.study.config import PROTOCOLS
 
 
 def _study_method_name(name: str) -> str:
-    """A ``--methods`` value: a study method's current name (a deprecated one warns)."""
+    """A ``--methods`` value: a study method's current name (a deprecated one warns), its
+    ``@`` integrator properties checked (a bad one: a usage error naming it)."""
     from gdpt.study.methods import EVAL_METHODS
 
-    return EVAL_METHODS.resolve(name)
+    try:
+        return EVAL_METHODS.resolve(name)
+    except KeyError:  # an unknown method (or a --model's, registered later): checked later
+        return name
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 # ----------------------------------------------------------------------------------------- demo
@@ -75,7 +81,12 @@ def _add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--budgets", type=float, nargs="+", help="time budgets in seconds")
     parser.add_argument("--resolution", type=int, help="pixels on the long side")
     parser.add_argument(
-        "--methods", nargs="+", type=_study_method_name, help="methods to compare (default: all)"
+        "--methods",
+        nargs="+",
+        type=_study_method_name,
+        help="methods to compare (default: all); METHOD@NAME=VALUE,NAME=VALUE renders METHOD "
+        "with those gdpt integrator properties (e.g. gdpt+fuse@max_depth=4), calibrated on "
+        "its own",
     )
     add_model_option(
         parser,

@@ -64,7 +64,9 @@ class LoadedScene:
     notes: list[str] = field(default_factory=list)
 
 
-def load_scene(source: Any, *, box_filter: bool = False, long_side: int | None = None):
+def load_scene(
+    source: Any, *, box_filter: bool = False, long_side: int | None = None, check: bool = True
+):
     """A ``mi.Scene`` from any scene source (see the module docstring); variant set if needed.
 
     Args:
@@ -73,14 +75,19 @@ def load_scene(source: Any, *, box_filter: bool = False, long_side: int | None =
         long_side (int | None): rescale the film to this many pixels on its long side (XML
             and dicts: aspect ratio kept; ``builtin:``/``random:``: a square film of this
             size); not for a loaded ``mi.Scene``.
+        check (bool): refuse a scene it loads with plugins the ``gdpt`` integrators do not
+            render (participating media, unsupported BSDFs and emitters:
+            :func:`gdpt.integrators.common.check_scene`, which the integrators also run before
+            every render); off for scenes rendered with Mitsuba's own integrators.
 
     Raises:
         FileNotFoundError: the XML file does not exist.
         ValueError: Mitsuba cannot load the scene (the message names the file), an unknown
-            ``builtin:``/``random:`` specification, or ``box_filter``/``long_side`` for a
-            source they cannot change.
+            ``builtin:``/``random:`` specification, ``box_filter``/``long_side`` for a
+            source they cannot change, or (with ``check``) a plugin the integrators do not
+            support, named with where it is.
     """
-    return read_scene(source, box_filter=box_filter, long_side=long_side).scene
+    return read_scene(source, box_filter=box_filter, long_side=long_side, check=check).scene
 
 
 def choose_max_depth(
@@ -106,12 +113,21 @@ def choose_max_depth(
 
 
 def read_scene(
-    source: Any, *, box_filter: bool = False, long_side: int | None = None
+    source: Any, *, box_filter: bool = False, long_side: int | None = None, check: bool = True
 ) -> LoadedScene:
     """Like :func:`load_scene`, with the film size, integrator depth and changes made."""
     from gdpt.backend import ensure_variant
 
     ensure_variant()
+    loaded = _read_scene(source, box_filter=box_filter, long_side=long_side)
+    if check and loaded.scene is not source:  # (a given mi.Scene: the integrator checks it)
+        from gdpt.integrators.common import check_scene
+
+        check_scene(loaded.scene, "gdpt")
+    return loaded
+
+
+def _read_scene(source: Any, *, box_filter: bool, long_side: int | None) -> LoadedScene:
     import mitsuba as mi
 
     if isinstance(source, mi.Scene):

@@ -35,7 +35,13 @@ A method that cannot run here (package not installed, no shipped model) says so 
 reads no gradients; the deprecated study names, such as ``gdpt+ngpt`` for ``gdpt+oidn-grad``,
 are :data:`gdpt.deprecated.EVAL_METHOD_ALIASES`); another method (a different sampler) is
 ``EVAL_METHODS.register(name, EvalMethod(name, description, f))`` with
-``f(scene, *, spp, seed) -> MethodResult``; the harness needs no change.
+``f(scene, *, spp, seed, **properties) -> MethodResult``; the harness needs no change.
+
+Integrator properties: a name ``METHOD@NAME=VALUE,NAME=VALUE`` (e.g. ``gdpt+fuse@max_depth=4``)
+is the registered ``METHOD`` rendering with those ``gdpt`` integrator properties
+(:data:`gdpt.integrators.properties.PROPERTIES`: any property there, checked there, except
+those the method sets itself, such as ``gradients``); its configuration holds them, so it has
+its own cost calibration, and the name is kept as written in results and reports.
 
 Timing: :attr:`MethodResult.seconds` is the wall time from the start of sampling to the final
 image on the host, minus the time Dr.Jit spent compiling kernels during the call (read from
@@ -64,6 +70,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "EVAL_METHODS",
+    "MethodRegistry",
     "EvalMethod",
     "MethodResult",
     "MethodUnavailable",
@@ -107,7 +114,8 @@ class EvalMethod:
     Attributes:
         name: registry key, e.g. ``"gdpt+l1"``.
         description: one line for the report.
-        run: ``f(scene: EvalScene, *, spp: int, seed: int) -> MethodResult``.
+        run: ``f(scene: EvalScene, *, spp: int, seed: int, **properties) -> MethodResult``
+            (``properties``: integrator properties every render of the method uses).
         check: returns ``None`` when the method can run here, else the reason it cannot.
         render: like ``run`` without the reconstruction (the image is the primal), to
             calibrate render times cheaply; ``None``: the method cannot be split.
@@ -126,8 +134,90 @@ class EvalMethod:
     configuration: Callable[[], dict[str, Any]] | None = None
 
 
+class MethodRegistry(Registry[EvalMethod]):
+    """The study methods: a :class:`~gdpt.reconstruct.registry.Registry` that also answers to
+    ``METHOD@PROPERTIES`` (:func:`with_properties`; not listed, made on demand)."""
+
+    def __contains__(self, name: object) -> bool:
+        if super().__contains__(name):
+            return True
+        try:
+            self[name]  # type: ignore[index]
+        except (KeyError, ValueError):
+            return False
+        return True
+
+    def __missing__(self, name: str) -> EvalMethod:
+        base, sep, text = name.partition("@") if isinstance(name, str) else (name, "", "")
+        if not sep:
+            return super().__missing__(name)
+        return with_properties(self[base], name, parse_properties(text, name))
+
+    def resolve(self, name: str, *, stacklevel: int = 1) -> str:
+        """As :meth:`Registry.resolve`, the properties of ``METHOD@PROPERTIES`` checked and
+        kept as written (``ValueError`` naming a bad one)."""
+        base, sep, text = name.partition("@")
+        if not sep:
+            return super().resolve(name, stacklevel=stacklevel + 1)
+        current = f"{super().resolve(base, stacklevel=stacklevel + 1)}@{text}"
+        self[current]  # noqa: B018 (checks the base and the properties)
+        return current
+
+    def check(self, names: object) -> None:
+        for name in names:  # type: ignore[attr-defined]
+            if "@" in name:
+                self[name]  # noqa: B018 (a ValueError naming the bad property)
+        super().check(names)
+
+
 #: Registered methods, name -> :class:`EvalMethod`, in registration order.
-EVAL_METHODS: Registry[EvalMethod] = Registry("method")
+EVAL_METHODS: MethodRegistry = MethodRegistry("method")
+
+
+def parse_properties(text: str, name: str) -> dict[str, Any]:
+    """The integrator properties ``NAME=VALUE,NAME=VALUE`` of the method name ``name``,
+    typed and checked (:func:`gdpt.integrators.properties.parse_property`).
+
+    Raises:
+        ValueError: one line naming ``name`` and what is wrong (a property twice, an unknown
+            one, an invalid value).
+    """
+    from gdpt.integrators.properties import parse_property
+
+    properties: dict[str, Any] = {}
+    for item in text.split(","):
+        try:
+            key, value = parse_property(item)
+        except ValueError as err:
+            raise ValueError(f"method {name!r}: {err}") from None
+        if key in properties:
+            raise ValueError(f"method {name!r}: property {key!r} is given twice")
+        properties[key] = value
+    return properties
+
+
+def with_properties(base: EvalMethod, name: str, properties: dict[str, Any]) -> EvalMethod:
+    """``base`` rendering with the integrator ``properties`` (from :func:`parse_properties`),
+    named ``name``; its configuration is ``base``'s with the properties.
+
+    Raises:
+        ValueError: ``base`` sets one of the properties itself (e.g. ``gradients``).
+    """
+    config = {} if base.configuration is None else base.configuration()
+    if fixed := sorted(set(properties) & set(config)):
+        raise ValueError(
+            f"method {name!r}: {base.name} sets {', '.join(map(repr, fixed))} itself "
+            f"({', '.join(f'{k}={config[k]}' for k in fixed)})"
+        )
+    return EvalMethod(
+        name,
+        f"{base.description}; integrator properties "
+        + ", ".join(f"{k}={v}" for k, v in properties.items()),
+        partial(base.run, **properties),
+        base.check,
+        None if base.render is None else partial(base.render, **properties),
+        None if base.configuration is None else lambda: {**base.configuration(), **properties},  # type: ignore[misc]
+    )
 
 
 # ------------------------------------------------------------------------------------ timing
@@ -155,9 +245,10 @@ def _timed_run(
     if render is None:
         from gdpt.rendering import render
 
+    props = {"max_depth": scene.max_depth, **props}  # (a method's properties may set it)
     _drain_compile_seconds()
     start = time.perf_counter()
-    buffers = render(scene.scene, spp=spp, seed=seed, max_depth=scene.max_depth, **props)
+    buffers = render(scene.scene, spp=spp, seed=seed, **props)
     middle = time.perf_counter()
     compile_seconds = _drain_compile_seconds()
     image = buffers.primal if reconstruct is None else reconstruct(buffers)
@@ -179,18 +270,19 @@ def _timed_run(
 
 
 # ---------------------------------------------------------------------------------- methods
-def path_tracing(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+def path_tracing(scene: EvalScene, *, spp: int, seed: int, **properties: Any) -> MethodResult:
     """Plain path tracing: the primal of ``gdpt`` with ``gradients=False``.
 
     Args:
         scene: the scene (its ``max_depth`` is used).
         spp: samples per pixel.
         seed: random seed.
+        **properties: further integrator properties.
 
     Returns:
         The image and its timing.
     """
-    return _timed_run(scene, spp, seed, None, gradients=False, features=False)
+    return _timed_run(scene, spp, seed, None, gradients=False, features=False, **properties)
 
 
 def render_configuration(
@@ -220,14 +312,14 @@ def register_denoiser(name: str, method: Method) -> str:
     must be in :data:`gdpt.methods.METHODS`); returns the study method's name."""
     sampler = "gdpt" if method.gradients else "pt"
 
-    def run(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+    def run(scene: EvalScene, *, spp: int, seed: int, **properties: Any) -> MethodResult:
         if reason := method.check():
             raise MethodUnavailable(reason)
-        props = method.sampling(spp)
+        props = {**method.sampling(spp), **properties}
         return _timed_run(scene, spp, seed, partial(reconstruct_image, method=name), **props)
 
-    def render(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
-        return _timed_run(scene, spp, seed, None, **method.sampling(spp))
+    def render(scene: EvalScene, *, spp: int, seed: int, **properties: Any) -> MethodResult:
+        return _timed_run(scene, spp, seed, None, **method.sampling(spp), **properties)
 
     label = "gradient-domain path tracing" if method.gradients else "path tracing"
     factor = method.primal_spp_factor() if method.gradients else 0.0
@@ -255,7 +347,7 @@ for _old, _new in EVAL_METHOD_ALIASES.items():
     EVAL_METHODS.alias(_old, _new)
 
 
-def auto_route(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+def auto_route(scene: EvalScene, *, spp: int, seed: int, **properties: Any) -> MethodResult:
     """``render_and_denoise(method="auto")``: the pilot, the route's render and its
     reconstruction, all timed (kernel compilation excluded as for every method); ``spp`` are
     plain samples (the pilot's included), the gradient route renders gradient samples of the
@@ -266,7 +358,8 @@ def auto_route(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
         raise MethodUnavailable(reason)
     _drain_compile_seconds()
     start = time.perf_counter()
-    result = render_and_denoise(scene.scene, spp=spp, seed=seed, max_depth=scene.max_depth)
+    props = {"max_depth": scene.max_depth, **properties}
+    result = render_and_denoise(scene.scene, spp=spp, seed=seed, **props)
     image = result.image.detach().to("cpu", torch.float32).contiguous()
     seconds = time.perf_counter() - start
     compile_seconds = _drain_compile_seconds()
@@ -309,7 +402,7 @@ def masked_fuse(design: str) -> RunFunction:
     ``spp`` gradient samples in the mask) reconstructed by ``fuse``, all of it timed as the
     render except the final reconstruction (kernel compilation excluded)."""
 
-    def run(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+    def run(scene: EvalScene, *, spp: int, seed: int, **properties: Any) -> MethodResult:
         from gdpt.gradient_mask import render_masked
 
         if reason := DENOISERS["fuse"].check():
@@ -320,6 +413,7 @@ def masked_fuse(design: str) -> RunFunction:
             seed,
             partial(reconstruct_image, method="fuse"),
             render=partial(render_masked, design=design),
+            **properties,
         )
 
     run.__name__ = run.__qualname__ = f"masked_fuse_{design}"

@@ -130,6 +130,22 @@ def test_gaussian_filter_needs_box_filter(gaussian_scene, tmp_path, capsys, comm
     assert not (tmp_path / "out.exr").exists()
 
 
+@pytest.mark.parametrize("command", ["render", "render-and-denoise"])
+def test_a_medium_on_the_sensor_is_refused(gaussian_scene, tmp_path, capsys, command):
+    """A homogeneous medium on the sensor (rendered as vacuum before): one line naming it,
+    exit status 2, nothing written, nothing printed before it."""
+    fog = '<medium type="homogeneous" id="fog"><float name="scale" value="0.5"/></medium>'
+    xml = GAUSSIAN_XML.replace("<sensor", fog + "<sensor", 1)
+    scene = tmp_path / "fog.xml"
+    scene.write_text(xml.replace("</sensor>", '<ref id="fog"/></sensor>'))
+    out = tmp_path / "out" / "out.exr"
+    assert main([command, str(scene), "--box-filter", "-o", str(out)]) == 2
+    captured = capsys.readouterr()
+    line = one_line_error(captured.err)
+    assert "participating media are not supported: medium 'fog'" in line and "sensor" in line
+    assert captured.out == "" and not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize(
     ("extra", "depth", "source"),
     [([], 4, "from the scene's integrator"), (["--max-depth", "2"], 2, "--max-depth")],

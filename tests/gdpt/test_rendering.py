@@ -96,3 +96,19 @@ def test_release_scene_frees_it_for_the_next_scene_s_frozen_passes(variant):
         warnings.simplefilter("error", RuntimeWarning)  # no traced fallback
         buffers = gdpt.render(load("veach-bidir"), spp=2, max_depth=2)
     assert buffers.metadata["recorded_passes"] >= 1
+
+
+@pytest.mark.parametrize(
+    ("props", "message"),
+    [
+        ({"max_dept": 3}, "unknown gdpt integrator property 'max_dept'; valid: max_depth"),
+        ({"max_depth": 2.5}, "'max_depth' must be -1 \\(unbounded\\) or >= 0, got 2.5"),
+        ({"features": "no"}, "'features' must be true or false, got 'no'"),
+    ],
+)
+def test_bad_properties_are_one_line_before_mitsuba_loads_the_plugin(scene, props, message):
+    """``gdpt.render``'s properties are checked against the plugins' table (a ValueError, not
+    Mitsuba's wrapped multi-line error)."""
+    with pytest.raises(ValueError, match=message) as info:
+        render(scene, spp=1, **props)
+    assert "\n" not in str(info.value)

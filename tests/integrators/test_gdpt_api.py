@@ -384,3 +384,105 @@ def test_no_garbage_collection_inside_a_recording():
         check=False,
     )
     assert "Fatal Python error" not in run.stderr + run.stdout, run.stderr[-2000:]
+
+
+_FOG = '<medium type="homogeneous" id="fog"><float name="scale" value="0.5"/></medium>'
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "where"),
+    [
+        ('<sensor type="perspective">', '<sensor type="perspective"><ref id="fog"/>', "on sensor"),
+        (
+            '<bsdf type="diffuse"/></shape>',
+            '<bsdf type="dielectric"/><ref name="interior" id="fog"/></shape>',
+            "inside shape",
+        ),
+        (
+            '<bsdf type="diffuse"/></shape>',
+            '<bsdf type="diffuse"/><ref name="exterior" id="fog"/></shape>',
+            "outside shape",
+        ),
+        (
+            '<emitter type="constant"/>',
+            '<emitter type="point"><point name="position" value="0,3,0"/><ref id="fog"/></emitter>',
+            "on emitter",
+        ),
+    ],
+)
+def test_participating_media_are_refused_everywhere(variant, old, new, where):
+    """A medium on a sensor, an emitter or either side of a shape is named with where it is,
+    by the loader, ``gdpt.render`` and ``mi.render`` (the paths are traced in vacuum)."""
+    import mitsuba as mi
+
+    import gdpt
+
+    xml = _xml("gdpt").replace("<sensor", _FOG + "<sensor", 1).replace(old, new, 1)
+    expected = f"participating media are not supported: medium 'fog' .*{where}"
+    scene = mi.load_string(xml)
+    with pytest.raises(ValueError, match=expected):
+        gdpt.render(scene, spp=1)
+    with pytest.raises(RuntimeError) as info:  # mi.render wraps it, the cause says why
+        mi.render(scene, spp=1)
+    assert where in str(info.value.__cause__)
+
+
+def test_the_loader_refuses_before_rendering(variant, tmp_path):
+    """``gdpt.load_scene`` refuses what the integrators cannot render, except where the scene
+    is for Mitsuba's own integrators (``check=False``)."""
+    import gdpt
+
+    path = tmp_path / "fog.xml"
+    path.write_text(
+        _xml("path")
+        .replace("<sensor", _FOG + "<sensor", 1)
+        .replace('<sensor type="perspective">', '<sensor type="perspective"><ref id="fog"/>')
+    )
+    with pytest.raises(ValueError, match="medium 'fog' \\(HomogeneousMedium\\) on sensor"):
+        gdpt.load_scene(path)
+    assert gdpt.load_scene(path, check=False).sensors()[0].get_medium() is not None
+
+
+@pytest.mark.parametrize("sampler", ["stratified", "ldsampler"])
+def test_statistics_need_independent_samples(variant, sampler):
+    """The variance and half-buffers are statistics of independent samples: a sampler that
+    correlates them is refused for those, not for a plain render."""
+    import mitsuba as mi
+
+    import gdpt
+
+    xml = _xml("gdpt").replace("</film>", f'</film><sampler type="{sampler}"/>')
+    scene = mi.load_string(xml)
+    for props in ({"variance": True}, {"halves": True}):
+        with pytest.raises(ValueError, match="independent samples.*Sampler"):
+            gdpt.render(scene, spp=4, **props)
+    assert gdpt.render(scene, spp=4).primal.shape == (6, 8, 3)
+
+
+def test_unsupported_variants_are_refused():
+    """Spectral, mono and polarized variants are refused in one line by the bridge and by the
+    plugin itself (set with ``mi.set_variant`` after gdpt registered the plugins)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import gdpt, mitsuba as mi\n"
+        "gdpt.set_variant('llvm_ad_rgb')\n"
+        "for v in ('llvm_ad_spectral', 'llvm_ad_mono', 'llvm_ad_mono_polarized'):\n"
+        "    mi.set_variant(v)\n"
+        "    for f in (lambda: gdpt.render('builtin:diffuse-box', spp=1),\n"
+        "              lambda: mi.load_dict({'type': 'gdpt'})):\n"
+        "        try:\n"
+        "            f()\n"
+        "            print(v, 'not refused')\n"
+        "        except Exception as e:\n"
+        "            print(type(e).__name__ + ':', str(e).splitlines()[-1])\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.splitlines()
+    assert len(out) == 6, out
+    for line, variant_name in zip(out[::2], ("spectral", "mono", "mono_polarized"), strict=True):
+        assert line.startswith("ValueError: the Mitsuba variant 'llvm_ad_" + variant_name), line
+    for line in out[1::2]:  # Mitsuba wraps the plugin's error, whose last line says why
+        assert "is not supported; the integrators render RGB buffers" in line, line
