@@ -79,7 +79,8 @@ def source(name: str) -> tuple[str, str, bool]:
 
 def reference(folder: Path, name: str, size: tuple[int, int], depth: int):
     """The reference of ``name`` at film ``size`` ``(W, H)`` and ``depth`` in ``folder``."""
-    found = sorted(folder.glob(f"{name}-{size[0]}x{size[1]}-d{depth}-*spp-seed*.exr"))
+    pattern = f"{name}-{size[0]}x{size[1]}-d{depth}-*spp-seed*.exr"
+    found = sorted(p for p in folder.glob(pattern) if ".chunk-" not in p.name)  # finished ones
     if not found:
         raise FileNotFoundError(f"no reference {name}-{size[0]}x{size[1]}-d{depth}-* in {folder}")
     return load_image(found[-1]), found[-1].name

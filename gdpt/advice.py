@@ -6,8 +6,9 @@ calibration (:func:`gdpt.study.calibration.calibrate`, shared by methods that re
 configuration), each renders once per replicate, and one independent plain render ``P`` per
 replicate (two halves, for its per-pixel variance) scores them: the relMSE ratio of each
 method to the first, with a 95% Fieller interval, from the reference-free estimator of
-:mod:`gdpt.reconstruct.reference_free` (weights from the first method's output; standard
-errors from 8 px block sums, replicates pooled)::
+:mod:`gdpt.reconstruct.reference_free` (relMSE weights from ``P``'s two independent folds,
+each fold's terms weighted by the other's: unbiased denominators, alike for every method;
+standard errors from 8 px block sums, replicates pooled)::
 
     import gdpt
 
@@ -34,9 +35,11 @@ most; else more ``replicates`` (each renders every method and ``P`` again).
 Bad input fails with a ``ValueError`` of one line before any render (``spp`` and ``budget``
 together, an unknown or unavailable method, a scene that does not load), or after the
 calibration and before the scored renders (a budget too small for one sample of a method,
-named; a ``P`` of one sample, whose variance cannot be measured). Where the estimator cannot
-tell (``P`` black or nearly black, non-finite renders, intervals that include 1), the report
-says so in one line each.
+named; a ``P`` of fewer than 4 samples, whose folds' variances and weights cannot be
+measured). Where the estimator cannot tell (``P`` black or nearly black, non-finite renders,
+intervals that include 1, a difference carried by a handful of 8 px blocks: too few effective
+blocks, :attr:`~gdpt.reconstruct.reference_free.RatioEstimate.concentrated`), the report says so
+in one line each and recommends nothing on it.
 """
 
 from __future__ import annotations
@@ -304,11 +307,10 @@ def _recommend(methods: list[MethodAdvice]) -> tuple[str | None, list[str]]:
         ]
     lines = []
     unsure = [m.name for m in scored if not m.estimate.separated]
+    told = [m.name for m in scored if m.estimate.bounded and not m.estimate.concentrated]
     if unsure:
-        lines.append(
-            f"no measurable difference between {base} and {', '.join(unsure)} (the interval "
-            "includes 1)"
-        )
+        why = "the interval includes 1" if set(unsure) <= set(told) else "or it cannot tell"
+        lines.append(f"no measurable difference between {base} and {', '.join(unsure)} ({why})")
     if not scored:
         return None, [f"recommended: none (no method could be compared with {base})"]
     why = "no other method is measurably better" if unsure else "every other method is worse"
@@ -325,6 +327,11 @@ def _method_line(method: MethodAdvice, base: str, width: int) -> str:
     e = method.estimate
     if not e.bounded:
         return f"{head}  cannot tell: {base}'s estimated error is not separated from 0"
+    if e.concentrated:
+        return (
+            f"{head}  cannot tell: {e.ratio:.2f}, but a handful of pixels carry the difference "
+            f"({e.effective_blocks:.1f} effective blocks of 8 px)"
+        )
     verdict = (
         ("lower: separated from 1" if e.high < 1 else "higher: separated from 1")
         if e.separated
@@ -457,6 +464,7 @@ def advise(
 
     from gdpt.study.calibration import calibrate, configuration_key
     from gdpt.study.config import EvaluateConfig
+    from gdpt.study.estimate import MIN_PLAIN_SPP
     from gdpt.study.methods import EVAL_METHODS
     from gdpt.study.results import cell_seed
 
@@ -538,10 +546,11 @@ def advise(
             replicates,
             calibrations=calibrations,
         )
-        if plain_spp < 2:
+        if plain_spp < MIN_PLAIN_SPP:
             raise ValueError(
-                f"P would have {plain_spp} sample per pixel: its variance cannot be measured; "
-                "give a larger budget or plain_spp >= 2"
+                f"P would have {plain_spp} sample{'s' if plain_spp != 1 else ''} per pixel: its "
+                f"variance and weights cannot be measured; give a larger budget or plain_spp >= "
+                f"{MIN_PLAIN_SPP}"
             )  # before any scored render (plain_render says the same)
         _render_and_score(advice, loaded, candidates, seed, bar)
     finally:
