@@ -36,6 +36,7 @@ from pathlib import Path
 
 import advise_agreement as agreement
 import torch
+from gdpt.reconstruct.held_out import EPS
 from gdpt.reconstruct.reference_free import (
     block_sums,
     cross_fitted_terms,
@@ -44,11 +45,28 @@ from gdpt.reconstruct.reference_free import (
     ratio_interval,
     relmse_weights,
 )
+from torch.nn import functional as F
 
 import gdpt
 
-DESIGNS = ("own", "plain-r0", "plain", "plain-r2", "oidn", "pooled")
+DESIGNS = ("own", "plain-r0", "plain-r1", "plain-r2", "median3", "clipped", "oidn", "pooled")
 CANDIDATES = ("pt+oidn-tuned", "gdpt+fuse", "pt+oidn")
+
+
+def median3(image: torch.Tensor) -> torch.Tensor:
+    """``image`` ``(H, W, 1)``: the median over 3x3 px (edges replicated)."""
+    x = F.pad(image[..., 0][None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
+    return (
+        x.unfold(0, 3, 1).unfold(1, 3, 1).reshape(*image.shape[:2], 9).median(-1).values[..., None]
+    )
+
+
+def robust_weights(half_a: torch.Tensor, half_b: torch.Tensor, design: str) -> torch.Tensor:
+    """``median3``: ``1 / (eps + median3x3(L_a L_b))``; ``clipped``: the product raised to at
+    least a quarter of that median."""
+    product = (half_a.mean(-1, keepdim=True) * half_b.mean(-1, keepdim=True)).clamp_min(0)
+    local = median3(product)
+    return 1.0 / (EPS + (local if design == "median3" else torch.maximum(product, local / 4)))
 
 
 def plain_folds(scene, spp: int, seed: int) -> dict:
@@ -92,6 +110,8 @@ def totals(design: str, base: torch.Tensor, other: torch.Tensor, plain: dict):
     elif design.startswith("plain-r"):
         radius = int(design[-1])
         weights = tuple(plain_weights(*f["halves"], radius=radius) for f in folds)
+    elif design in ("median3", "clipped"):
+        weights = tuple(robust_weights(*f["halves"], design) for f in folds)
     else:
         weights = tuple(relmse_weights(d) for d in plain["denoised"])
     out = []
@@ -110,6 +130,9 @@ def main() -> None:
     parser.add_argument("--replicates", type=int, default=4)
     parser.add_argument("--long-side", type=int, default=128)
     parser.add_argument("--out", type=Path, default=Path("out/advise_weights.json"))
+    parser.add_argument(
+        "--cache", type=Path, default=Path("out/advise_weights_cache"), help="renders, reused"
+    )
     args = parser.parse_args()
     gdpt.set_variant()
     from gdpt.advice import _load
@@ -126,9 +149,20 @@ def main() -> None:
         images = {m: [] for m in CANDIDATES}
         plains = []
         for r in range(args.replicates):
+            cached = args.cache / f"{ref_name}-{args.spp}-{args.plain_spp}-{r}.pt"
+            if cached.exists():
+                renders = torch.load(cached, weights_only=False)
+            else:
+                renders = {
+                    m: EVAL_METHODS[m].run(scene, spp=args.spp, seed=1000 + r).image
+                    for m in CANDIDATES
+                }
+                renders["P"] = plain_folds(scene, args.plain_spp, 5000 + r)
+                cached.parent.mkdir(parents=True, exist_ok=True)
+                torch.save(renders, cached)
             for m in CANDIDATES:
-                images[m].append(EVAL_METHODS[m].run(scene, spp=args.spp, seed=1000 + r).image)
-            plains.append(plain_folds(scene, args.plain_spp, 5000 + r))
+                images[m].append(renders[m])
+            plains.append(renders["P"])
         for base_name, other_name in itertools.combinations(CANDIDATES, 2):
             per_design = {d: [] for d in DESIGNS}
             truths = []

@@ -37,9 +37,9 @@ together, an unknown or unavailable method, a scene that does not load), or afte
 calibration and before the scored renders (a budget too small for one sample of a method,
 named; a ``P`` of fewer than 4 samples, whose folds' variances and weights cannot be
 measured). Where the estimator cannot tell (``P`` black or nearly black, non-finite renders,
-intervals that include 1, a difference carried by a handful of 8 px blocks: too few effective
-blocks, :attr:`~gdpt.reconstruct.reference_free.RatioEstimate.concentrated`), the report says so
-in one line each and recommends nothing on it.
+intervals that include 1, a difference carried by a handful of lit 8 px blocks,
+:attr:`~gdpt.reconstruct.reference_free.RatioEstimate.concentrated`), the report says so in one
+line each and recommends nothing on it.
 """
 
 from __future__ import annotations
@@ -330,7 +330,7 @@ def _method_line(method: MethodAdvice, base: str, width: int) -> str:
     if e.concentrated:
         return (
             f"{head}  cannot tell: {e.ratio:.2f}, but a handful of pixels carry the difference "
-            f"({e.effective_blocks:.1f} effective blocks of 8 px)"
+            f"(P is lit in {e.lit} of {e.blocks} blocks of 8 px)"
         )
     verdict = (
         ("lower: separated from 1" if e.high < 1 else "higher: separated from 1")

@@ -17,22 +17,27 @@ sec. 5), with ``v_k`` from the fold's two halves: ``E[(A_c - B_c)^2] = sigma^2 n
 ``Var(P_k,c) = sigma^2 / n`` (:func:`half_variance`, unbiased per pixel). The weights of fold
 ``k``'s terms come from the *other* fold (:func:`plain_weights`)::
 
-    w_k = 1 / (eps + max(L_a L_b, 0))    (L_a, L_b: channel means of the other fold's halves)
+    w_k = 1 / (eps + max(S(L_a) S(L_b), 0))
 
-Because the halves are independent and unbiased, ``E[L_a L_b] = L_I^2`` exactly: the
-denominator is unbiased for ``eps + L_I^2`` (the square of a noisy mean, ``L^2``, would be
-biased by ``Var(L)``), and the weight is bounded by ``1 / eps``, the largest true weight.
-Since ``w_k`` is independent of ``P_k``, of ``v_k`` and of every method's output,
-``t_X = (w_2 (mean_c (X - P_1)^2 - v_1) + w_1 (mean_c (X - P_2)^2 - v_2)) / 2``
-(:func:`cross_fitted_terms`) has the expectation ``E[w] mean_c (X - I)^2`` per pixel: no cross
-term between the weights and the plain image they score against (weights computed from the
-same ``P`` would add ``-2 (X - I) Cov(w, P)`` per pixel, which does not cancel in a
-difference), and the same ``E[w]`` for every method, so it favours none. Its only bias is
-``E[w] - w(I)``: ``1 / (eps + u)`` is convex in ``u``, so by Jensen's inequality ``E[w] >=
-w(I)``, by about ``Var(L_a L_b) / (eps + L_I^2)^3`` (second order in the halves' noise, and
-capped by the bound); it is the same for every method. Assumptions: ``P``'s samples are
-independent between pixels and unbiased (a box pixel filter, an unbiased integrator), radiance
-is not negative, and the methods' outputs are independent of ``P``.
+``L_a``, ``L_b`` the channel means of the other fold's halves, ``S`` their mean over a square of
+:data:`WEIGHT_RADIUS` (0: the pixel alone, ``S(L) = L``). Because the halves are independent and
+unbiased, ``E[S(L_a) S(L_b)] = S(L_I)^2`` exactly: the denominator is unbiased for ``eps +
+S(L_I)^2`` (the square of a noisy mean, ``S(L)^2``, would be biased by ``Var(S(L))``, large in dark
+noisy pixels), and the weight is bounded by ``1 / eps``, the largest true weight. A larger square
+trades a blur of ``L_I`` at edges for less variance; the blur biases the weights where it counts
+most, next to bright emitters (``benchmarks/advise_weights.py`` measures 1x1, 3x3 and 5x5 px, OIDN's
+denoise of the other fold and the baseline's output against references). Since ``w_k`` is
+independent of ``P_k``, of ``v_k`` and of every method's output, ``t_X = (w_2 (mean_c (X - P_1)^2 -
+v_1) + w_1 (mean_c (X - P_2)^2 - v_2)) / 2`` (:func:`cross_fitted_terms`) has the expectation ``E[w]
+mean_c (X - I)^2`` per pixel: no cross term between the weights and the plain image they score
+against (weights computed from the same ``P`` would add ``-2 (X - I) Cov(w, P)`` per pixel, which
+does not cancel in a difference), and the same ``E[w]`` for every method, so it favours none. Its
+only bias is ``E[w] - w(I)``: the blur at edges, and, ``1 / (eps + u)`` being convex in ``u``, by
+Jensen's inequality ``E[w] >= 1 / (eps + S(L_I)^2)``, by about ``Var(S(L_a) S(L_b)) / (eps +
+S(L_I)^2)^3`` (second order in the halves' noise, capped by the bound); both are the same for every
+method. Assumptions: ``P``'s samples are independent between pixels and unbiased (a box pixel
+filter, an unbiased integrator), radiance is not negative, and the methods' outputs are independent
+of ``P``.
 
 Weights taken from a method's own output ``X_A`` (``w(X_A)``, the denominator of the metric
 with the output in place of the reference) are not independent of its error: where ``X_A`` is
@@ -49,8 +54,8 @@ images inside each block (as :func:`gdpt.reconstruct.held_out.choose`). The inte
 1 exactly when the difference ``T_B - T_A`` is separated from 0 at the same level; it is
 unbounded when ``T_A`` is not separated from 0 (no ratio can be told). The normal quantile
 assumes the difference is spread over many blocks; where it sits in a handful
-(:attr:`RatioEstimate.effective_blocks` below :data:`MIN_EFFECTIVE_BLOCKS`: e.g. an image black
-but for a few lit pixels), the estimate is not :attr:`~RatioEstimate.separated`.
+(fewer lit blocks than :data:`MIN_LIT_BLOCKS`: an image black but for a few lit pixels), the
+estimate is not :attr:`~RatioEstimate.separated`.
 
 How many samples ``P`` needs: the part of a difference's variance that ``P`` adds is about
 ``4 w^2 (e_B - e_A)^2 Var(P)`` per pixel (``e`` the methods' errors), which falls as
@@ -72,7 +77,7 @@ from torch.nn import functional as F
 from .held_out import BLOCK, EPS, region_sums
 
 __all__ = [
-    "MIN_EFFECTIVE_BLOCKS",
+    "MIN_LIT_BLOCKS",
     "WEIGHT_RADIUS",
     "Z95",
     "RatioEstimate",
@@ -80,6 +85,7 @@ __all__ = [
     "cross_fitted_terms",
     "error_terms",
     "half_variance",
+    "lit_blocks",
     "plain_share",
     "plain_weights",
     "ratio_interval",
@@ -89,16 +95,16 @@ __all__ = [
 #: Two-sided 95% quantile of the standard normal (the block sums are many: 256 at 128 px).
 Z95 = 1.959963984540054
 
-#: Radius of the square over which :func:`plain_weights` averages each half's luminance (3x3
-#: px: a ninth of the variance of one pixel's, whose heavy tail at few samples would let a
-#: handful of pixels carry the estimate; a blur of the weights at edges).
-WEIGHT_RADIUS = 1
+#: Radius of the square over which :func:`plain_weights` averages each half's luminance: 0,
+#: each pixel alone (a 3x3 px mean has a ninth of the variance but blurs the weights at edges,
+#: where bright emitters next to dark surfaces take the weight of the pixels beside them:
+#: ``benchmarks/advise_weights.py``).
+WEIGHT_RADIUS = 0
 
-#: Fewest effective blocks (:attr:`RatioEstimate.effective_blocks`) for a separated verdict
-#: (a 128 px image has 256 blocks, 64 px 64): fewer means a handful of blocks carry the
-#: difference (an image black but for a few lit pixels) and the normal quantile is not
-#: justified.
-MIN_EFFECTIVE_BLOCKS = 8.0
+#: Fewest lit blocks (:func:`lit_blocks`) for a separated verdict (a 128 px image has 256
+#: blocks, 64 px 64): fewer means a handful of pixels carry the difference (an image black but
+#: for a few lit pixels) and the normal quantile of the block sums is not justified.
+MIN_LIT_BLOCKS = 16
 
 
 @dataclass(frozen=True)
@@ -112,10 +118,7 @@ class RatioEstimate:
         z: the difference ``T_B - T_A`` over its standard error (< 0: the method looks better;
             ``nan`` when the standard error is 0).
         blocks: how many block sums the standard errors come from.
-        effective_blocks: how many blocks carry the difference ``T_B - T_A``:
-            ``(sum |d|)^2 / sum d^2`` over its block sums ``d`` (``n`` when they are alike,
-            about ``0.64 n`` for centred normal ones, 1 when one block carries it all, 0
-            when all are 0).
+        lit: how many of the blocks are lit (:func:`lit_blocks`; ``None``: not counted).
     """
 
     ratio: float
@@ -123,7 +126,7 @@ class RatioEstimate:
     high: float
     z: float
     blocks: int
-    effective_blocks: float = math.inf
+    lit: int | None = None
 
     @property
     def bounded(self) -> bool:
@@ -132,9 +135,9 @@ class RatioEstimate:
 
     @property
     def concentrated(self) -> bool:
-        """Whether a handful of blocks carry the difference (fewer effective blocks than
-        :data:`MIN_EFFECTIVE_BLOCKS`): the interval's normal quantile is not justified."""
-        return self.effective_blocks < MIN_EFFECTIVE_BLOCKS
+        """Whether a handful of lit blocks carry the difference (fewer than
+        :data:`MIN_LIT_BLOCKS`): the interval's normal quantile is not justified."""
+        return self.lit is not None and self.lit < MIN_LIT_BLOCKS
 
     @property
     def separated(self) -> bool:
@@ -263,7 +266,11 @@ def block_sums(terms: torch.Tensor, *, block: int = BLOCK) -> torch.Tensor:
 
 
 def ratio_interval(
-    method_blocks: torch.Tensor, baseline_blocks: torch.Tensor, *, z: float = Z95
+    method_blocks: torch.Tensor,
+    baseline_blocks: torch.Tensor,
+    *,
+    z: float = Z95,
+    lit: torch.Tensor | None = None,
 ) -> RatioEstimate:
     """The ratio of two image sums and its Fieller interval from their block sums.
 
@@ -271,14 +278,15 @@ def ratio_interval(
     the sums (``n`` times the sample covariance of the ``n`` paired blocks), the interval is
     the set of ``rho`` with ``(b - rho a)^2 <= z^2 (V_bb - 2 rho V_ab + rho^2 V_aa)``: bounded
     when ``a^2 > z^2 V_aa``, else ``(-inf, inf)``; a negative lower end is raised to 0 (the
-    ratio of two expected squared errors is not negative). ``effective_blocks`` comes from the
-    paired differences ``method_blocks - baseline_blocks``.
+    ratio of two expected squared errors is not negative).
 
     Args:
         method_blocks: ``(n,)`` block sums of the method's :func:`error_terms` (replicates
             concatenated).
         baseline_blocks: ``(n,)`` the baseline's, paired with ``method_blocks``.
         z: the normal quantile of the interval (:data:`Z95`).
+        lit: ``(n,)`` bool, which blocks are lit (:func:`lit_blocks`; counted into
+            :attr:`RatioEstimate.lit`).
 
     Returns:
         The :class:`RatioEstimate`.
@@ -301,18 +309,24 @@ def ratio_interval(
     v_diff = v_aa - 2.0 * v_ab + v_bb
     ratio = b / a if a != 0 else math.nan
     z_diff = (b - a) / math.sqrt(v_diff) if v_diff > 0 else math.nan
-    difference = pair[1] - pair[0]
-    spread = float(difference.square().sum())
-    effective = float(difference.abs().sum()) ** 2 / spread if spread > 0 else 0.0
+    count = None if lit is None else int(lit.sum())
     c2 = a * a - z * z * v_aa
     c1 = a * b - z * z * v_ab
     c0 = b * b - z * z * v_bb
     discriminant = c1 * c1 - c2 * c0
     if c2 <= 0 or discriminant < 0:
-        return RatioEstimate(ratio, -math.inf, math.inf, z_diff, n, effective)
+        return RatioEstimate(ratio, -math.inf, math.inf, z_diff, n, count)
     root = math.sqrt(discriminant)  # errors are >= 0: so is their ratio
     low, high = max(0.0, (c1 - root) / c2), (c1 + root) / c2
-    return RatioEstimate(ratio, low, high, z_diff, n, effective)
+    return RatioEstimate(ratio, low, high, z_diff, n, count)
+
+
+def lit_blocks(plain: torch.Tensor, *, eps: float = EPS, block: int = BLOCK) -> torch.Tensor:
+    """Which blocks of ``plain`` ``(H, W, C)`` hold a pixel whose channel mean is above
+    ``sqrt(eps)`` (where the relMSE weight is half its largest): ``(nblocks,)`` bool, in the
+    order of :func:`block_sums`."""
+    lit = (plain.mean(-1, keepdim=True) > math.sqrt(eps)).double()
+    return block_sums(lit, block=block) > 0
 
 
 def plain_share(statistic_a: torch.Tensor, statistic_b: torch.Tensor) -> float:

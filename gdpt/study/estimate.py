@@ -131,6 +131,7 @@ def estimate_ratios(
     from gdpt.reconstruct.reference_free import (
         block_sums,
         cross_fitted_terms,
+        lit_blocks,
         plain_share,
         ratio_interval,
     )
@@ -142,6 +143,7 @@ def estimate_ratios(
         )
 
     baseline = [terms(image, plain) for image, plain in zip(images[0], plains, strict=True)]
+    lit = torch.cat([lit_blocks(plain["image"]) for plain in plains])
     out = []
     for method in images[1:]:
         scored = [terms(image, plain) for image, plain in zip(method, plains, strict=True)]
@@ -149,7 +151,7 @@ def estimate_ratios(
             torch.cat([block_sums(0.5 * (t[0] + t[1])) for t in group])
             for group in (baseline, scored)
         ]
-        estimate = ratio_interval(full[1], full[0])
+        estimate = ratio_interval(full[1], full[0], lit=lit)
         rho = estimate.ratio
         statistic = [
             torch.cat(
@@ -169,7 +171,7 @@ def _record(estimate: RatioEstimate, share: float, plain_spp: int) -> dict[str, 
         "interval": [finite(estimate.low), finite(estimate.high)],
         "z": finite(estimate.z),
         "separated": estimate.separated,
-        "effective_blocks": finite(estimate.effective_blocks),
+        "lit_blocks": estimate.lit,
         "plain_share": finite(share),
         "plain_spp": plain_spp,
     }
@@ -181,7 +183,7 @@ def estimate_scene(
     """Record ``cell["estimate"]`` in every cell of ``entry`` (a scene of ``results.json``)
     that lacks one, per budget where :data:`BASELINE` has a cell: the estimated ratio of the
     cell's first replicate (its saved image) to the baseline's, its interval, ``z``,
-    ``separated``, ``effective_blocks``, ``plain_share``, ``plain_spp``, and with a reference
+    ``separated``, ``lit_blocks``, ``plain_share``, ``plain_spp``, and with a reference
     ``true_ratio``: the ratio of the two first replicates' ``relmse``."""
     from gdpt.io.exr import load_image
     from gdpt.study.results import budget_key, cell_seed
