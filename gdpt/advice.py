@@ -4,11 +4,12 @@ The candidate methods (study methods of :data:`gdpt.study.methods.EVAL_METHODS`,
 :data:`DEFAULT_METHODS`) get the same wall time on this machine through the study's
 calibration (:func:`gdpt.study.calibration.calibrate`, shared by methods that render the same
 configuration), each renders once per replicate, and one independent plain render ``P`` per
-replicate (two halves, for its per-pixel variance) scores them: the relMSE ratio of each
-method to the first, with a 95% Fieller interval, from the reference-free estimator of
-:mod:`gdpt.reconstruct.reference_free` (relMSE weights from ``P``'s two independent folds,
-each fold's terms weighted by the other's: unbiased denominators, alike for every method;
-standard errors from 8 px block sums, replicates pooled)::
+replicate (two folds of two halves: its per-pixel variance and weights) scores them: the
+relMSE ratio of each method to the first, with a 95% Fieller interval, from the
+reference-free estimator of :mod:`gdpt.reconstruct.reference_free` (relMSE weights from
+``P``'s two independent folds, each fold's terms weighted by the other's: unbiased
+denominators, alike for every method; standard errors from 8 px block sums, replicates
+pooled)::
 
     import gdpt
 
@@ -28,7 +29,7 @@ defaults to that count), at the cost per sample of the first candidate that rend
 samples (``P`` renders no features and reconstructs nothing, so it takes a little less than
 ``plain_budget``); only where no candidate renders plain samples is ``pt`` calibrated for it.
 ``P``'s noise adds to a difference's variance in proportion to ``1 / n``
-(:func:`gdpt.reconstruct.reference_free.plain_share`, measured from ``P``'s halves and reported
+(:func:`gdpt.reconstruct.reference_free.plain_share`, measured from ``P``'s folds and reported
 per method): where it is more than half of it, a larger ``plain_budget`` tightens the interval
 most; else more ``replicates`` (each renders every method and ``P`` again).
 
@@ -117,7 +118,7 @@ class Advice:
             radiance on the CPU (empty where the plain render stopped it).
         plains: each plain render ``P`` that scored them, one per replicate
             (:func:`gdpt.study.estimate.plain_render`: ``image``, ``variance`` ``(H, W, 1)``,
-            ``halves``, ``counts``).
+            ``counts``, ``folds``).
         calibrations: per candidate, how its sample count was found: ``"calibrated"``,
             ``"shared with NAME"`` (the same render, its reconstruction timed apart) or
             ``"spp"`` (given); and ``"P"``: the same for ``P``.
