@@ -310,7 +310,7 @@ def _recommend(methods: list[MethodAdvice]) -> tuple[str | None, list[str]]:
     unsure = [m.name for m in scored if not m.estimate.separated]
     told = [m.name for m in scored if m.estimate.bounded and not m.estimate.concentrated]
     if unsure:
-        why = "the interval includes 1" if set(unsure) <= set(told) else "or it cannot tell"
+        why = "the interval includes 1" + ("" if set(unsure) <= set(told) else ", or cannot tell")
         lines.append(f"no measurable difference between {base} and {', '.join(unsure)} ({why})")
     if not scored:
         return None, [f"recommended: none (no method could be compared with {base})"]
