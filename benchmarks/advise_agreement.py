@@ -182,7 +182,7 @@ def write(args: argparse.Namespace, cases: list[dict]) -> None:
     record = {
         "machine": machine_info(),
         "versions": versions(),
-        "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+        "args": json.loads(json.dumps(vars(args), default=str)),  # paths as text
         "cases": cases,
     }
     args.out.write_text(json.dumps(record, indent=1))

@@ -31,6 +31,7 @@ __all__ = [
     "estimate_ratios",
     "estimate_scene",
     "markdown",
+    "plain_record",
     "plain_render",
 ]
 
