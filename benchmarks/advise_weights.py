@@ -8,9 +8,13 @@ design), and scores every pair of candidates (the first the baseline) with the e
 
 - ``own``: ``1 / (eps + L^2)`` of the baseline's output, errors against the whole ``P`` (the
   former design);
-- ``plain``: :func:`~gdpt.reconstruct.reference_free.plain_weights`, cross-fitted (each fold
-  weighted by the other fold's product of half means, each averaged over 3x3 px);
-- ``plain-r0``, ``plain-r2``: the same over 1x1 px (no blur, heavy-tailed weights) and 5x5 px;
+- ``plain-r0``: :func:`~gdpt.reconstruct.reference_free.plain_weights` as advise uses them,
+  cross-fitted (each fold weighted by the other fold's product of its halves' luminances, each
+  pixel alone: unbiased denominators, heavy-tailed weights at few samples);
+- ``plain-r1``, ``plain-r2``: the same with the halves' luminances averaged over 3x3 and 5x5 px
+  first (less noise, a blur at edges);
+- ``median3``: ``1 / (eps + the 3x3 px median of the products)``; ``clipped``: each product
+  raised to at least a quarter of that median (a floor against the heavy tail);
 - ``oidn``: ``1 / (eps + L^2)`` of OIDN's denoise of the other fold (with its albedo and
   normal), cross-fitted;
 - ``pooled``: ``1 / (eps + L^2)`` of the mean of the two candidates' outputs and ``P`` (symmetric
@@ -20,10 +24,11 @@ The truth is the ratio of the same renders' relMSE against the reference (refere
 its own noise subtracted per pixel (``benchmarks/advise_agreement.py``'s ``corrected``). Per
 design it prints the mean estimated ratio over replicates, its bias against the truth, in how
 many replicates the estimated difference ``T_B - T_A`` has the truth's sign, how often the 95%
-interval covers the truth, and the median effective blocks. Usage::
+interval covers the truth, and the median effective blocks. Renders are cached in ``--cache``
+(candidates per ``--spp``, ``P`` per ``--plain-spp``). Usage (from ``benchmarks/``)::
 
-    .venv/bin/python benchmarks/advise_weights.py --references /work/refs128 \\
-        --scenes cornell-box random:193 --spp 32 --plain-spp 128 --replicates 4
+    ../.venv/bin/python advise_weights.py --references ../out/refs128 \\
+        --scenes cornell-box random:193 --spp 32 --plain-spp 512 --replicates 4
 """
 
 from __future__ import annotations
