@@ -2,21 +2,26 @@
 
 Per scene and budget, runs :func:`gdpt.advise` (default candidates ``pt+oidn-tuned``,
 ``gdpt+fuse``, ``pt+oidn``; calibrated to the budget on this machine, one render each per
-replicate, one plain render ``P`` per replicate) and compares its estimated relMSE ratio
-``gdpt+fuse`` / ``pt+oidn-tuned`` with the ratio of the *same renders* against a reference
-(:func:`gdpt.metrics.relmse`, reference weights; replicates pooled), and with the same ratio
-under the estimator's weights (the baseline's luminance), which separates the weights'
+replicate, one plain render ``P`` per replicate) and compares every ratio it prints (each
+candidate / the baseline ``pt+oidn-tuned``: one case each) with the ratio of the *same
+renders* against a reference (:func:`gdpt.metrics.relmse`, reference weights; replicates
+pooled), and with the same ratio under the estimator's weights (the mean of ``P``'s two
+folds' :func:`~gdpt.reconstruct.reference_free.plain_weights`), which separates the weights'
 assumption from the estimator's noise. Timed: run it on an idle machine.
 
 Scenes: ``../shared/scenes/NAME`` (box filter, 128 px long side) or ``random:SEED`` (128 px);
-references from ``--references``, named like the study's cache
+``random:193`` is a room lit by a sun and sky through a window (a procedural sky with a sun
+of strength 30, overcast 0.05: sunlit floor, dark corners). References from
+``--references`` (one or more folders, searched in order), named like the study's cache
 (``NAME-WxH-dDEPTH-<spp>spp-seed<seed>.exr``, e.g. ``cornell-box-128x128-d6-8192spp-
-seed1000003.exr``; the film size and depth must match). Usage::
+seed1000003.exr``; the film size and depth must match); with ``--render-missing SPP``, a
+missing one is rendered into the first folder first (the study's chunked reference, seed
+1000003; not timed). Usage::
 
     .venv/bin/python benchmarks/advise_agreement.py --references out/refs128
-        [--scenes cornell-box sponza veach-mis living-room-2 random:202 random:311]
+        [--scenes cornell-box sponza veach-mis living-room-2 random:202 random:311 random:193]
         [--budgets 4 8] [--replicates 1] [--study out/study/results.json]
-        [--out out/advise_agreement.json]
+        [--render-missing 8192] [--out out/advise_agreement.json]
 
 **The reference's own noise.** A reference of ``n_r`` samples has the per-pixel variance
 ``v_r = sigma^2 / n_r``, which adds ``w v_r`` to every method's expected squared error
@@ -39,9 +44,14 @@ paired 95% interval of the ratio (geometric mean over replicates,
 :func:`gdpt.statistics.mean_interval` of the log ratios) excludes 1, else ``none``; advise's
 verdict is the same from its own interval, and ``match`` says whether the two agree.
 
+**Wrong recommendations.** A recommendation is counted wrong where it names a method other
+than the baseline whose true corrected ratio of the same renders is above 1, or which the
+study (``--study``) finds worse than the baseline (separated).
+
 Prints one Markdown row per case, the count of cases whose interval covers the corrected and
-the raw true ratio, of verdicts that match, and the range of the time per candidate over the
-budget; writes every number, the advice's report and the machine to ``--out`` (JSON).
+the raw true ratio, of verdicts that match, of wrong recommendations, and the range of the
+time per candidate over the budget; writes every number, the advice's report and the machine
+to ``--out`` (JSON).
 """
 
 from __future__ import annotations
@@ -56,14 +66,24 @@ from pathlib import Path
 from gdpt.reconstruct.reference_free import relmse_weights
 
 import gdpt
+from gdpt.advice import _load
 from gdpt.io.exr import load_image
 from gdpt.metrics import relmse
 from gdpt.statistics import mean_interval
+from gdpt.study.references import reference_seed, render_reference
 from gdpt.study.results import machine_info, versions
 
 SHARED = Path(__file__).resolve().parents[1] / ".." / "shared" / "scenes"
-SCENES = ("cornell-box", "sponza", "veach-mis", "living-room-2", "random:202", "random:311")
-BASELINE, CANDIDATE = "pt+oidn-tuned", "gdpt+fuse"
+SCENES = (
+    "cornell-box",
+    "sponza",
+    "veach-mis",
+    "living-room-2",
+    "random:202",
+    "random:311",
+    "random:193",
+)
+BASELINE = "pt+oidn-tuned"
 
 
 def source(name: str) -> tuple[str, str, bool]:
@@ -77,12 +97,20 @@ def source(name: str) -> tuple[str, str, bool]:
     return str(SHARED / name / "scene.xml"), name, True
 
 
-def reference(folder: Path, name: str, size: tuple[int, int], depth: int):
-    """The reference of ``name`` at film ``size`` ``(W, H)`` and ``depth`` in ``folder``."""
-    found = sorted(folder.glob(f"{name}-{size[0]}x{size[1]}-d{depth}-*spp-seed*.exr"))
-    if not found:
-        raise FileNotFoundError(f"no reference {name}-{size[0]}x{size[1]}-d{depth}-* in {folder}")
-    return load_image(found[-1]), found[-1].name
+def reference(folders: list[Path] | Path, name: str, size: tuple[int, int], depth: int):
+    """The reference of ``name`` at film ``size`` ``(W, H)`` and ``depth``, the first found in
+    ``folders`` (finished ones: not the chunks of one being rendered)."""
+    folders = [folders] if isinstance(folders, Path) else folders
+    pattern = f"{name}-{size[0]}x{size[1]}-d{depth}-*spp-seed*.exr"
+    for folder in folders:
+        found = sorted(p for p in folder.glob(pattern) if ".chunk-" not in p.name)
+        if found:
+            return load_image(found[-1]), found[-1].name
+    where = ", ".join(str(f) for f in folders)
+    raise FileNotFoundError(
+        f"no reference {name}-{size[0]}x{size[1]}-d{depth}-* in {where} (--render-missing SPP "
+        "renders it)"
+    )
 
 
 def reference_spp(file_name: str) -> int:
@@ -131,13 +159,13 @@ def verdict(low: float, high: float) -> str:
     return "lower" if high < 1 else "higher" if low > 1 else "none"
 
 
-def study_verdict(study: dict | None, scene: str, budget: float) -> str | None:
-    """The study's verdict on ``CANDIDATE`` / ``BASELINE`` at ``budget`` on ``scene`` from its
+def study_verdict(study: dict | None, scene: str, budget: float, method: str) -> str | None:
+    """The study's verdict on ``method`` / ``BASELINE`` at ``budget`` on ``scene`` from its
     paired replicates (``None``: not in the study)."""
     if study is None:
         return None
     methods = study["scenes"].get(scene, {}).get("methods", {})
-    cells = [methods.get(m, {}).get("cells", {}).get(f"{budget:g}") for m in (CANDIDATE, BASELINE)]
+    cells = [methods.get(m, {}).get("cells", {}).get(f"{budget:g}") for m in (method, BASELINE)]
     if None in cells:
         return None
     by_seed = [{r["seed"]: r["metrics"]["relmse"] for r in c["replicates"]} for c in cells]
@@ -154,7 +182,7 @@ def write(args: argparse.Namespace, cases: list[dict]) -> None:
     record = {
         "machine": machine_info(),
         "versions": versions(),
-        "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+        "args": json.loads(json.dumps(vars(args), default=str)),  # paths as text
         "cases": cases,
     }
     args.out.write_text(json.dumps(record, indent=1))
@@ -162,23 +190,42 @@ def write(args: argparse.Namespace, cases: list[dict]) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
-    parser.add_argument("--references", type=Path, required=True)
+    parser.add_argument("--references", type=Path, nargs="+", required=True)
     parser.add_argument("--scenes", nargs="+", default=list(SCENES))
     parser.add_argument("--budgets", type=float, nargs="+", default=[4.0, 8.0])
     parser.add_argument("--replicates", type=int, default=1)
     parser.add_argument("--long-side", type=int, default=128)
     parser.add_argument("--study", type=Path, help="results.json of a study of the same scenes")
+    parser.add_argument(
+        "--render-missing", type=int, metavar="SPP", help="render missing references first"
+    )
     parser.add_argument("--out", type=Path, default=Path("out/advise_agreement.json"))
     args = parser.parse_args()
     study = json.loads(args.study.read_text()) if args.study else None
     gdpt.set_variant()
+    if args.render_missing:  # before any timed run
+        for name in args.scenes:
+            scene, ref_name, box = source(name)
+            loaded = _load(scene, args.long_side, box, None)
+            try:
+                reference(args.references, ref_name, loaded.resolution, loaded.max_depth)
+            except FileNotFoundError:
+                print(f"rendering the reference of {name} ({args.render_missing} spp)", flush=True)
+                render_reference(
+                    loaded,
+                    args.references[0],
+                    spp=args.render_missing,
+                    chunk_spp=256,
+                    seed=reference_seed(0),
+                    source=scene,
+                )
     cases = []
     print(
-        "| scene | budget s | estimate | 95% interval | true, corrected | true (raw) "
+        "| scene | method | budget s | estimate | 95% interval | true, corrected | true (raw) "
         "| corrected, estimator's weights | inside corrected / raw | advise | study "
-        "| recommended | spp tuned/fuse/P | advise s | per candidate / budget |"
+        "| recommended | spp method/tuned/P | advise s | per candidate / budget |"
     )
-    print("|---|---:|---:|---|---:|---:|---:|---|---|---|---|---|---:|---:|")
+    print("|---|---|---:|---:|---|---:|---:|---:|---|---|---|---|---|---:|---:|")
     for budget in args.budgets:  # every scene at the first budget first
         for name in args.scenes:
             scene, ref_name, box = source(name)
@@ -192,61 +239,72 @@ def main() -> None:
                 progress=False,
             )
             seconds = time.perf_counter() - start
-            fuse = next(m for m in advice.methods if m.name == CANDIDATE)
             images = advice.images
             ref, ref_file = reference(
                 args.references, ref_name, advice.resolution, advice.max_depth
             )
             ref_spp = reference_spp(ref_file)
             noise = reference_variance(advice.plains, ref_spp) if advice.plains else None
-            pairs = [
-                list(zip(images[n], images[BASELINE], strict=True)) for n in (BASELINE, CANDIDATE)
-            ]
-            true = [sum(squared_error(x, ref) for x, _ in p) for p in pairs]
-            corrected = [
-                sum(squared_error(x, ref, ref_variance=noise) for x, _ in p) for p in pairs
-            ]
-            own = [
-                sum(squared_error(x, ref, relmse_weights(b), noise) for x, b in p) for p in pairs
-            ]
-            e = fuse.estimate
+            weights = [sum(f["weights"] for f in p["folds"]) / 2 for p in advice.plains]
             per_candidate = seconds / (budget * len(advice.methods))
-            case = {
-                "scene": name,
-                "budget": budget,
-                "reference": ref_file,
-                "reference_spp": ref_spp,
-                "spp": {m.name: m.spp for m in advice.methods},
-                "plain_spp": advice.plain_spp,
-                "calibrations": advice.calibrations,
-                "estimate": None if e is None else [e.ratio, e.low, e.high, e.z],
-                "true_ratio": ratio(true),
-                "true_ratio_corrected": ratio(corrected),
-                "true_ratio_corrected_estimator_weights": ratio(own),
-                "reference_noise_share": [1 - c / t for c, t in zip(corrected, true, strict=True)],
-                "inside": covers(e, ratio(corrected)),
-                "inside_raw": covers(e, ratio(true)),
-                "recommended": advice.recommended,
-                "advise_verdict": "none" if e is None else verdict(e.low, e.high),
-                "study_verdict": study_verdict(study, ref_name, budget),
-                "seconds": seconds,
-                "seconds_per_candidate_over_budget": per_candidate,
-                "report": advice.lines,
-            }
-            cases.append(case)
-            write(args, cases)  # after every case: an interrupted run keeps what it measured
-            interval = "n/a" if e is None else f"{e.low:.2f}-{e.high:.2f}"
-            yes = lambda flag: "yes" if flag else "no"  # noqa: E731
-            print(
-                f"| {name} | {budget:g} | {'n/a' if e is None else f'{e.ratio:.2f}'} | {interval} "
-                f"| {case['true_ratio_corrected']:.2f} | {case['true_ratio']:.2f} "
-                f"| {case['true_ratio_corrected_estimator_weights']:.2f} "
-                f"| {yes(case['inside'])} / {yes(case['inside_raw'])} | {case['advise_verdict']} "
-                f"| {case['study_verdict'] or 'n/a'} | {advice.recommended} "
-                f"| {case['spp'][BASELINE]}/{fuse.spp}/{advice.plain_spp} | {seconds:.0f} "
-                f"| {per_candidate:.1f}x |",
-                flush=True,
-            )
+            baseline = advice.methods[0]
+            for method in advice.methods[1:]:
+                if method.name not in images or not advice.plains:
+                    continue
+                pairs = [
+                    list(zip(images[n], images[BASELINE], weights, strict=True))
+                    for n in (BASELINE, method.name)
+                ]
+                true = [sum(squared_error(x, ref) for x, _, _ in p) for p in pairs]
+                corrected = [
+                    sum(squared_error(x, ref, ref_variance=noise) for x, _, _ in p) for p in pairs
+                ]
+                own = [sum(squared_error(x, ref, w, noise) for x, _, w in p) for p in pairs]
+                e = method.estimate
+                told = e is not None and e.bounded
+                case = {
+                    "scene": name,
+                    "method": method.name,
+                    "budget": budget,
+                    "reference": ref_file,
+                    "reference_spp": ref_spp,
+                    "spp": {m.name: m.spp for m in advice.methods},
+                    "plain_spp": advice.plain_spp,
+                    "calibrations": advice.calibrations,
+                    "estimate": None if e is None else [e.ratio, e.low, e.high, e.z, e.lit],
+                    "true_ratio": ratio(true),
+                    "true_ratio_corrected": ratio(corrected),
+                    "true_ratio_corrected_estimator_weights": ratio(own),
+                    "reference_noise_share": [
+                        1 - c / t for c, t in zip(corrected, true, strict=True)
+                    ],
+                    "inside": told and covers(e, ratio(corrected)),
+                    "inside_raw": told and covers(e, ratio(true)),
+                    "recommended": advice.recommended,
+                    "advise_verdict": verdict(e.low, e.high) if e and e.separated else "none",
+                    "study_verdict": study_verdict(study, ref_name, budget, method.name),
+                    "seconds": seconds,
+                    "seconds_per_candidate_over_budget": per_candidate,
+                    "report": advice.lines,
+                }
+                case["wrong_recommendation"] = advice.recommended == method.name and (
+                    case["true_ratio_corrected"] > 1 or case["study_verdict"] == "higher"
+                )
+                cases.append(case)
+                write(args, cases)  # after every case: an interrupted run keeps what it measured
+                interval = "n/a" if not told else f"{e.low:.2f}-{e.high:.2f}"
+                yes = lambda flag: "yes" if flag else "no"  # noqa: E731
+                print(
+                    f"| {name} | {method.name} | {budget:g} "
+                    f"| {'n/a' if e is None else f'{e.ratio:.2f}'} | {interval} "
+                    f"| {case['true_ratio_corrected']:.2f} | {case['true_ratio']:.2f} "
+                    f"| {case['true_ratio_corrected_estimator_weights']:.2f} "
+                    f"| {yes(case['inside'])} / {yes(case['inside_raw'])} "
+                    f"| {case['advise_verdict']} | {case['study_verdict'] or 'n/a'} "
+                    f"| {advice.recommended} | {method.spp}/{baseline.spp}/{advice.plain_spp} "
+                    f"| {seconds:.0f} | {per_candidate:.1f}x |",
+                    flush=True,
+                )
     print()
     for label, key in (("corrected", "inside"), ("raw", "inside_raw")):
         inside = sum(c[key] for c in cases)
@@ -254,6 +312,11 @@ def main() -> None:
     compared = [c for c in cases if c["study_verdict"] is not None]
     matches = sum(c["advise_verdict"] == c["study_verdict"] for c in compared)
     print(f"advise's verdict matches the study's in {matches} of {len(compared)} cases")
+    wrong = [c for c in cases if c["wrong_recommendation"]]
+    print(
+        f"recommendations of a method worse than {BASELINE}: {len(wrong)}"
+        + "".join(f"; {c['scene']} at {c['budget']:g} s: {c['method']}" for c in wrong)
+    )
     for budget in args.budgets:
         ratios = [c["seconds_per_candidate_over_budget"] for c in cases if c["budget"] == budget]
         if ratios:

@@ -4,10 +4,12 @@ The candidate methods (study methods of :data:`gdpt.study.methods.EVAL_METHODS`,
 :data:`DEFAULT_METHODS`) get the same wall time on this machine through the study's
 calibration (:func:`gdpt.study.calibration.calibrate`, shared by methods that render the same
 configuration), each renders once per replicate, and one independent plain render ``P`` per
-replicate (two halves, for its per-pixel variance) scores them: the relMSE ratio of each
-method to the first, with a 95% Fieller interval, from the reference-free estimator of
-:mod:`gdpt.reconstruct.reference_free` (weights from the first method's output; standard
-errors from 8 px block sums, replicates pooled)::
+replicate (two folds of two halves: its per-pixel variance and weights) scores them: the
+relMSE ratio of each method to the first, with a 95% Fieller interval, from the
+reference-free estimator of :mod:`gdpt.reconstruct.reference_free` (relMSE weights from
+``P``'s two independent folds, each fold's terms weighted by the other's: unbiased
+denominators, alike for every method; standard errors from 8 px block sums, replicates
+pooled)::
 
     import gdpt
 
@@ -27,16 +29,18 @@ defaults to that count), at the cost per sample of the first candidate that rend
 samples (``P`` renders no features and reconstructs nothing, so it takes a little less than
 ``plain_budget``); only where no candidate renders plain samples is ``pt`` calibrated for it.
 ``P``'s noise adds to a difference's variance in proportion to ``1 / n``
-(:func:`gdpt.reconstruct.reference_free.plain_share`, measured from ``P``'s halves and reported
+(:func:`gdpt.reconstruct.reference_free.plain_share`, measured from ``P``'s folds and reported
 per method): where it is more than half of it, a larger ``plain_budget`` tightens the interval
 most; else more ``replicates`` (each renders every method and ``P`` again).
 
 Bad input fails with a ``ValueError`` of one line before any render (``spp`` and ``budget``
 together, an unknown or unavailable method, a scene that does not load), or after the
 calibration and before the scored renders (a budget too small for one sample of a method,
-named; a ``P`` of one sample, whose variance cannot be measured). Where the estimator cannot
-tell (``P`` black or nearly black, non-finite renders, intervals that include 1), the report
-says so in one line each.
+named; a ``P`` of fewer than 4 samples, whose folds' variances and weights cannot be
+measured). Where the estimator cannot tell (``P`` black or nearly black, non-finite renders,
+intervals that include 1, a difference carried by a handful of lit 8 px blocks,
+:attr:`~gdpt.reconstruct.reference_free.RatioEstimate.concentrated`), the report says so in one
+line each and recommends nothing on it.
 """
 
 from __future__ import annotations
@@ -114,7 +118,7 @@ class Advice:
             radiance on the CPU (empty where the plain render stopped it).
         plains: each plain render ``P`` that scored them, one per replicate
             (:func:`gdpt.study.estimate.plain_render`: ``image``, ``variance`` ``(H, W, 1)``,
-            ``halves``, ``counts``).
+            ``counts``, ``folds``).
         calibrations: per candidate, how its sample count was found: ``"calibrated"``,
             ``"shared with NAME"`` (the same render, its reconstruction timed apart) or
             ``"spp"`` (given); and ``"P"``: the same for ``P``.
@@ -304,11 +308,10 @@ def _recommend(methods: list[MethodAdvice]) -> tuple[str | None, list[str]]:
         ]
     lines = []
     unsure = [m.name for m in scored if not m.estimate.separated]
+    told = [m.name for m in scored if m.estimate.bounded and not m.estimate.concentrated]
     if unsure:
-        lines.append(
-            f"no measurable difference between {base} and {', '.join(unsure)} (the interval "
-            "includes 1)"
-        )
+        why = "the interval includes 1" + ("" if set(unsure) <= set(told) else ", or cannot tell")
+        lines.append(f"no measurable difference between {base} and {', '.join(unsure)} ({why})")
     if not scored:
         return None, [f"recommended: none (no method could be compared with {base})"]
     why = "no other method is measurably better" if unsure else "every other method is worse"
@@ -325,6 +328,11 @@ def _method_line(method: MethodAdvice, base: str, width: int) -> str:
     e = method.estimate
     if not e.bounded:
         return f"{head}  cannot tell: {base}'s estimated error is not separated from 0"
+    if e.concentrated:
+        return (
+            f"{head}  cannot tell: {e.ratio:.2f}, but a handful of pixels carry the difference "
+            f"(P is lit in {e.lit} of {e.blocks} blocks of 8 px)"
+        )
     verdict = (
         ("lower: separated from 1" if e.high < 1 else "higher: separated from 1")
         if e.separated
@@ -457,6 +465,7 @@ def advise(
 
     from gdpt.study.calibration import calibrate, configuration_key
     from gdpt.study.config import EvaluateConfig
+    from gdpt.study.estimate import MIN_PLAIN_SPP
     from gdpt.study.methods import EVAL_METHODS
     from gdpt.study.results import cell_seed
 
@@ -538,10 +547,11 @@ def advise(
             replicates,
             calibrations=calibrations,
         )
-        if plain_spp < 2:
+        if plain_spp < MIN_PLAIN_SPP:
             raise ValueError(
-                f"P would have {plain_spp} sample per pixel: its variance cannot be measured; "
-                "give a larger budget or plain_spp >= 2"
+                f"P would have {plain_spp} sample{'s' if plain_spp != 1 else ''} per pixel: its "
+                f"variance and weights cannot be measured; give a larger budget or plain_spp >= "
+                f"{MIN_PLAIN_SPP}"
             )  # before any scored render (plain_render says the same)
         _render_and_score(advice, loaded, candidates, seed, bar)
     finally:

@@ -57,3 +57,20 @@ def test_feature_corrected_ratio_is_the_ratio_against_the_truth():
 def test_ratio_without_a_positive_baseline_is_nan():
     assert bench.ratio([0.0, 1.0]) != bench.ratio([0.0, 1.0])
     assert not bench.covers(None, 1.0)
+
+
+def test_feature_reference_skips_chunks_and_searches_folders_in_order(tmp_path):
+    """A reference still rendering (only its chunks) is not taken; the first folder holding a
+    finished one gives it; none anywhere names the folders and ``--render-missing``."""
+    from gdpt.io.exr import save_image
+
+    first, second = tmp_path / "a", tmp_path / "b"
+    first.mkdir()
+    second.mkdir()
+    stem = "room-16x8-d6-8192spp-seed1000003"
+    save_image(first / f"{stem}.chunk-00000-of-00032.exr", torch.zeros(8, 16, 3))
+    save_image(second / f"{stem}.exr", torch.ones(8, 16, 3))
+    image, name = bench.reference([first, second], "room", (16, 8), 6)
+    assert name == f"{stem}.exr" and float(image.mean()) == 1.0
+    with pytest.raises(FileNotFoundError, match="render-missing"):
+        bench.reference([first], "room", (16, 8), 6)

@@ -45,7 +45,12 @@ def _add_advise_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         help="seconds of plain path tracing in P, which scores the methods (default: --budget)",
     )
-    plain.add_argument("--plain-spp", type=int, help="P's samples per pixel instead")
+    plain.add_argument(
+        "--plain-spp",
+        type=int,
+        help="P's samples per pixel instead (at least 4: two folds of two "
+        "halves, which give its variance and the relMSE weights)",
+    )
     parser.add_argument(
         "--max-depth",
         type=int,

@@ -2,8 +2,9 @@
 independent plain render instead of a reference (:mod:`gdpt.reconstruct.reference_free`).
 
 Shared by :func:`gdpt.advise` and the study: :func:`plain_render` renders the plain image ``P``
-(two halves, for its per-pixel variance), :func:`estimate_ratios` scores images of the same
-scene against it. In the study (:func:`estimate_scene`), per scene and budget, one ``P`` with
+(two independent folds of two halves each: the folds' per-pixel variances and relMSE weights
+that favour no method), :func:`estimate_ratios` scores images of the same scene against it.
+In the study (:func:`estimate_scene`), per scene and budget, one ``P`` with
 the ``pt`` cell's sample count (else the baseline's) scores the first replicate of every
 method; with a reference the cell records the estimate beside the true ratio of the same renders
 (the study's ``relmse``), so that every study run checks the estimator; without one
@@ -24,52 +25,89 @@ if TYPE_CHECKING:
     from gdpt.study.config import EvaluateConfig
     from gdpt.study.scenes import EvalScene
 
-__all__ = ["BASELINE", "estimate_ratios", "estimate_scene", "markdown", "plain_render"]
+__all__ = [
+    "BASELINE",
+    "MIN_PLAIN_SPP",
+    "estimate_ratios",
+    "estimate_scene",
+    "markdown",
+    "plain_record",
+    "plain_render",
+]
 
-#: The method every estimated ratio is relative to (weights from its output).
+#: The method every estimated ratio is relative to.
 BASELINE = "pt+oidn-tuned"
+
+#: Fewest samples per pixel of ``P``: each of its four quarters needs one.
+MIN_PLAIN_SPP = 4
+
+#: Mixed into ``P``'s seed for its second fold (independent of the first's samples).
+FOLD_SEED_SALT = 0x5BD1E995
 
 
 def plain_render(scene: EvalScene, spp: int, seed: int) -> dict[str, Any]:
-    """``P``: plain path tracing (``gdpt``, no gradients, no features) at ``spp`` with two
-    halves.
+    """``P``: plain path tracing (``gdpt``, no gradients, no features) at ``spp`` in two
+    independent folds (seeds ``seed`` and ``seed ^ FOLD_SEED_SALT``) of two halves each
+    (:mod:`gdpt.reconstruct.reference_free`).
 
     Returns:
-        ``{"image": (H, W, 3), "variance": (H, W, 1) (:func:`~gdpt.reconstruct.reference_free.
-        half_variance`), "halves": two (H, W, 3), "counts": two ints}``, float32 on the CPU.
+        ``{"image": (H, W, 3) the folds pooled, "variance": (H, W, 1) its variance,
+        "counts": the folds' sample counts, "folds": two {"image": (H, W, 3), "variance":
+        (H, W, 1) (:func:`~gdpt.reconstruct.reference_free.half_variance`), "weights":
+        (H, W, 1) (:func:`~gdpt.reconstruct.reference_free.plain_weights`), "halves": two
+        (H, W, 3), "counts": two ints}}``, float32 on the CPU.
 
     Raises:
-        ValueError: ``spp < 2`` (a half without samples: no variance).
+        ValueError: ``spp <`` :data:`MIN_PLAIN_SPP` (a quarter without samples).
     """
     import torch
 
-    from gdpt.reconstruct.reference_free import half_variance
     from gdpt.rendering import render
 
-    if spp < 2:
+    if spp < MIN_PLAIN_SPP:
         raise ValueError(
-            f"P would have {spp} sample per pixel: its variance cannot be measured; give it "
-            "at least 2"
+            f"P would have {spp} sample{'s' if spp != 1 else ''} per pixel: its variance and "
+            f"weights need at least {MIN_PLAIN_SPP} (two folds of two halves)"
         )
-    buffers = render(
-        scene.scene,
-        spp=spp,
-        seed=seed,
-        max_depth=scene.max_depth,
-        gradients=False,
-        features=False,
-        halves=True,
-    )
-    counts = [int(c) for c in buffers.metadata["half_spp"]]
-    image, half_a, half_b = (
-        t.detach().to("cpu", torch.float32)
-        for t in (buffers.primal, buffers.primal_a, buffers.primal_b)
-    )
+    folds = []
+    for count, fold_seed in ((spp // 2, seed), (spp - spp // 2, seed ^ FOLD_SEED_SALT)):
+        buffers = render(
+            scene.scene,
+            spp=count,
+            seed=fold_seed,
+            max_depth=scene.max_depth,
+            gradients=False,
+            features=False,
+            halves=True,
+        )
+        halves = [t.detach().to("cpu", torch.float32) for t in (buffers.primal_a, buffers.primal_b)]
+        folds.append((*halves, [int(c) for c in buffers.metadata["half_spp"]]))
+    return plain_record(folds)
+
+
+def plain_record(folds: list[tuple[torch.Tensor, torch.Tensor, list[int]]]) -> dict[str, Any]:
+    """The record of :func:`plain_render` from two folds' ``(half_a, half_b, counts)``
+    (``(H, W, 3)`` half means, their sample counts; float32 on the CPU)."""
+    from gdpt.reconstruct.reference_free import half_variance, plain_weights
+
+    records = []
+    for half_a, half_b, counts in folds:
+        records.append(
+            {
+                "image": (counts[0] * half_a + counts[1] * half_b) / sum(counts),
+                "variance": half_variance(half_a, half_b, *counts),
+                "weights": plain_weights(half_a, half_b),
+                "halves": (half_a, half_b),
+                "counts": list(counts),
+            }
+        )
+    counts = [sum(f["counts"]) for f in records]
+    n = sum(counts)
     return {
-        "image": image,
-        "variance": half_variance(half_a, half_b, *counts),
-        "halves": (half_a, half_b),
+        "image": sum(c * f["image"] for c, f in zip(counts, records, strict=True)) / n,
+        "variance": sum(c * c * f["variance"] for c, f in zip(counts, records, strict=True)) / n**2,
         "counts": counts,
+        "folds": records,
     }
 
 
@@ -80,8 +118,9 @@ def estimate_ratios(
 
     Args:
         images: ``images[m][r]``: method ``m``'s ``(H, W, 3)`` float image of replicate ``r``
-            (CPU); ``images[0]`` is the baseline, whose output gives the weights.
-        plains: one :func:`plain_render` per replicate, independent of every image.
+            (CPU); ``images[0]`` is the baseline.
+        plains: one :func:`plain_render` per replicate, independent of every image (its
+            folds' weights score every method alike).
 
     Returns:
         For ``images[1:]``, in order: the :class:`~gdpt.reconstruct.reference_free.
@@ -92,30 +131,35 @@ def estimate_ratios(
 
     from gdpt.reconstruct.reference_free import (
         block_sums,
-        error_terms,
+        cross_fitted_terms,
+        lit_blocks,
         plain_share,
         ratio_interval,
-        relmse_weights,
     )
 
+    def terms(image: torch.Tensor, plain: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+        folds = plain["folds"]
+        return cross_fitted_terms(
+            image, *(tuple(f[k] for f in folds) for k in ("image", "variance", "weights"))
+        )
+
+    baseline = [terms(image, plain) for image, plain in zip(images[0], plains, strict=True)]
+    lit = torch.cat([lit_blocks(plain["image"]) for plain in plains])
     out = []
     for method in images[1:]:
-        full: tuple[list[torch.Tensor], list[torch.Tensor]] = ([], [])
-        per_half: list[list[tuple[torch.Tensor, torch.Tensor]]] = [[], []]
-        for r, plain in enumerate(plains):
-            pair = (images[0][r], method[r])
-            weights = relmse_weights(pair[0])
-            n = sum(plain["counts"])
-            for i, image in enumerate(pair):
-                terms = error_terms(image, plain["image"], plain["variance"], weights)
-                full[i].append(block_sums(terms))
-            for h, (half, count) in enumerate(zip(plain["halves"], plain["counts"], strict=True)):
-                variance = plain["variance"] * (n / count)
-                terms = tuple(error_terms(image, half, variance, weights) for image in pair)
-                per_half[h].append(terms)
-        estimate = ratio_interval(torch.cat(full[1]), torch.cat(full[0]))
+        scored = [terms(image, plain) for image, plain in zip(method, plains, strict=True)]
+        full = [
+            torch.cat([block_sums(0.5 * (t[0] + t[1])) for t in group])
+            for group in (baseline, scored)
+        ]
+        estimate = ratio_interval(full[1], full[0], lit=lit)
         rho = estimate.ratio
-        statistic = [torch.cat([block_sums(b - rho * a) for a, b in per_half[h]]) for h in range(2)]
+        statistic = [
+            torch.cat(
+                [block_sums(b[k] - rho * a[k]) for a, b in zip(baseline, scored, strict=True)]
+            )
+            for k in range(2)
+        ]
         out.append((estimate, plain_share(*statistic)))
     return out
 
@@ -128,6 +172,7 @@ def _record(estimate: RatioEstimate, share: float, plain_spp: int) -> dict[str, 
         "interval": [finite(estimate.low), finite(estimate.high)],
         "z": finite(estimate.z),
         "separated": estimate.separated,
+        "lit_blocks": estimate.lit,
         "plain_share": finite(share),
         "plain_spp": plain_spp,
     }
@@ -139,8 +184,8 @@ def estimate_scene(
     """Record ``cell["estimate"]`` in every cell of ``entry`` (a scene of ``results.json``)
     that lacks one, per budget where :data:`BASELINE` has a cell: the estimated ratio of the
     cell's first replicate (its saved image) to the baseline's, its interval, ``z``,
-    ``separated``, ``plain_share``, ``plain_spp``, and with a reference ``true_ratio``: the
-    ratio of the two first replicates' ``relmse``."""
+    ``separated``, ``lit_blocks``, ``plain_share``, ``plain_spp``, and with a reference
+    ``true_ratio``: the ratio of the two first replicates' ``relmse``."""
     from gdpt.io.exr import load_image
     from gdpt.study.results import budget_key, cell_seed
 
@@ -160,9 +205,11 @@ def estimate_scene(
         if bar is not None:
             bar.set_postfix_str(f"{scene.name}: estimate at {key} s")
         spp = methods.get("pt", {}).get("cells", {}).get(key, base)["spp"]
-        if spp < 2:
+        if spp < MIN_PLAIN_SPP:
             for cell in todo.values():
-                cell["estimate"] = {"note": f"P would have {spp} sample: no variance"}
+                cell["estimate"] = {
+                    "note": f"P would have {spp} spp: its variance and weights need {MIN_PLAIN_SPP}"
+                }
             continue
         plain = plain_render(scene, spp, cell_seed(cfg.seed, scene.name, key, "plain"))
         images = [load_image(out / base["image"])]
