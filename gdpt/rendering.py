@@ -20,11 +20,20 @@ from gdpt.scenes.loading import load_scene
 
 
 def make_integrator(name: str = "gdpt", **props: Any):
-    """Instantiate ``gdpt`` / ``gdpt_rr`` with properties (``max_depth``, ``gradients``, ...)."""
+    """Instantiate ``gdpt`` / ``gdpt_rr`` with properties (``max_depth``, ``gradients``,
+    ``primal``, ...).
+
+    Raises:
+        ValueError: an unknown plugin, or an unknown ``primal`` (one line, before loading).
+    """
     import mitsuba as mi
+
+    from gdpt.integrators.common import check_primal
 
     if name not in PLUGINS:
         raise ValueError(f"unknown integrator {name!r}; valid: {', '.join(PLUGINS)}")
+    if "primal" in props:
+        check_primal(name, props["primal"])
     return mi.load_dict({"type": name, **props})
 
 
@@ -107,7 +116,7 @@ def render(
             ``dx``/``dy``; ``metadata["gradient_mask"]["reason"]`` says so).
             ``metadata["gradient_mask"]["share"]`` is the share of masked pixels.
         **props: integrator properties when one is created (``max_depth``, ``gradients``,
-            ``features``, ``variance``, ...).
+            ``features``, ``variance``, ``primal``: ``"base"`` or ``"mis"``, ...).
 
     Returns:
         GradientBuffers: float32 HWC views of one tensor on the variant's device (with
@@ -118,7 +127,7 @@ def render(
     Raises:
         ValueError: ``spp < 1``, ``primal_spp < 0``, ``primal_spp`` or ``gradient_mask``
             with an integrator whose gradients are off, or a ``gradient_mask`` that is not a
-            bool ``(H, W)`` tensor or array of the film's size (named).
+            bool ``(H, W)`` tensor or array of the film's size (named), or an unknown ``primal``.
     """
     from gdpt.integrators.common import GradientIntegratorBase
 
