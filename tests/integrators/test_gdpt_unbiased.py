@@ -25,6 +25,10 @@ hybrid shift before the NEE pair rule gave, on staircase at max depth 6,
 dx 0.99% / max 6.6 and dy 1.39% / max 6.5 at 32 x 256 against 16 x 1024 samples (now
 0.00% / 3.2 and 0.00% / 2.8), on matpreview-dof dx 3.01% / 6.9 and dy 2.16% / 4.7.
 
+``primal="mis"`` (the primal from every base and offset path, MIS-weighted per pixel pair) is
+checked on its own cases (:data:`MIS_CASES`, masked and pooled renders too): dropping the pair's
+MIS weight from the base's share fails them (sphere-light: 100% of pixel-channels beyond 3.29).
+
 Sample counts: ``RUNS x SPP`` = 48 x 192 test samples per pixel on the real scenes (48 x 96 on
 the built-in ones) and ``REF_RUNS x REF_SPP`` = 32 x 512 oracle samples, at 24 px on the long
 side. A fast subset runs in CI; ``slow`` adds every shared scene at max depth 2 and 6, every
