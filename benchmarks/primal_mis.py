@@ -166,8 +166,10 @@ def main() -> None:
         )
         plain = next(k for k in rows if k.startswith("plain") and k.endswith("oidn-tuned"))
         for stage in ("raw", "oidn-tuned", "fuse"):
-            r = geomean_ratio(rows[f"mis {stage}"], rows[f"base {stage}"])
-            print(f"  {name} {stage}: mis/base {r:.3f}", flush=True)
+            mis, base = rows[f"mis {stage}"], rows[f"base {stage}"]
+            per_seed = " ".join(f"{m / b:.3f}" for m, b in zip(mis, base, strict=True))
+            r = geomean_ratio(mis, base)
+            print(f"  {name} {stage}: mis/base {r:.3f} (per seed {per_seed})", flush=True)
         r = geomean_ratio(rows[plain], rows["base oidn-tuned"])
         print(f"  {name} control: {plain} / base oidn-tuned {r:.3f}", flush=True)
 
