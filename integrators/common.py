@@ -17,7 +17,7 @@ which returns per-sample estimates; this module turns them into per-pixel buffer
 Reducing every sample at its own pixel (``dr.block_sum`` over the contiguous samples of a pixel)
 and shifting afterwards needs no atomics and is deterministic.
 
-Primal from every path (``primal="mis"``; Kettunen et al. 2015, Sec. 5, and their reference
+Primal from every path (``primal="mis"``; Kettunen et al. 2015, and the authors' public
 implementation, which also adds the offset paths to the pixels they land in): in the pixel pair
 ``(p, p + shift_k)`` the base path of ``p`` and the offset path of ``p + shift_k`` that lands in
 ``p`` share the pair's MIS weights, which sum to 1 per path of ``p`` (the weights the gradients
