@@ -120,7 +120,7 @@ def render(
             ``dx``/``dy``; ``metadata["gradient_mask"]["reason"]`` says so).
             ``metadata["gradient_mask"]["share"]`` is the share of masked pixels.
         **props: integrator properties when one is created (``max_depth``, ``gradients``,
-            ``features``, ``variance``, ...).
+            ``features``, ``variance``, ``primal``: ``"base"`` or ``"mis"``, ...).
 
     Returns:
         GradientBuffers: float32 HWC views of one tensor on the variant's device (with
@@ -131,7 +131,7 @@ def render(
     Raises:
         ValueError: ``spp < 1``, ``primal_spp < 0``, ``primal_spp`` or ``gradient_mask``
             with an integrator whose gradients are off, or a ``gradient_mask`` that is not a
-            bool ``(H, W)`` tensor or array of the film's size (named).
+            bool ``(H, W)`` tensor or array of the film's size (named), or an unknown ``primal``.
     """
     from gdpt.integrators.common import GradientIntegratorBase
 

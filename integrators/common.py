@@ -5,7 +5,9 @@ path in pixel ``p`` and four offset paths in the neighbours ``p + (1,0), (0,1), 
 (RIGHT, DOWN, LEFT, UP; image y grows downward). A subclass implements :meth:`sample_paths`,
 which returns per-sample estimates; this module turns them into per-pixel buffers:
 
-* ``primal``: mean of the base-path estimate.
+* ``primal``: with the property ``primal`` = ``"base"``, the mean of the base-path estimate;
+  with ``"mis"``, the multiple importance sampling combination of every path that lands in the
+  pixel (below).
 * ``g[k]``: mean of the MIS-weighted half-gradient estimate ``I(p + shift_k) - I(p)`` of the
   base paths of pixel ``p``. The two halves of every pixel pair are summed::
 
@@ -14,6 +16,24 @@ which returns per-sample estimates; this module turns them into per-pixel buffer
 
 Reducing every sample at its own pixel (``dr.block_sum`` over the contiguous samples of a pixel)
 and shifting afterwards needs no atomics and is deterministic.
+
+Primal from every path (``primal="mis"``; Kettunen et al. 2015, and the authors' public
+implementation, which also adds the offset paths to the pixels they land in): in the pixel pair
+``(p, p + shift_k)`` the base path of ``p`` and the offset path of ``p + shift_k`` that lands in
+``p`` share the pair's MIS weights, which sum to 1 per path of ``p`` (the weights the gradients
+use; a failed shift gives the base weight 1). Each pair is therefore an unbiased estimator of
+``I(p)``, and the primal is their mean over the four pairs of ``p``::
+
+    primal[p] = 1/4 sum_k  w_k(x) f(x)/p(x)  +  w_k(y_k) f(y_k) J/p(x_k)     (pair k exists)
+                          f(x)/p(x)   (the base-path estimate)                (pair k does not)
+
+A pair exists iff both pixels are on the film and both trace offsets (a gradient mask: both
+masked, as for the gradients; a pixel without offsets keeps its base path alone). Per sample
+the base pixel gets its own share (the first line's first terms, :func:`pass_sums`) and each
+offset its share ``p[k]`` for the pixel it lands in; the per-pixel sums of ``p[k]`` are shifted
+to that pixel afterwards like the gradients. ``var_primal`` is the sum of the variances of the
+means of the pixel's own shares and of the four neighbours' shares (independent samples), the
+half-buffers split all of them by the parity of their sample's index.
 
 ``render()`` returns a ``TensorXf`` of shape ``(H, W, C)``; :meth:`GradientIntegratorBase.channels`
 names the channel ranges (``primal``, ``dx``, ``dy``, ``albedo``, ``normal``, ``depth``,
@@ -69,6 +89,9 @@ WAVEFRONT_BUCKETS = 16
 _FEATURE_CHANNELS = tuple((name, CHANNELS[name]) for name in HALVED if name != "primal")
 #: The per-sample half-gradient sums ``g[k]`` (RIGHT, DOWN, LEFT, UP) behind ``dx``/``dy``.
 _GRADIENT_SUMS = ("g0", "g1", "g2", "g3")
+#: The per-sample primal shares ``p[k]`` of the offset paths (``primal="mis"``), summed at the
+#: base pixel and added to the pixel ``p + shift_k`` they land in.
+_OFFSET_SHARES = ("p0", "p1", "p2", "p3")
 
 
 @dataclass
@@ -82,6 +105,10 @@ class PathSamples:
     depth: mi.Float | None = None
     #: Per-sample counts (mi.UInt32) of numerical guards that fired inside ``sample_paths``.
     guards: dict = field(default_factory=dict)
+    #: ``primal="mis"`` with offsets: per offset k, the base path's contribution weighted by
+    #: pixel pair k's MIS weights (a failed shift: weight 1); the offset's own share is
+    #: ``gradients[k] + base_shares[k]``. Else [].
+    base_shares: list = field(default_factory=list)
 
 
 @dataclass
@@ -292,9 +319,11 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
     ``samples_per_pass`` (int, 2^20: samples traced per kernel launch),
     ``freeze`` (bool, true: replay the recorded kernels of a pass instead of tracing it again),
     ``shift_threshold`` (float, 0.001: microfacet roughness at or below which a glossy vertex
-    counts as near-specular; used by ``gdpt``, ignored by ``gdpt_rr``). Their names, types,
-    defaults and valid values are one table, :data:`~.properties.PROPERTIES`; the typed values
-    are :attr:`settings`.
+    counts as near-specular; used by ``gdpt``, ignored by ``gdpt_rr``),
+    ``primal`` (string, ``"base"``: the base-path estimate; ``"mis"``: every base and offset path
+    adds to the pixel it lands in with its pixel pair's MIS weight, see the module docstring;
+    without offsets both are the base-path estimate). Their names, types, defaults and valid
+    values are one table, :data:`~.properties.PROPERTIES`; the typed values are :attr:`settings`.
 
     Attribute ``gradient_mask`` (not a property: Mitsuba's properties hold no per-pixel array):
     ``None`` (offsets everywhere) or an ``(H, W)`` bool numpy array of the film's crop, set
@@ -323,6 +352,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         self.samples_per_pass = self.settings["samples_per_pass"]
         self.shift_threshold = self.settings["shift_threshold"]
         self.freeze = self.settings["freeze"]
+        self.primal = self.settings["primal"]
         # Replays the kernels of a pass without tracing Python again (dr.freeze): the tracing of
         # the large path loop, its virtual calls over every BSDF and emitter and the kernel
         # hashing cost as much as the kernel itself at 128 px. It records again for new film
@@ -438,9 +468,15 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         self.rendered_gradient_mask = mask
         flat = None if mask is None else mask.reshape(-1)
 
-        acc = _Accumulator(n_pix, self.gradients, self.features, self.variance, self.halves)
+        # primal="mis": which pixel pairs of each traced pixel exist (bit k: pair k)
+        mis = self.gradients and self.primal == "mis"
+        acc = _Accumulator(n_pix, self.gradients, self.features, self.variance, self.halves, mis)
         self.guard_counts = acc.guard_counts
         key = (*self._pass_key(), width, height, *(int(v) for v in film.crop_offset()))
+        pairs = None
+        if mis:
+            bits = pair_bits(np.ones((height, width), bool) if mask is None else mask)
+            pairs = bits.reshape(-1)
         if mask is not None:  # (padded pixel indices, pixels, offsets, seed salt) per wavefront
             quantum = -(-n_pix // WAVEFRONT_BUCKETS)
             groups = [
@@ -448,12 +484,18 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
                 for m, offsets, salt in ((flat, True, 0), (~flat, False, _PLAIN_SEED))
                 if m.any()
             ]
+            group_pairs = [
+                mi.UInt32(pairs[np.asarray(pixels)]) if mis and offsets else None
+                for pixels, _, offsets, _ in groups
+            ]
+        elif mis:
+            pairs = mi.UInt32(pairs)
         done = 0
         for index, spp_pass in enumerate(passes):
             pass_seed = (int(seed) * 0x9E3779B1 + index) & 0xFFFFFFFF
             if mask is None:
                 sums, counts = self._pass_or_trace(
-                    scene, sensor, pass_seed, done, spp_pass, key, None, self.gradients
+                    scene, sensor, pass_seed, done, spp_pass, key, None, self.gradients, 0, pairs
                 )
             else:
                 parts = [
@@ -470,9 +512,10 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
                             pixels,
                             offsets,
                             count,
+                            group_pairs[g],
                         ),
                     )
-                    for pixels, count, offsets, salt in groups
+                    for g, (pixels, count, offsets, salt) in enumerate(groups)
                 ]
                 sums, counts = _scatter_parts(parts, n_pix)
             acc.add(sums, counts, spp_pass, done)
@@ -517,7 +560,9 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             )
         return None if mask.all() else mask.copy()
 
-    def _pass_or_trace(self, scene, sensor, seed, done, spp, key, pixels, offsets, count=0):
+    def _pass_or_trace(
+        self, scene, sensor, seed, done, spp, key, pixels, offsets, count=0, pairs=None
+    ):
         """:meth:`_pass`, frozen unless ``freeze`` is off or the pass's recording was refused.
 
         Dr.Jit refuses to record a pass whose virtual calls reach object instances it cannot
@@ -532,7 +577,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         another records a pass aborted the process (``Fatal Python error: Aborted`` with
         ``Garbage-collecting`` on top of a recording: seen when a test file whose integrators
         failed to construct ran before one that records)."""
-        args = (scene, sensor, seed, done, spp, key, pixels, offsets, count)
+        args = (scene, sensor, seed, done, spp, key, pixels, offsets, count, pairs)
         if not self.freeze:
             return self._pass(self._trace_pass, *args)
         if key not in self._unrecordable:
@@ -559,12 +604,24 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         return self._pass(self._trace_pass, *args)
 
     def _pass(
-        self, trace, scene, sensor, seed: int, done: int, spp: int, key, pixels, offsets, count=0
+        self,
+        trace,
+        scene,
+        sensor,
+        seed: int,
+        done: int,
+        spp: int,
+        key,
+        pixels,
+        offsets,
+        count=0,
+        pairs=None,
     ):
         """One pass of ``spp`` samples per pixel of ``pixels`` (``mi.UInt32`` film pixel
         indices; ``None``: every pixel), with the four offset rays if ``offsets``: the per-pixel
         sums and guard counts of :func:`pass_sums`, in the order of ``pixels``; only the first
-        ``count`` pixels of ``pixels`` are traced (the rest is padding: inactive, sums 0)."""
+        ``count`` pixels of ``pixels`` are traced (the rest is padding: inactive, sums 0);
+        ``pairs``: ``None`` or the :func:`pair_bits` of those pixels (``primal="mis"``)."""
         n_pix = int(dr.prod(sensor.film().crop_size())) if pixels is None else dr.width(pixels)
         # The primary rays are traced outside the frozen pass (Mitsuba 3.9's thinlens
         # camera does not expose all of its variables to dr.freeze; the rays are cheap),
@@ -576,15 +633,26 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         first = dr.opaque(mi.UInt32, done)  # the pass's first sample index (halves' parity)
         # (an opaque lane count: padded wavefronts of one size share a recording)
         lanes = None if pixels is None else dr.opaque(mi.UInt32, count * spp)
-        return trace(scene, sensor, path_seed, first, rays, weights, spp, key, lanes)
+        return trace(scene, sensor, path_seed, first, rays, weights, spp, key, lanes, pairs)
 
     def _trace_pass(
-        self, scene, sensor, seed: mi.UInt32, first: mi.UInt32, rays, weights, spp: int, key, lanes
+        self,
+        scene,
+        sensor,
+        seed: mi.UInt32,
+        first: mi.UInt32,
+        rays,
+        weights,
+        spp: int,
+        key,
+        lanes,
+        pairs=None,
     ):
         """One pass of ``spp`` samples per pixel from the primary ``rays`` (base and offsets,
         with their ``weights``), the path sampler seeded with ``seed``: per-pixel sums and the
         pass's guard counts (:func:`pass_sums`); ``lanes`` (``mi.UInt32`` or ``None``: all): the
-        samples traced, the first ones (the others are padding, inactive).
+        samples traced, the first ones (the others are padding, inactive); ``pairs``: ``None``
+        or the :func:`pair_bits` of the traced pixels (``primal="mis"``).
 
         ``key`` (settings, film size and offset, see :meth:`_pass_key`) is unused here: as an
         argument of the frozen ``_frozen_pass`` it makes a change of any of them record anew.
@@ -593,7 +661,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
         sampler = _pass_sampler(sensor, spp, seed, n_pix)
         active = mi.Bool(True) if lanes is None else dr.arange(mi.UInt32, n_pix * spp) < lanes
         samples = self.sample_paths(scene, sensor, sampler, rays, weights, active)
-        return pass_sums(samples, spp, self.variance, self.halves, first)
+        return pass_sums(samples, spp, self.variance, self.halves, first, pairs)
 
     def _pass_key(self) -> tuple:
         """Everything besides the JIT inputs that shapes the kernels of a pass (Python values:
@@ -606,6 +674,7 @@ class GradientIntegratorBase(mi.SamplingIntegrator):
             self.variance,
             self.halves,
             self.shift_threshold,
+            self.primal,
             *self.prepared_state(),
         )
 
@@ -676,7 +745,7 @@ def _pass_sampler(sensor: mi.Sensor, spp: int, seed, n_pix: int) -> mi.Sampler:
 
 
 def pass_sums(
-    s: PathSamples, spp: int, variance: bool, halves: bool = False, first=0
+    s: PathSamples, spp: int, variance: bool, halves: bool = False, first=0, pairs=None
 ) -> tuple[dict, dict]:
     """Per-pixel sums of one pass's samples (``spp`` contiguous samples per pixel).
 
@@ -687,10 +756,24 @@ def pass_sums(
     sample) to lists of per-pixel ``mi.Float`` channels; ``counts`` maps guard names to one-element
     ``mi.UInt32`` totals (``sample_nonfinite``: samples whose buffer was not finite, which
     contribute 0 to that buffer, plus the integrator's own guards).
+
+    With ``s.base_shares`` (``primal="mis"``; ``pairs``: the :func:`pair_bits` of each pixel,
+    ``mi.UInt32``), ``primal`` is the base pixel's own share of the MIS primal and ``p0``..``p3``
+    (with ``sq_p0``.., ``half_p0``..) the offsets' shares for the pixels they land in (module
+    docstring), 0 where the pair does not exist.
     """
     values = {"primal": s.primal}
     for k, g in enumerate(s.gradients):
         values[f"g{k}"] = g
+    if s.base_shares:
+        n = dr.width(s.primal)
+        bits = dr.gather(mi.UInt32, pairs, dr.arange(mi.UInt32, n) // spp)
+        own = dr.zeros(mi.Spectrum, n)
+        for k, (g, b) in enumerate(zip(s.gradients, s.base_shares, strict=True)):
+            pair = (bits & (1 << k)) != 0
+            own += dr.select(pair, b, s.primal)
+            values[_OFFSET_SHARES[k]] = dr.select(pair, 0.25 * (g + b), 0)
+        values["primal"] = 0.25 * own
     if s.albedo is not None:
         values.update(albedo=s.albedo, normal=s.normal, depth=[s.depth])
     bad = mi.UInt32(0)
@@ -700,12 +783,13 @@ def pass_sums(
         bad += dr.select(ok, 0, 1)
         values[name] = [dr.select(ok, c, 0) for c in comps]
     if variance:
-        for name in ["primal"] + [f"g{k}" for k in range(len(s.gradients))]:
-            values[f"sq_{name}"] = [dr.square(sum(values[name]) / 3)]
+        for name in ("primal", *_GRADIENT_SUMS, *_OFFSET_SHARES):
+            if name in values:
+                values[f"sq_{name}"] = [dr.square(sum(values[name]) / 3)]
     if halves:
         index = dr.arange(mi.UInt32, dr.width(values["primal"][0])) % spp + first
         even = index % 2 == 0
-        halved = ("primal", *(f for f, _ in _FEATURE_CHANNELS), *_GRADIENT_SUMS)
+        halved = ("primal", *(f for f, _ in _FEATURE_CHANNELS), *_GRADIENT_SUMS, *_OFFSET_SHARES)
         for name in (n for n in halved if n in values):
             values[f"half_{name}"] = [dr.select(even, c, 0) for c in values[name]]
     guards = {"sample_nonfinite": bad, **s.guards}
@@ -716,6 +800,20 @@ def pass_sums(
     sums = {name: [dr.block_sum(c, spp) for c in v] for name, v in values.items()}
     dr.eval(sums, counts)
     return sums, counts
+
+
+def pair_bits(mask: np.ndarray) -> np.ndarray:
+    """Which pixel pairs of a ``primal="mis"`` render exist, per pixel of ``mask`` (``(H, W)``
+    bool, the pixels that trace offsets): ``(H, W)`` uint32, bit ``k`` set iff pixel ``p`` and
+    its neighbour ``p + SHIFTS[k]`` are both on the film and both in ``mask``."""
+    height, width = mask.shape
+    padded = np.zeros((height + 2, width + 2), bool)
+    padded[1:-1, 1:-1] = mask
+    bits = np.zeros(mask.shape, np.uint32)
+    for k, (sx, sy) in enumerate(SHIFTS):
+        neighbour = padded[1 + sy : 1 + sy + height, 1 + sx : 1 + sx + width]
+        bits |= (mask & neighbour).astype(np.uint32) << k
+    return bits
 
 
 def traced_gradients(mask: np.ndarray) -> np.ndarray:
@@ -777,29 +875,34 @@ class _Accumulator:
     """Per-pixel sums across passes (float64 so that large spp keep their precision)."""
 
     def __init__(
-        self, n_pix: int, gradients: bool, features: bool, variance: bool, halves: bool = False
+        self,
+        n_pix: int,
+        gradients: bool,
+        features: bool,
+        variance: bool,
+        halves: bool = False,
+        mis: bool = False,
     ):
         z = lambda c: [dr.zeros(mi.Float64, n_pix) for _ in range(c)]  # noqa: E731
         self.n = 0
         self.n_a = 0  # samples per pixel in half a (those with an even index in the render)
         self.guard_counts: dict[str, int] = {"sample_nonfinite": 0}
         self.sums = {"primal": z(3)}
-        if gradients:
-            self.sums.update({f"g{k}": z(3) for k in range(4)})
+        # per sample: the half-gradients and, primal="mis" (``mis``), the offsets' primal shares
+        per_offset = (*_GRADIENT_SUMS, *(_OFFSET_SHARES if mis else ())) if gradients else ()
+        self.sums.update({name: z(3) for name in per_offset})
         if features:
             self.sums.update(albedo=z(3), normal=z(3), depth=z(1))
         self.variance = variance
         if variance:
             self.sums["sq_primal"] = z(1)
-            if gradients:
-                self.sums.update({f"sq_g{k}": z(1) for k in range(4)})
+            self.sums.update({f"sq_{name}": z(1) for name in per_offset})
         self.halves = halves
         if halves:
             self.sums["half_primal"] = z(3)
             if features:
                 self.sums.update({f"half_{n}": z(c) for n, c in _FEATURE_CHANNELS})
-            if gradients:
-                self.sums.update({f"half_{n}": z(3) for n in _GRADIENT_SUMS})
+            self.sums.update({f"half_{name}": z(3) for name in per_offset})
 
     def add(self, sums: dict, counts: dict, spp: int, first: int = 0) -> None:
         """Add one pass's per-pixel sums and guard counts (from :func:`pass_sums`)."""
@@ -843,7 +946,29 @@ class _Accumulator:
                 dr.select(has_dx, g[0][c] - shifted(g[2][c], 1, right_ok), 0) for c in range(3)
             ], [dr.select(has_dy, g[1][c] - shifted(g[3][c], width, down_ok), 0) for c in range(3)]
 
+        # primal="mis": the offset shares p[k] of pixel p land in p + SHIFTS[k]; a pixel gathers
+        # them from p - SHIFTS[k] (RIGHT from the left neighbour, ...)
+        sources = [
+            (idx - 1, x > 0),
+            (idx - width, y > 0),
+            (idx + 1, right_ok),
+            (idx + width, down_ok),
+        ]
+
+        def landed(per_offset):  # per_offset[k]: channels of p[k] (or its variance)
+            return [
+                sum(
+                    dr.gather(mi.Float, p[c], source, ok)
+                    for p, (source, ok) in zip(per_offset, sources, strict=True)
+                )
+                for c in range(len(per_offset[0]))
+            ]
+
+        mis = "p0" in mean
         out = {"primal": mean["primal"]}
+        if mis:
+            shares = landed([mean[name] for name in _OFFSET_SHARES])
+            out["primal"] = [own + share for own, share in zip(mean["primal"], shares, strict=True)]
         if "g0" in mean:
             out["dx"], out["dy"] = differences([mean[n] for n in _GRADIENT_SUMS])
         for name in ("albedo", "normal", "depth"):
@@ -852,6 +977,9 @@ class _Accumulator:
         if self.variance:
             lum = lambda k: sum(mean[k]) / 3  # noqa: E731
             out["var_primal"] = [var_of_mean("sq_primal", lum("primal"))]
+            if mis:  # own and neighbours' samples are independent: their variances add
+                var_shares = landed([[var_of_mean(f"sq_{p}", lum(p))] for p in _OFFSET_SHARES])
+                out["var_primal"] = [out["var_primal"][0] + var_shares[0]]
             if "g0" in mean:
                 v = [var_of_mean(f"sq_g{k}", lum(f"g{k}")) for k in range(4)]
                 # untraced (a masked render): infinite, no information
@@ -870,6 +998,24 @@ class _Accumulator:
                     out[f"{name}_a"] = [mi.Float(h / n_a) for h in half]
                     out[f"{name}_b"] = [  # zeros when half b has no sample (spp 1)
                         mi.Float((t - h) / max(n_b, 1)) for t, h in zip(total, half, strict=True)
+                    ]
+            if mis:  # each half's offset shares, landed like the primal's
+                for which, n_h, part in (
+                    ("a", n_a, lambda t, h: h),
+                    ("b", max(n_b, 1), lambda t, h: t - h),
+                ):
+                    shares = landed(
+                        [
+                            [
+                                mi.Float(part(t, h) / n_h)
+                                for t, h in zip(self.sums[p], self.sums[f"half_{p}"], strict=True)
+                            ]
+                            for p in _OFFSET_SHARES
+                        ]
+                    )
+                    out[f"primal_{which}"] = [
+                        own + share
+                        for own, share in zip(out[f"primal_{which}"], shares, strict=True)
                     ]
             if "half_g0" in self.sums:
                 for which, n_h, part in (

@@ -67,6 +67,7 @@ class OffsetState:
     s: mi.Float  # after a reconnection y_{i-1} -> x_i: r_{i-1} / p̃(x_{i-1} -> x_i)
     sJ: mi.Float  # ... and the same times the reconnection Jacobian
     G: mi.Spectrum  # half-gradient accumulator
+    B: mi.Spectrum | None  # primal="mis": the base's contributions with this pair's MIS weights
 
 
 # ------------------------------------------------------- per-vertex values (not loop state)
@@ -185,6 +186,11 @@ class GDPTIntegrator(GradientIntegratorBase):
        - |float|
        - Microfacet roughness (alpha) at or below which a glossy vertex is near-specular: the
          offsets copy the base's half vector there instead of reconnecting. (Default: 0.001)
+     * - primal
+       - |string|
+       - ``base``: the primal is the base-path estimate; ``mis``: every base and offset path
+         adds to the pixel it lands in, weighted by its pixel pair's MIS weight (the weights of
+         the gradients), the mean over the pixel's four pairs. (Default: ``base``)
 
     Traces a base path and four offset paths (pixel shifts right, down, left, up) in lockstep.
     A vertex is near-specular when the base sampled a delta lobe there, its BSDF has only delta
@@ -208,7 +214,9 @@ class GDPTIntegrator(GradientIntegratorBase):
     path is a plain path tracer whose radiance all offsets share with fixed weights.
 
     The output ``dx``/``dy`` are the sums of the two MIS halves, i.e. unbiased estimates of
-    ``I(x+1) - I(x)``; the primal is the standard base-path estimate. Needs a box pixel filter.
+    ``I(x+1) - I(x)``; the primal is the standard base-path estimate (``primal="base"``) or the
+    MIS combination of the base path and the four neighbours' offset paths that land in the
+    pixel (``primal="mis"``, :mod:`.common`). Needs a box pixel filter.
     The short twin :ref:`gdpt_rr <integrator-gdpt_rr>` (random replay) serves as an oracle.
 
     .. tabs::
@@ -256,8 +264,9 @@ class GDPTIntegrator(GradientIntegratorBase):
             bad_term=dr.zeros(mi.UInt32, n),
         )
         base_hit = base.si.is_valid()
+        mis = self.primal == "mis"
         offsets = [
-            _initial_offset(_primary_hit(scene, ray, active), weight, base_hit, active, n)
+            _initial_offset(_primary_hit(scene, ray, active), weight, base_hit, active, n, mis)
             for ray, weight in zip(rays[1:], weights[1:], strict=True)
         ]
         feat = FeatureState.zeros(n) if self.features else None
@@ -306,9 +315,15 @@ class GDPTIntegrator(GradientIntegratorBase):
             o.G + (dr.select(o.alive, o.q, 0) - head_beta) * tail / (1 + dr.select(o.alive, o.r, 0))
             for o in offsets
         ]
+        # The base's share of the tail in each pair: the same fold (a non-finite one is dropped
+        # in pass_sums, counted)
+        base_shares = [
+            o.B + head_beta * tail / (1 + dr.select(o.alive, o.r, 0)) for o in offsets if mis
+        ]
         return PathSamples(
             primal=head_L + head_beta * tail,  # base-path radiance
             gradients=gradients,  # half-gradients towards the four offsets
+            base_shares=base_shares,
             albedo=feat.albedo if feat is not None else None,
             normal=feat.normal if feat is not None else None,
             depth=feat.depth if feat is not None else None,
@@ -434,7 +449,7 @@ class GDPTIntegrator(GradientIntegratorBase):
         den = 1 + dr.select(o.bsdf_only, 0, emission.ratio + dr.select(o.alive, light_y, 0))
         den += dr.select(o.alive, o.r, 0)
         c_shift = dr.select(o.alive, o.q * Le_y, 0)
-        _add_term(base, o, (c_shift - emission.c_main) / den, base.active)
+        _add_term(base, o, c_shift, emission.c_main, den, base.active)
         o.alive &= ~o.escaped
 
     # ------------------------------------------------------------------ next-event estimation
@@ -504,7 +519,7 @@ class GDPTIntegrator(GradientIntegratorBase):
         den = light.ds.pdf + light.pb + dr.select(pair, o.r * shifted.Jp, 0)
         c_shift = dr.select(pair, o.q * shifted.f * shifted.em * shifted.J, 0)
         bsdf_only = own & o.alive & (near_x | near_y) & ~light.ds.delta
-        _add_term(base, o, (c_shift - c_main) / den, light.active & ~bsdf_only)
+        _add_term(base, o, c_shift, c_main, den, light.active & ~bsdf_only)
 
     def _light_own(
         self, scene: mi.Scene, o: OffsetState, light: LightSample, act: mi.Bool
@@ -730,9 +745,15 @@ class GDPTIntegrator(GradientIntegratorBase):
 
 # ---------------------------------------------------------------------- shift helpers
 def _initial_offset(
-    si: mi.SurfaceInteraction3f, weight: mi.Spectrum, base_hit: mi.Bool, active: mi.Bool, n: int
+    si: mi.SurfaceInteraction3f,
+    weight: mi.Spectrum,
+    base_hit: mi.Bool,
+    active: mi.Bool,
+    n: int,
+    mis: bool,
 ) -> OffsetState:
-    """Loop state of an offset whose camera ray hit ``si`` (``n`` lanes)."""
+    """Loop state of an offset whose camera ray hit ``si`` (``n`` lanes; ``mis``: keep the
+    base's MIS-weighted contributions, ``primal="mis"``)."""
     return OffsetState(
         si=si,
         prev=dr.zeros(mi.Interaction3f, n),
@@ -746,6 +767,7 @@ def _initial_offset(
         s=mi.Float(0.0),
         sJ=mi.Float(0.0),
         G=dr.zeros(mi.Spectrum, n),
+        B=dr.zeros(mi.Spectrum, n) if mis else None,
     )
 
 
@@ -760,10 +782,20 @@ def _offset_view(o: OffsetState, si: mi.SurfaceInteraction3f) -> mi.SurfaceInter
     return view
 
 
-def _add_term(base: BaseState, o: OffsetState, term: mi.Spectrum, active: mi.Bool) -> None:
-    """``o.G += term`` where ``active``; a term that is not finite is dropped and counted in
-    ``base.bad_term``."""
+def _add_term(
+    base: BaseState, o: OffsetState, c_shift: mi.Spectrum, c_main: mi.Spectrum, den, active
+) -> None:
+    """One technique's contributions of the pair, the offset's ``c_shift`` and the base's
+    ``c_main``, over their balance-heuristic denominator ``den`` (relative to the sampling
+    pdf): ``o.G += (c_shift - c_main) / den`` and, with ``o.B`` (``primal="mis"``),
+    ``o.B += c_main / den`` where ``active``; a term that is not finite is dropped (from both)
+    and counted in ``base.bad_term``."""
+    term = (c_shift - c_main) / den
     ok = dr.isfinite(dr.sum(term))
+    if o.B is not None:
+        share = c_main / den
+        ok &= dr.isfinite(dr.sum(share))
+        o.B += dr.select(active & ok, share, 0)
     o.G += dr.select(active & ok, term, 0)
     base.bad_term += dr.select(active & ~ok, 1, 0)
 

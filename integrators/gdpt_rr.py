@@ -46,7 +46,8 @@ class GDPTReplayIntegrator(GradientIntegratorBase):
     pixel pair weight 1/2 and each half-gradient is ``(L_offset - L_base) / 2``. It never fails
     and needs no vertex classification, which makes it a readable reference and a test oracle
     for ``gdpt``; it correlates poorly after the first diffuse bounce, so its gradients are
-    noisier.
+    noisier. With ``primal="mis"`` the base path and the offset that lands in a pixel share it
+    with these weights, 1/2 each.
     """
 
     plugin_name = "gdpt_rr"
@@ -122,9 +123,11 @@ class GDPTReplayIntegrator(GradientIntegratorBase):
             label="gdpt_rr",
         )
         L0 = paths[0].L
+        mis = self.primal == "mis"
         return PathSamples(
             primal=L0,
             gradients=[0.5 * (p.L - L0) for p in paths[1:]],
+            base_shares=[0.5 * L0 for _ in paths[1:]] if mis else [],
             albedo=feat.albedo if feat is not None else None,
             normal=feat.normal if feat is not None else None,
             depth=feat.depth if feat is not None else None,

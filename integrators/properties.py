@@ -42,7 +42,7 @@ class Property:
     def describe(self) -> str:
         """What a valid value is: :attr:`expected`, the :attr:`values`, else the type."""
         if self.values is not None:
-            return "one of " + ", ".join(self.values)
+            return "one of " + ", ".join(map(repr, self.values))
         return self.expected or {bool: "true or false", int: "an integer"}.get(
             self.kind, "a number"
         )
@@ -64,6 +64,9 @@ PROPERTIES: dict[str, Property] = {
         float, 0.001, check=lambda v: 0.0 <= v < math.inf, expected="a finite roughness >= 0"
     ),
     "freeze": Property(bool, True),
+    # the primal estimator: the base path alone, or every base and offset path that lands in the
+    # pixel with its pixel pair's MIS weight (integrators/common.py's module docstring)
+    "primal": Property(str, "base", values=("base", "mis")),
 }
 
 

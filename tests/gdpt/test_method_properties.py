@@ -54,10 +54,17 @@ def test_bad_properties_are_refused_by_name(name, message):
 
 def test_a_property_added_to_the_table_is_valid_in_method_names(monkeypatch):
     """The plugin's one table is all a new property needs (e.g. a string with its values)."""
-    table = {**properties.PROPERTIES, "primal": properties.Property(str, "base", ("base", "mis"))}
+    table = {**properties.PROPERTIES, "toy": properties.Property(str, "one", ("one", "two"))}
     monkeypatch.setattr(properties, "PROPERTIES", table)
+    assert EVAL_METHODS["gdpt+fuse@toy=two"].configuration()["toy"] == "two"
+    with pytest.raises(ValueError, match="'toy' must be one of 'one', 'two', got 'both'"):
+        EVAL_METHODS.resolve("gdpt+fuse@toy=both")
+
+
+def test_primal_is_a_method_property():
+    """``primal`` (the integrators' table) is valid in method names; a bad value is one line."""
     assert EVAL_METHODS["gdpt+fuse@primal=mis"].configuration()["primal"] == "mis"
-    with pytest.raises(ValueError, match="'primal' must be one of base, mis, got 'both'"):
+    with pytest.raises(ValueError, match="'primal' must be one of 'base', 'mis', got 'both'"):
         EVAL_METHODS.resolve("gdpt+fuse@primal=both")
 
 

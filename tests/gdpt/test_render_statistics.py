@@ -19,15 +19,25 @@ RUNS, SPP, SIZE = 64, 8, 12
 OUTLIERS = 0.04
 
 
-@pytest.fixture(scope="module")
-def runs():
-    """``RUNS`` independent ``cbox-demo`` renders (variances and halves on), as numpy arrays
-    ``(runs, H, W, C)`` per buffer."""
+@pytest.fixture(scope="module", params=["base", "mis"])
+def runs(request):
+    """``RUNS`` independent ``cbox-demo`` renders (variances and halves on) of each primal
+    estimator (``mis``: its variance and halves sum every sample's contributions to the pixel,
+    its own base path's and its neighbours' offset paths'), as numpy arrays ``(runs, H, W, C)``
+    per buffer."""
     gdpt.set_variant("llvm_ad_rgb")
     scene = gdpt.load_scene(builtin_scene("cbox-demo"), long_side=SIZE)
     out: dict[str, list[np.ndarray]] = {}
     for seed in range(RUNS):
-        b = gdpt.render(scene, spp=SPP, seed=seed, variance=True, halves=True, features=False)
+        b = gdpt.render(
+            scene,
+            spp=SPP,
+            seed=seed,
+            variance=True,
+            halves=True,
+            features=False,
+            primal=request.param,
+        )
         for name, t in b.items():
             out.setdefault(name, []).append(t.numpy().copy())
     return {k: np.stack(v) for k, v in out.items()}

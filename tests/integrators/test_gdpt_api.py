@@ -53,6 +53,7 @@ def test_non_box_filter_is_refused(variant):
         ('<integer name="rr_depth" value="0"/>', "rr_depth"),
         ('<integer name="max_depth" value="-3"/>', "max_depth"),
         ('<float name="shift_threshold" value="-0.1"/>', "shift_threshold"),
+        ('<string name="primal" value="offsets"/>', "'primal' must be one of 'base', 'mis'"),
     ],
 )
 def test_invalid_properties(variant, extra, message):
@@ -237,7 +238,7 @@ def test_passes_split_the_work(variant):
 def test_frozen_passes_equal_traced_passes(variant, name):
     """The frozen pass (the default) replays exactly what tracing gives: across spp per pass,
     film sizes, settings, a thin-lens camera (whose rays are traced outside the frozen pass)
-    and a scene parameter changed in place."""
+    a scene parameter changed in place and ``primal``."""
     import mitsuba as mi
 
     from gdpt.scenes import builtin_scene
@@ -264,6 +265,11 @@ def test_frozen_passes_equal_traced_passes(variant, name):
             replayed = np.array(mi.render(scene, integrator=frozen, spp=spp, seed=5))
         traced = render(scene, False, spp, max_depth=max_depth)
         np.testing.assert_array_equal(replayed, traced)
+    frozen.primal = "mis"  # part of the pass's key: records anew, then replays
+    for _ in range(2):
+        replayed = np.array(mi.render(small, integrator=frozen, spp=4, seed=5))
+    np.testing.assert_array_equal(replayed, render(small, False, 4, primal="mis"))
+    frozen.primal = "base"
 
     params = mi.traverse(small)
     key = next(k for k in params.keys() if k.endswith("radiance.value"))

@@ -25,6 +25,10 @@ hybrid shift before the NEE pair rule gave, on staircase at max depth 6,
 dx 0.99% / max 6.6 and dy 1.39% / max 6.5 at 32 x 256 against 16 x 1024 samples (now
 0.00% / 3.2 and 0.00% / 2.8), on matpreview-dof dx 3.01% / 6.9 and dy 2.16% / 4.7.
 
+``primal="mis"`` (the primal from every base and offset path, MIS-weighted per pixel pair) is
+checked on its own cases (:data:`MIS_CASES`, masked and pooled renders too): dropping the pair's
+MIS weight from the base's share fails them (sphere-light: 100% of pixel-channels beyond 3.29).
+
 Sample counts: ``RUNS x SPP`` = 48 x 192 test samples per pixel on the real scenes (48 x 96 on
 the built-in ones) and ``REF_RUNS x REF_SPP`` = 32 x 512 oracle samples, at 24 px on the long
 side. A fast subset runs in CI; ``slow`` adds every shared scene at max depth 2 and 6, every
@@ -199,6 +203,43 @@ def test_unbiased_on_builtin_scenes(variant, integrator, name, max_depth):
     _assert_passes(results, f"{integrator} on builtin:{name}, max depth {max_depth}")
 
 
+#: ``primal="mis"`` (every base and offset path adds to the pixel it lands in with its pixel pair's
+#: MIS weight): (integrator, scene, max depth); CI runs the first, ``slow`` the others: failed
+#: shifts (glass, mirror, caustics on torus and veach-bidir), half-vector copies (near-specular at
+#: shift_threshold 0.05), escaping offsets (envmap), opacity masks, random replay.
+MIS_CASES = [
+    ("gdpt", "sphere-light", 3, {}),
+    ("gdpt", "glass", 5, {}),
+    ("gdpt", "mirror", 5, {}),
+    ("gdpt", "envmap", 3, {}),
+    ("gdpt", "alpha-mask", 5, {}),
+    ("gdpt", "near-specular", 5, {"shift_threshold": 0.05}),
+    ("gdpt_rr", "glass", 5, {}),
+    ("gdpt", "staircase", 6, {}),
+    ("gdpt", "veach-mis", 2, {}),
+    ("gdpt", "cornell-box", 6, {}),
+    ("gdpt", "torus", 6, {}),
+    ("gdpt", "veach-bidir", 6, {}),
+]
+
+
+def _mis_cases():
+    for i, (integrator, name, depth, props) in enumerate(MIS_CASES):
+        marks = (() if i == 0 else (pytest.mark.slow,)) + ((SHARED,) if name in REAL else ())
+        yield pytest.param(integrator, name, depth, props, marks=marks, id=f"{integrator}-{name}")
+
+
+@pytest.mark.parametrize(("integrator", "name", "max_depth", "props"), list(_mis_cases()))
+def test_mis_primal_is_unbiased(variant, integrator, name, max_depth, props):
+    """``primal="mis"``: the primal (and the gradients, unchanged) per pixel against ``path``,
+    film border included (a pixel's pair with a neighbour off the film keeps the base path)."""
+    runs = 2 * RUNS if name in HEAVY_TAILED else RUNS
+    results = _oracle(name, max_depth).compare(
+        _runs(name, integrator, max_depth, runs=runs, primal="mis", **props)
+    )
+    _assert_passes(results, f"{integrator} primal='mis' on {name}, max depth {max_depth}")
+
+
 @cache
 def _hybrid_and_replay(name: str, max_depth: int) -> tuple[dict, dict]:
     """``gdpt`` and ``gdpt_rr`` runs of a scene, pairwise with the same seeds."""
@@ -297,8 +338,15 @@ def test_unbiased_with_the_half_vector_copy_on_rough_principled_lobes(variant):
     _assert_passes(oracle.compare(runs), "gdpt on builtin:principled, shift_threshold 1.0")
 
 
-@pytest.mark.parametrize(("name", "max_depth"), [("glass", 5), ("sphere-light", 3)])
-def test_pooled_render_is_unbiased(variant, name, max_depth):
+@pytest.mark.parametrize(
+    ("name", "max_depth", "primal"),
+    [
+        ("glass", 5, "base"),
+        ("sphere-light", 3, "base"),
+        pytest.param("glass", 5, "mis", marks=pytest.mark.slow),
+    ],
+)
+def test_pooled_render_is_unbiased(variant, name, max_depth, primal):
     """``gdpt.render(..., primal_spp=N)`` (what ``oidn-grad`` reads): the pooled primal and the
     gradients per pixel against ``path``, 48 runs of 32 gradient + 64 plain path samples."""
     from gdpt.rendering import render
@@ -306,13 +354,19 @@ def test_pooled_render_is_unbiased(variant, name, max_depth):
     runs: dict[str, list[np.ndarray]] = {}
     for i in range(RUNS):
         buffers = render(
-            _scene(name), spp=32, primal_spp=64, seed=1 + i, max_depth=max_depth, features=False
+            _scene(name),
+            spp=32,
+            primal_spp=64,
+            seed=1 + i,
+            max_depth=max_depth,
+            features=False,
+            primal=primal,
         )
         assert buffers.metadata["primal_spp"] == 96
         for key in ("primal", "dx", "dy"):
             runs.setdefault(key, []).append(getattr(buffers, key).cpu().numpy())
     results = _oracle(name, max_depth).compare({k: np.stack(v) for k, v in runs.items()})
-    _assert_passes(results, f"pooled gdpt on builtin:{name}, max depth {max_depth}")
+    _assert_passes(results, f"pooled gdpt ({primal}) on builtin:{name}, max depth {max_depth}")
 
 
 def _tile_mask(height: int, width: int) -> np.ndarray:
@@ -327,21 +381,33 @@ def _tile_mask(height: int, width: int) -> np.ndarray:
 
 @pytest.mark.slow
 @SHARED
-@pytest.mark.parametrize(("name", "max_depth"), [("staircase", 6), ("veach-mis", 2)])
-def test_masked_render_is_unbiased(variant, name, max_depth):
+@pytest.mark.parametrize(
+    ("name", "max_depth", "primal"),
+    [
+        ("staircase", 6, "base"),
+        ("veach-mis", 2, "base"),
+        ("staircase", 6, "mis"),
+        ("veach-mis", 2, "mis"),
+    ],
+)
+def test_masked_render_is_unbiased(variant, name, max_depth, primal):
     """A render with a gradient mask (``gradient_mask``: half of the tiles and a one-pixel
     column): the primal at every pixel and the gradients it traced (both pixels masked) against
     ``path``, the others exactly 0 (the border rule: a gradient between a masked and an
     unmasked pixel is not traced). Measured: staircase-6 primal 0.10% / max 3.4, dx 0.00% /
     3.0, dy 0.00% / 2.9; veach-mis-2 0.00% / 3.2, 0.00% / 2.9, 0.58% / 3.8. With one MIS half
-    dropped from the masked render's dx it fails (dx 84% / 123 and 55% / 110)."""
+    dropped from the masked render's dx it fails (dx 84% / 123 and 55% / 110). With
+    ``primal="mis"`` a pixel pair counts for the primal iff both pixels are masked too (the
+    one-pixel column: no pair across it)."""
     import mitsuba as mi
     from gdpt.integrators.common import traced_gradients
 
     scene = _scene(name)
     width, height = (int(v) for v in scene.sensors()[0].film().crop_size())
     mask = _tile_mask(height, width)
-    plugin = mi.load_dict({"type": "gdpt", "max_depth": max_depth, "features": False})
+    plugin = mi.load_dict(
+        {"type": "gdpt", "max_depth": max_depth, "features": False, "primal": primal}
+    )
     plugin.gradient_mask = mask
     runs = render_runs(scene, plugin, RUNS, SPP, seed=1)
     assert not any(plugin.guard_counts.values()), plugin.guard_counts
@@ -353,7 +419,7 @@ def test_masked_render_is_unbiased(variant, name, max_depth):
         results[buffer] = PixelZ(pixel_z(runs[buffer], getattr(oracle, buffer)).z[traced[..., k]])
     border = mask & ~traced[..., 0]  # masked pixels whose dx is not traced
     assert border[:, :-1].any() and traced[..., 0].any()
-    _assert_passes(results, f"masked gdpt on {name}, max depth {max_depth}")
+    _assert_passes(results, f"masked gdpt ({primal}) on {name}, max depth {max_depth}")
 
 
 @pytest.mark.slow
