@@ -76,6 +76,10 @@ def test_creates_the_output_folders_like_render(tmp_path, capsys):
         ({"--save-buffers": "{tmp}/afile/b.exr"}, "--save-buffers .*: a parent of it is a file"),
         ({"--save-buffers": "{tmp}/out.exr"}, "--save-buffers and --output are the same file"),
         ({"--spp": "0"}, "--spp must be >= 1, got 0"),
+        ({"--time": "2"}, "give --spp or --time, not both"),
+        ({"--spp": None, "--time": "0"}, "--time must be a finite number of seconds > 0, got 0"),
+        ({"--spp": None, "--time": "-1"}, "--time must be a finite number .* got -1"),
+        ({"--spp": None, "--time": "nan"}, "--time must be a finite number .* got nan"),
         ({"--alpha": "0"}, "--alpha must be a finite number > 0"),
         ({"--long-side": "0"}, "--long-side must be >= 1"),
         ({"--max-depth": "-2"}, "--max-depth must be -1 .* or >= 0"),
@@ -98,7 +102,7 @@ def test_bad_options_fail_before_rendering(tmp_path, capsys, monkeypatch, change
         (tmp_path / existing).write_text("keep me")
     argv = ["render-and-denoise", options.pop("scene").format(tmp=tmp_path), "--long-side", "16"]
     for key, value in options.items():
-        argv += [key, value.format(tmp=tmp_path)]
+        argv += [] if value is None else [key, value.format(tmp=tmp_path)]
     assert main(argv) == 2
     line = one_line_error(capsys.readouterr().err)
     assert line.startswith("gdpt render-and-denoise: error: ")
