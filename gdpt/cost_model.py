@@ -111,11 +111,13 @@ def fit_by_probing(
     timed: Callable[[int, int], float],
     *,
     budget: float,
+    first_spp: int = 1,
     repeats: int = 3,
     probe_fraction: float = 0.5,
     max_probe_spp: int = 1 << 16,
 ) -> TimeModel:
-    """Fit a :class:`TimeModel` from probe timings: the median of ``repeats`` runs at 1 spp,
+    """Fit a :class:`TimeModel` from probe timings: the median of ``repeats`` runs at
+    ``first_spp`` (1; ``auto`` starts where its pilot runs, whose cost the line must hold),
     then sample counts raised geometrically (x2 to x8, aiming at the target) until a run takes
     at least ``probe_fraction * budget`` and at least three timings exist (or ``max_probe_spp``
     is reached).
@@ -123,16 +125,16 @@ def fit_by_probing(
     Args:
         timed: ``timed(spp, seed_offset) -> seconds`` of one run, compilation and pass
             recording excluded (the caller warms the count up); ``seed_offset`` is ``i`` for
-            the ``i``-th 1-spp run, else the probe's ``spp``.
+            the ``i``-th run at ``first_spp``, else the probe's ``spp``.
         budget: the smallest budget the model will be used for (seconds).
         repeats, probe_fraction, max_probe_spp: see above.
 
     Returns:
         The least-squares model through the timings.
     """
-    t = statistics.median(timed(1, i) for i in range(repeats))
-    measurements = [(1, t)]
-    spp, target = 1, probe_fraction * budget
+    t = statistics.median(timed(first_spp, i) for i in range(repeats))
+    measurements = [(first_spp, t)]
+    spp, target = first_spp, probe_fraction * budget
     while (t < target or len(measurements) < 3) and spp < max_probe_spp:
         spp = min(max_probe_spp, spp * min(8, max(2, round(target / max(t, 1e-6)))))
         t = timed(spp, spp)

@@ -256,7 +256,10 @@ def _render_for(
                     "total"
                 ]
 
-            model = fit_by_probing(timed, budget=seconds, repeats=1, probe_fraction=PROBE_FRACTION)
+            first = auto_route.pilot_threshold() if method == "auto" else 1
+            model = fit_by_probing(
+                timed, budget=seconds, first_spp=first, repeats=1, probe_fraction=PROBE_FRACTION
+            )
             MODELS.set(scene, key, model)
         spp = model.spp_for(seconds)
         if not MODELS.is_warm(scene, key, spp):

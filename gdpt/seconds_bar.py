@@ -43,20 +43,23 @@ class SecondsBar:
             self._advance()
 
     def _advance(self) -> None:
-        with self._lock:
+        with self._lock:  # one thread draws at a time; tqdm's own (multiprocessing) lock is
+            # not taken from two threads (it deadlocked the main thread and this one)
             self._bar.n = round(time.perf_counter() - self._start, 1)
-            self._bar.refresh()
+            self._bar.refresh(nolock=True)
 
     def stage(self, name: str) -> None:
         """Show ``name`` as the current stage."""
         with self._lock:
-            self._bar.set_description_str(name, refresh=True)
+            self._bar.set_description_str(name, refresh=False)
+            self._bar.refresh(nolock=True)
 
     def close(self) -> None:
         """Stop the thread and close the bar."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
+        self._advance()
         self._bar.close()
 
     def __enter__(self) -> SecondsBar:
