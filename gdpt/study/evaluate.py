@@ -64,6 +64,7 @@ from gdpt.interrupt import caused_by_interrupt
 from gdpt.pipeline import release_scene
 from gdpt.study.cells import (
     MISS_TOLERANCE,
+    forget_cost_models,
     pending_cells,
     run_cell,
     set_threads,
@@ -236,6 +237,7 @@ def _evaluate(
     from gdpt.backend import ensure_variant
 
     started = time.perf_counter()
+    forget_cost_models()
     out.mkdir(parents=True, exist_ok=True)
     (out / "images").mkdir(exist_ok=True)
     results_path = out / "results.json"
