@@ -68,22 +68,30 @@ def calibration_runner(method: EvalMethod, protocol: str) -> EvalMethod:
 def timed_run(
     method: EvalMethod, scene: EvalScene, spp: int, seed: int, *, render_only: bool = False
 ) -> MethodResult:
-    """A timed render, after an untimed one at the same ``spp`` and seed; with
-    ``render_only``, without the reconstruction where the method can be split
+    """A timed render, after an untimed one at the same ``spp`` and seed unless it is warm;
+    with ``render_only``, without the reconstruction where the method can be split
     (:attr:`EvalMethod.render`).
 
     The warm-up records what a configuration needs once (kernel compilation, and the Python
     tracing of a frozen pass, which the integrators record per spp per pass and replay
     afterwards: about 0.35 s for ``gdpt`` on a 49-BSDF scene at 128 px); the timed render
     replays it, as any repeated render of that configuration does. The warm-up only samples
-    where the method can be split (the reconstruction has nothing to record per spp). The same
-    seed, so that a method whose work depends on it records what the timed render replays
-    (``auto``: its pilot's tiles and the route they choose; a warm-up on the other route left
-    the timed render to record the route's passes, charged as samples it then did not render).
+    where the method can be split (the reconstruction has nothing to record per spp). A
+    method that can be split renders a configuration set by ``spp`` alone: once it ran at
+    ``spp`` on this scene object (:attr:`EvalScene.warm`), its next runs there replay, with
+    no warm-up. The others (``auto``: its pilot's tiles and the route they choose depend on
+    the seed) warm up every time, at the same seed, so that the warm-up records what the timed
+    render replays (a warm-up on the other route left the timed render to record the route's
+    passes, charged as samples it then did not render).
     """
     render = method.render or method.run
-    render(scene, spp=spp, seed=seed)
-    return (render if render_only else method.run)(scene, spp=spp, seed=seed)
+    key, split = (method.name, spp, render_only), method.render is not None
+    if not (split and key in scene.warm):
+        render(scene, spp=spp, seed=seed)
+    result = (render if render_only else method.run)(scene, spp=spp, seed=seed)
+    if split:
+        scene.warm.add(key)
+    return result
 
 
 def calibrate(
