@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import statistics
 from collections import OrderedDict
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Hashable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
@@ -151,14 +151,15 @@ class SceneModels:
 
     def __init__(self, size: int = 8):
         self._models: OrderedDict[int, tuple[Any, dict[str, TimeModel]]] = OrderedDict()
-        self._warm: dict[int, set[tuple[str, int]]] = {}
+        self._warm: dict[int, set[tuple[str, Hashable]]] = {}
         self._size = size
 
-    def is_warm(self, scene: Any, key: str, spp: int) -> bool:
-        """Whether ``spp`` of ``key`` was rendered on ``scene`` since it was kept."""
+    def is_warm(self, scene: Any, key: str, spp: Hashable) -> bool:
+        """Whether ``spp`` of ``key`` (a count, or what the count's passes depend on) was
+        rendered on ``scene`` since it was kept."""
         return (key, spp) in self._warm.get(id(scene), ())
 
-    def mark_warm(self, scene: Any, key: str, spp: int) -> None:
+    def mark_warm(self, scene: Any, key: str, spp: Hashable) -> None:
         """Note that ``spp`` of ``key`` was rendered on ``scene`` (the scene is kept)."""
         self._models.setdefault(id(scene), (scene, {}))
         self._warm.setdefault(id(scene), set()).add((key, spp))

@@ -13,6 +13,7 @@ import hashlib
 import json
 import math
 import time
+from collections.abc import Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -244,13 +245,21 @@ def _render_for(
             """Records what a timed run at ``spp`` and ``seed`` replays (auto: its route) and
             loads what the reconstruction loads once."""
             _render_at(scene, spp, method, seed, alpha, quiet, props)
-            MODELS.mark_warm(scene, key, spp)
+            MODELS.mark_warm(scene, key, warm_key(spp))
+
+        def warm_key(spp: int) -> Hashable:
+            """What a render's frozen passes depend on: ``spp``, and for ``auto`` the cost
+            ratio that sizes its gradient count (:func:`gdpt.auto_route.learned_cost_ratio`,
+            which a timed run may relearn)."""
+            if method != "auto":
+                return spp
+            return spp, auto_route.learned_cost_ratio(scene, props)
 
         if model is None:
 
             def timed(spp: int, offset: int) -> float:
                 probe_seed = ((int(seed) ^ CALIBRATION_SEED_SALT) + offset) & 0xFFFFFFFF
-                if not MODELS.is_warm(scene, key, spp):
+                if not MODELS.is_warm(scene, key, warm_key(spp)):
                     warm_up(spp, probe_seed)
                 return _render_at(scene, spp, method, probe_seed, alpha, quiet, props).timings[
                     "total"
@@ -262,8 +271,9 @@ def _render_for(
             )
             MODELS.set(scene, key, model)
         spp = model.spp_for(seconds)
-        if not MODELS.is_warm(scene, key, spp):
-            warm_up(spp, seed)
+        for _ in range(2):  # a warm-up that relearned auto's cost ratio changed its counts
+            if not MODELS.is_warm(scene, key, warm_key(spp)):
+                warm_up(spp, seed)
         setup = time.perf_counter() - start
     with SecondsBar(seconds, "render", disable=not progress) as bar:
         result = _render_at(scene, spp, method, seed, alpha, bar, props)
