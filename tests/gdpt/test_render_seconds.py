@@ -117,3 +117,17 @@ def test_scene_models_forget_and_keep_few():
     assert models.get(scenes[2], "k") is not None and models.is_warm(scenes[2], "k", 4)
     models.forget(scenes[2])
     assert models.get(scenes[2], "k") is None and not models.is_warm(scenes[2], "k", 4)
+
+
+def test_auto_warms_up_again_after_its_cost_ratio_was_relearned(fake_runs, scene, monkeypatch):
+    learned = {"ratio": None}  # what auto's next render sizes its gradient count with
+    monkeypatch.setattr(pipeline.auto_route, "learned_cost_ratio", lambda *_: learned["ratio"])
+    pipeline.render_and_denoise(scene, seconds=2.0)
+    assert fake_runs[0][0] == pipeline.auto_route.pilot_threshold()  # probes start at the pilot
+    fake_runs.clear()
+    pipeline.render_and_denoise(scene, seconds=2.0, seed=1)
+    assert len(fake_runs) == 1  # warm: the timed run only
+    learned["ratio"] = 2.4
+    fake_runs.clear()
+    pipeline.render_and_denoise(scene, seconds=2.0, seed=2)
+    assert len(fake_runs) == 2 and fake_runs[0] == fake_runs[1]  # warmed up at its seed first
