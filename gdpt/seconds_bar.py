@@ -45,7 +45,8 @@ class SecondsBar:
     def _advance(self) -> None:
         with self._lock:  # one thread draws at a time; tqdm's own (multiprocessing) lock is
             # not taken from two threads (it deadlocked the main thread and this one)
-            self._bar.n = round(time.perf_counter() - self._start, 1)
+            elapsed = round(time.perf_counter() - self._start, 1)  # a full bar past the budget
+            self._bar.n = elapsed if self.total is None else min(elapsed, self._bar.total)
             self._bar.refresh(nolock=True)
 
     def stage(self, name: str) -> None:

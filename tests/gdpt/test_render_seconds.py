@@ -131,3 +131,16 @@ def test_auto_warms_up_again_after_its_cost_ratio_was_relearned(fake_runs, scene
     fake_runs.clear()
     pipeline.render_and_denoise(scene, seconds=2.0, seed=2)
     assert len(fake_runs) == 2 and fake_runs[0] == fake_runs[1]  # warmed up at its seed first
+
+
+def test_seconds_bar_shows_its_stages_and_outlives_its_budget(capsys):
+    import time
+
+    from gdpt.seconds_bar import SecondsBar
+
+    with SecondsBar(0.2, "pilot", interval=0.01) as bar:
+        time.sleep(0.3)  # past the budget: the bar stays full
+        bar.stage("reconstruct (fuse)")
+        time.sleep(0.05)
+    err = capsys.readouterr().err
+    assert "pilot" in err and "reconstruct (fuse)" in err and "0.2/0.2 s budget" in err
