@@ -21,7 +21,13 @@ import torch
 
 from gdpt import auto_route
 from gdpt.buffers import GradientBuffers
-from gdpt.cost_model import MODELS, drain_compile_seconds, fit_by_probing, kernel_history
+from gdpt.cost_model import (
+    MODELS,
+    TimeModel,
+    drain_compile_seconds,
+    fit_by_probing,
+    kernel_history,
+)
 from gdpt.methods import METHODS, reconstruct_image
 from gdpt.rendering import forget_integrators, render
 from gdpt.scenes.loading import load_scene
@@ -233,47 +239,59 @@ def _render_for(
 ) -> RenderResult:
     """:func:`render_and_denoise` with ``seconds``: the setup (compilation, pass recording,
     the cost model's probes where it has none) untimed, then the render at the model's count,
-    whose time refines the model."""
+    whose time refines the model. ``auto`` has two models: from its pilot threshold on (the
+    pilot's cost in the line) and below it (no pilot: plain samples and the denoiser), used
+    where the first leaves no room for the pilot."""
     scene = load_scene(scene)
-    key = configuration_key(method, alpha, props)
     quiet = SecondsBar(None, disable=True)
+    threshold = auto_route.pilot_threshold() if method == "auto" else None
+
+    def warm_key(spp: int) -> Hashable:
+        """What a render's frozen passes depend on: ``spp``, and for ``auto`` the cost ratio
+        that sizes its gradient count (:func:`gdpt.auto_route.learned_cost_ratio`, which a
+        timed run may relearn)."""
+        return spp if threshold is None else (spp, auto_route.learned_cost_ratio(scene, props))
+
+    def warm_up(key: str, spp: int, seed: int) -> None:
+        """Records what a timed run at ``spp`` and ``seed`` replays (auto: its route) and loads
+        what the reconstruction loads once."""
+        _render_at(scene, spp, method, seed, alpha, quiet, props)
+        MODELS.mark_warm(scene, key, warm_key(spp))
+
+    def model_of(key: str, first: int, most: int) -> TimeModel:
+        """The model of ``key``, probed from ``first`` up to ``most`` spp where there is none."""
+        if (model := MODELS.get(scene, key)) is not None:
+            return model
+
+        def timed(spp: int, offset: int) -> float:
+            probe_seed = ((int(seed) ^ CALIBRATION_SEED_SALT) + offset) & 0xFFFFFFFF
+            if not MODELS.is_warm(scene, key, warm_key(spp)):
+                warm_up(key, spp, probe_seed)
+            return _render_at(scene, spp, method, probe_seed, alpha, quiet, props).timings["total"]
+
+        model = fit_by_probing(
+            timed,
+            budget=seconds,
+            first_spp=first,
+            repeats=1,
+            probe_fraction=PROBE_FRACTION,
+            max_probe_spp=most,
+        )
+        MODELS.set(scene, key, model)
+        return model
+
     with SecondsBar(None, "setup (compilation, pass recording, cost model)", disable=not progress):
         start = time.perf_counter()
-        model = MODELS.get(scene, key)
-
-        def warm_up(spp: int, seed: int) -> None:
-            """Records what a timed run at ``spp`` and ``seed`` replays (auto: its route) and
-            loads what the reconstruction loads once."""
-            _render_at(scene, spp, method, seed, alpha, quiet, props)
-            MODELS.mark_warm(scene, key, warm_key(spp))
-
-        def warm_key(spp: int) -> Hashable:
-            """What a render's frozen passes depend on: ``spp``, and for ``auto`` the cost
-            ratio that sizes its gradient count (:func:`gdpt.auto_route.learned_cost_ratio`,
-            which a timed run may relearn)."""
-            if method != "auto":
-                return spp
-            return spp, auto_route.learned_cost_ratio(scene, props)
-
-        if model is None:
-
-            def timed(spp: int, offset: int) -> float:
-                probe_seed = ((int(seed) ^ CALIBRATION_SEED_SALT) + offset) & 0xFFFFFFFF
-                if not MODELS.is_warm(scene, key, warm_key(spp)):
-                    warm_up(spp, probe_seed)
-                return _render_at(scene, spp, method, probe_seed, alpha, quiet, props).timings[
-                    "total"
-                ]
-
-            first = auto_route.pilot_threshold() if method == "auto" else 1
-            model = fit_by_probing(
-                timed, budget=seconds, first_spp=first, repeats=1, probe_fraction=PROBE_FRACTION
-            )
-            MODELS.set(scene, key, model)
+        key = configuration_key(method, alpha, props)
+        model = model_of(key, threshold or 1, 1 << 16)
         spp = model.spp_for(seconds)
+        if threshold is not None and spp < threshold:  # no room for the pilot: auto without one
+            key += " below the pilot threshold"
+            model = model_of(key, 1, threshold - 1)
+            spp = min(threshold - 1, model.spp_for(seconds))
         for _ in range(2):  # a warm-up that relearned auto's cost ratio changed its counts
             if not MODELS.is_warm(scene, key, warm_key(spp)):
-                warm_up(spp, seed)
+                warm_up(key, spp, seed)
         setup = time.perf_counter() - start
     with SecondsBar(seconds, "render", disable=not progress) as bar:
         result = _render_at(scene, spp, method, seed, alpha, bar, props)

@@ -144,3 +144,21 @@ def test_seconds_bar_shows_its_stages_and_outlives_its_budget(capsys):
         time.sleep(0.05)
     err = capsys.readouterr().err
     assert "pilot" in err and "reconstruct (fuse)" in err and "0.2/0.2 s budget" in err
+
+
+def test_auto_without_room_for_its_pilot_takes_the_count_below_it(scene, monkeypatch):
+    """``auto`` costs 1.5 s more from its pilot threshold on (the pilot): a budget the pilot
+    does not fit gets the largest count below the threshold, from a model of those counts."""
+    threshold, calls = pipeline.auto_route.pilot_threshold(), []
+
+    def run(scene, spp, method, seed, alpha, bar, props):
+        calls.append(spp)
+        total = (1.5 if spp >= threshold else 0.3) + PER_SPP * spp
+        return pipeline.RenderResult(torch.zeros(2, 2, 3), None, spp=spp, timings={"total": total})
+
+    monkeypatch.setattr(pipeline, "_render_at", run)
+    assert pipeline.render_and_denoise(scene, seconds=1.0).spp == threshold - 1
+    assert pipeline.render_and_denoise(scene, seconds=3.0).spp == round((3.0 - 1.5) / PER_SPP)
+    calls.clear()
+    assert pipeline.render_and_denoise(scene, seconds=1.0, seed=1).spp == threshold - 1
+    assert calls == [threshold - 1]  # both models kept: no probes
