@@ -41,7 +41,9 @@ def render(args: argparse.Namespace, method: str, out: Path) -> list[dict]:
         argv += [str(args.time), "--method", method, "-o", str(out), "--force"]
         if args.long_side:
             argv += ["--long-side", str(args.long_side)]
-        done = subprocess.run(argv, capture_output=True, text=True, check=True)
+        done = subprocess.run(argv, capture_output=True, text=True, check=False)
+        if done.returncode:
+            raise RuntimeError(f"{' '.join(argv)}: exit {done.returncode}: {done.stderr[-2000:]}")
         line = next(x for x in done.stdout.splitlines() if x.startswith("timings:"))
         total, budget, spp = LINE.search(line).groups()
         compile_s = float(re.search(r"kernel compilation ([0-9.]+) s", line).group(1))

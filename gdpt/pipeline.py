@@ -214,6 +214,10 @@ def _render_at(
 #: Mixed into the seed of the probe renders that fit the cost model of ``seconds=``.
 CALIBRATION_SEED_SALT = 0x5EC0D5
 
+#: A count already rendered within this share of the model's count is rendered instead (it
+#: replays its frozen passes: no warm-up).
+REUSE = 0.03
+
 #: The probes of ``seconds=`` stop at this share of the budget (:func:`fit_by_probing`).
 PROBE_FRACTION = 0.3
 
@@ -289,6 +293,14 @@ def _render_for(
             key += " below the pilot threshold"
             model = model_of(key, 1, threshold - 1)
             spp = min(threshold - 1, model.spp_for(seconds))
+        warm = [  # counts near spp that replay (on the same side of auto's pilot threshold)
+            n
+            for n in range(max(1, math.floor(spp * (1 - REUSE))), math.ceil(spp * (1 + REUSE)) + 1)
+            if (threshold is None or (n < threshold) == (spp < threshold))
+            and MODELS.is_warm(scene, key, warm_key(n))
+        ]
+        if warm:
+            spp = min(warm, key=lambda n: abs(n - spp))
         for _ in range(2):  # a warm-up that relearned auto's cost ratio changed its counts
             if not MODELS.is_warm(scene, key, warm_key(spp)):
                 warm_up(key, spp, seed)

@@ -162,3 +162,10 @@ def test_auto_without_room_for_its_pilot_takes_the_count_below_it(scene, monkeyp
     calls.clear()
     assert pipeline.render_and_denoise(scene, seconds=1.0, seed=1).spp == threshold - 1
     assert calls == [threshold - 1]  # both models kept: no probes
+
+
+def test_a_warm_count_near_the_models_is_rendered_without_a_warm_up(fake_runs, scene):
+    pipeline.render_and_denoise(scene, seconds=2.0, method="l2")  # 170 spp, warm
+    fake_runs.clear()
+    result = pipeline.render_and_denoise(scene, seconds=2.04, method="l2", seed=3)  # 174 spp
+    assert result.spp == 170 and fake_runs == [(170, 3)]  # within 3%: replays, no warm-up
