@@ -277,7 +277,7 @@ def _render_for(
             timed,
             budget=seconds,
             first_spp=first,
-            repeats=1,
+            repeats=3,
             probe_fraction=PROBE_FRACTION,
             max_probe_spp=most,
         )
