@@ -169,3 +169,23 @@ def test_a_warm_count_near_the_models_is_rendered_without_a_warm_up(fake_runs, s
     fake_runs.clear()
     result = pipeline.render_and_denoise(scene, seconds=2.04, method="l2", seed=3)  # 174 spp
     assert result.spp == 170 and fake_runs == [(170, 3)]  # within 3%: replays, no warm-up
+
+
+def test_study_auto_leaves_out_the_compilation_render_and_denoise_drained(monkeypatch):
+    import time
+    import types
+
+    from gdpt.auto_route import RouteChoice
+    from gdpt.study.methods import EVAL_METHODS
+
+    def fake(scene, **kwargs):
+        time.sleep(0.3)  # of which 0.25 s compiled kernels (drained by the pipeline itself)
+        timings = {"reconstruct": 0.0, "compile": 0.25}
+        route = RouteChoice("plain", "oidn-tuned", "fake")
+        return pipeline.RenderResult(
+            torch.zeros(2, 2, 3), None, spp=8, timings=timings, route=route
+        )
+
+    monkeypatch.setattr(pipeline, "render_and_denoise", fake)
+    result = EVAL_METHODS["auto"].run(types.SimpleNamespace(scene=None, max_depth=3), spp=8, seed=0)
+    assert result.compile_seconds >= 0.25 and result.seconds < 0.3 - 0.2
