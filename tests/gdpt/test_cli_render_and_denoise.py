@@ -151,3 +151,19 @@ def test_render_box_filter_long_side_and_the_scenes_depth(
     buffers = load_buffers(out)
     assert (buffers.width, buffers.height) == (16, 8)
     assert buffers.metadata["max_depth"] == depth
+
+
+def test_timings_line_says_the_budget_the_count_and_what_was_not_timed():
+    from types import SimpleNamespace
+
+    from gdpt.cli.render import timings_line
+
+    timings = {"render": 2.5, "reconstruct": 0.55, "total": 3.05, "compile": 0.4, "setup": 9.0}
+    result = SimpleNamespace(timings=timings, budget=3.0, spp=27)
+    line = timings_line(result, "fuse")
+    assert line.startswith("timings: render 2.50 s, reconstruct 0.55 s, total 3.05 s of a 3.00 s ")
+    assert "budget (27 gradient spp); not timed: kernel compilation 0.40 s, setup 9.00 s" in line
+    counted = timings_line(SimpleNamespace(timings={"total": 1.0}, budget=None, spp=64), "auto")
+    assert counted == (
+        "timings: total 1.00 s (64 spp, plain samples' worth); not timed: kernel compilation 0.00 s"
+    )
