@@ -101,6 +101,15 @@ class TimeModel:
             spp = min(spp, math.ceil(16 * s_max * budget / max(t_max, 1e-9)))
         return max(1, spp)
 
+    def rescale(self, spp: int, seconds: float) -> None:
+        """Scale the whole line (and its measurements) so that it passes through ``(spp,
+        seconds)``: a timing that shows every earlier one off by one factor (the machine was
+        slower or faster for all of them)."""
+        scale = seconds / max(self.seconds_for(spp), 1e-12)
+        self.fixed *= scale
+        self.per_spp *= scale
+        self.measurements = [(n, t * scale) for n, t in self.measurements]
+
     def update(self, spp: int, seconds: float) -> None:
         """Add a timing and refit."""
         refit = TimeModel.fit([*self.measurements, (spp, seconds)])

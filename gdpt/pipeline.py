@@ -218,6 +218,14 @@ CALIBRATION_SEED_SALT = 0x5EC0D5
 #: replays its frozen passes: no warm-up).
 REUSE = 0.03
 
+#: A warm-up (its frozen-pass recording included) that takes less than ``1 - SHORT`` of the
+#: budget shows the model too slow (probes slowed by other work): the model is scaled down to
+#: it (:meth:`TimeModel.rescale`; a bound, the recording counted) and the count chosen again.
+SHORT = 0.15
+
+#: The key suffix of ``auto``'s model below its pilot threshold.
+BELOW_PILOT = " below the pilot threshold"
+
 #: The probes of ``seconds=`` stop at this share of the budget (:func:`fit_by_probing`).
 PROBE_FRACTION = 0.3
 
@@ -256,11 +264,13 @@ def _render_for(
         timed run may relearn)."""
         return spp if threshold is None else (spp, auto_route.learned_cost_ratio(scene, props))
 
-    def warm_up(key: str, spp: int, seed: int) -> None:
+    def warm_up(key: str, spp: int, seed: int) -> float:
         """Records what a timed run at ``spp`` and ``seed`` replays (auto: its route) and loads
-        what the reconstruction loads once."""
-        _render_at(scene, spp, method, seed, alpha, quiet, props)
+        what the reconstruction loads once; its seconds, recording included (at least the
+        cost of ``spp``)."""
+        seconds = _render_at(scene, spp, method, seed, alpha, quiet, props).timings["total"]
         MODELS.mark_warm(scene, key, warm_key(spp))
+        return seconds
 
     def model_of(key: str, first: int, most: int) -> TimeModel:
         """The model of ``key``, probed from ``first`` up to ``most`` spp where there is none."""
@@ -290,7 +300,7 @@ def _render_for(
         model = model_of(key, threshold or 1, 1 << 16)
         spp = model.spp_for(seconds)
         if threshold is not None and spp < threshold:  # no room for the pilot: auto without one
-            key += " below the pilot threshold"
+            key += BELOW_PILOT
             model = model_of(key, 1, threshold - 1)
             spp = min(threshold - 1, model.spp_for(seconds))
         warm = [  # counts near spp that replay (on the same side of auto's pilot threshold)
@@ -301,9 +311,15 @@ def _render_for(
         ]
         if warm:
             spp = min(warm, key=lambda n: abs(n - spp))
-        for _ in range(2):  # a warm-up that relearned auto's cost ratio changed its counts
-            if not MODELS.is_warm(scene, key, warm_key(spp)):
-                warm_up(key, spp, seed)
+        for _ in range(3):  # again where auto's warm-up relearned its cost ratio or fell short
+            if MODELS.is_warm(scene, key, warm_key(spp)):
+                break
+            warm = warm_up(key, spp, seed)
+            if warm < seconds * (1 - SHORT):  # short even with its recording: slow probes
+                model.rescale(spp, warm)
+                spp = model.spp_for(seconds)
+                if threshold is not None and key.endswith(BELOW_PILOT):
+                    spp = min(threshold - 1, spp)
         setup = time.perf_counter() - start
     with SecondsBar(seconds, "render", disable=not progress) as bar:
         result = _render_at(scene, spp, method, seed, alpha, bar, props)

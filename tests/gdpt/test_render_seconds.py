@@ -189,3 +189,21 @@ def test_study_auto_leaves_out_the_compilation_render_and_denoise_drained(monkey
     monkeypatch.setattr(pipeline, "render_and_denoise", fake)
     result = EVAL_METHODS["auto"].run(types.SimpleNamespace(scene=None, max_depth=3), spp=8, seed=0)
     assert result.compile_seconds >= 0.25 and result.seconds < 0.3 - 0.2
+
+
+def test_a_warm_up_short_of_the_budget_corrects_a_slow_probe(scene, monkeypatch):
+    """Probes slowed 3x (other work on the machine) make the model too slow; the warm-up at its
+    count, short of the budget even with its recording, refits it and the count is chosen
+    again (warmed up, then timed)."""
+    calls = []
+
+    def run(scene, spp, method, seed, alpha, bar, props):
+        calls.append(spp)
+        slow = 3.0 if len(calls) <= 8 else 1.0  # the probes and their warm-ups
+        total = slow * (FIXED + PER_SPP * spp)
+        return pipeline.RenderResult(torch.zeros(2, 2, 3), None, spp=spp, timings={"total": total})
+
+    monkeypatch.setattr(pipeline, "_render_at", run)
+    result = pipeline.render_and_denoise(scene, seconds=3.0, method="l2")
+    assert abs(result.timings["total"] - 3.0) <= 0.15 * 3.0, (calls, result.spp)
+    assert calls[-1] == calls[-2] == result.spp  # the new count warmed up, then timed
