@@ -56,8 +56,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     import torch
 
+    from gdpt.cost_model import TimeModel
     from gdpt.reconstruct.reference_free import RatioEstimate
-    from gdpt.study.calibration import TimeModel
     from gdpt.study.methods import EvalMethod
     from gdpt.study.scenes import EvalScene
 
@@ -193,9 +193,10 @@ def _load(scene: Any, long_side: int | None, box_filter: bool, max_depth: int | 
 
 
 def _render_command(
-    name: str, spp: int, scene: Any, options: dict[str, Any], out_name: str
+    name: str, spp: int, scene: Any, options: dict[str, Any], out_name: str, budget: float | None
 ) -> str | None:
-    """The ``gdpt`` command that renders study method ``name`` at ``spp`` (``None``: none)."""
+    """The ``gdpt`` command that renders study method ``name`` at ``spp``, or in ``budget``
+    seconds (``--time``) where one was given and the command takes it (``None``: none)."""
     from gdpt.methods import METHODS
 
     sampler, _, method = name.partition("+")
@@ -203,9 +204,12 @@ def _render_command(
         words = ["gdpt", "render", str(scene), "--no-gradients"]
     elif name == "auto" or (sampler in ("pt", "gdpt") and method in METHODS):
         words = ["gdpt", "render-and-denoise", str(scene), "--method", method or name]
+        if budget is not None:
+            words += ["--time", f"{budget:g}"]
     else:
         return None
-    words += ["--spp", str(spp)]
+    if "--time" not in words:
+        words += ["--spp", str(spp)]
     if options["long_side"] is not None:
         words += ["--long-side", str(options["long_side"])]
     if options["box_filter"]:
@@ -360,7 +364,7 @@ def _reconstruction_seconds(
 def _shared_model(model: TimeModel, difference: float) -> TimeModel:
     """``model`` of a render with another reconstruction, ``difference`` seconds slower (or
     faster): the same seconds per sample, every timing shifted by ``difference``."""
-    from gdpt.study.calibration import TimeModel
+    from gdpt.cost_model import TimeModel
 
     return TimeModel(
         fixed=max(0.0, model.fixed + difference),
@@ -561,9 +565,13 @@ def advise(
     options = {"long_side": long_side, "box_filter": box_filter, "max_depth": max_depth}
     if advice.recommended is not None:
         chosen = next(m for m in advice.methods if m.name == advice.recommended)
-        advice.command = _render_command(chosen.name, chosen.spp, scene, options, loaded.name)
+        advice.command = _render_command(
+            chosen.name, chosen.spp, scene, options, loaded.name, budget
+        )
     advice.lines += [
-        f"time: {advice.seconds:.1f} s (calibration, {replicates} x {len(candidates)} renders "
+        f"time: {advice.seconds:.1f} s "
+        + (f"({advice.seconds / budget:.1f}x the {budget:g} s budget: " if budget else "(")
+        + f"calibration, {replicates} x {len(candidates)} renders "
         f"and {replicates} plain render(s) P)"
     ]
     if advice.command is not None:

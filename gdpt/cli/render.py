@@ -10,6 +10,9 @@ from gdpt.cli.command import Command, UsageError
 from gdpt.methods import METHODS
 from gdpt.scenes.loading import DEFAULT_MAX_DEPTH
 
+#: ``--spp`` when neither it nor ``--time`` is given.
+DEFAULT_SPP = 64
+
 
 # ----------------------------------------------------------------------------------------- info
 def _add_info_arguments(parser: argparse.ArgumentParser) -> None:
@@ -105,7 +108,14 @@ def _add_scene_arguments(parser: argparse.ArgumentParser) -> None:
         "scene",
         help="Mitsuba XML file, builtin:NAME or random:SEED[:VIEW] (see gdpt.scenes.loading)",
     )
-    parser.add_argument("--spp", type=int, default=64, help="samples per pixel (default: 64)")
+    parser.add_argument(
+        "--spp",
+        type=int,
+        help="samples per pixel (default: 64). render-and-denoise: one sample of a method that "
+        "reads gradients costs several plain ones (cbox-demo, 128 px, docs/cost-table.md: "
+        "about 2.6x for l2/l1/l1-fast, 5.1x oidn-grad, 5.4x fuse; 1.0-1.1x for oidn, "
+        "oidn-tuned, kpcn, nfor); with auto, plain samples' worth; --time gives seconds instead",
+    )
     parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     parser.add_argument("--integrator", choices=["gdpt", "gdpt_rr"], default="gdpt")
     parser.add_argument(
@@ -146,7 +156,7 @@ def _load_scene(args: argparse.Namespace) -> tuple[object, int]:
     """
     from gdpt.scenes.loading import BOX_FILTER, choose_max_depth, read_scene
 
-    if args.spp < 1:
+    if args.spp is not None and args.spp < 1:
         raise UsageError(f"--spp must be >= 1, got {args.spp}")
     if args.long_side is not None and args.long_side < 1:
         raise UsageError(f"--long-side must be >= 1, got {args.long_side}")
@@ -211,7 +221,7 @@ def _run_render(args: argparse.Namespace) -> int:
     scene, max_depth = _load_scene(args)
     buffers = render(
         scene,
-        spp=args.spp,
+        spp=DEFAULT_SPP if args.spp is None else args.spp,
         seed=args.seed,
         integrator=args.integrator,
         progress=True,
@@ -246,6 +256,14 @@ def _add_render_and_denoise_arguments(parser: argparse.ArgumentParser) -> None:
         "gradient-domain samples of the same cost); the render has the buffers it reads",
     )
     parser.add_argument(
+        "--time",
+        type=float,
+        metavar="SECONDS",
+        help="instead of --spp: seconds of sampling and reconstruction (auto's pilot included) "
+        "to fill; the sample count comes from a cost model of the scene, fitted by probe "
+        "renders first (with the kernel compilation and pass recording: reported apart)",
+    )
+    parser.add_argument(
         "--alpha", type=float, default=0.2, help="weight of the primal term (default: 0.2)"
     )
     parser.add_argument(
@@ -268,6 +286,10 @@ def _run_render_and_denoise(args: argparse.Namespace) -> int:
 
     if not (math.isfinite(args.alpha) and args.alpha > 0):
         raise UsageError(f"--alpha must be a finite number > 0, got {args.alpha}")
+    if args.time is not None and args.spp is not None:
+        raise UsageError("give --spp or --time, not both")
+    if args.time is not None and not (math.isfinite(args.time) and args.time > 0):
+        raise UsageError(f"--time must be a finite number of seconds > 0, got {args.time}")
     if args.method != "auto" and (reason := METHODS[args.method].check()):
         raise UsageError(f"--method {args.method} cannot run here: {reason}")
     outputs = {"--output": args.output, "--save-buffers": args.save_buffers}
@@ -288,9 +310,11 @@ def _run_render_and_denoise(args: argparse.Namespace) -> int:
         mask = _gradient_mask(args, None if METHODS[args.method].gradients else no_gradients)
     scene, max_depth = _load_scene(args)
 
+    spp = DEFAULT_SPP if args.spp is None and args.time is None else args.spp
     result = render_and_denoise(
         scene,
-        spp=args.spp,
+        spp=spp,
+        seconds=args.time,
         method=args.method,
         seed=args.seed,
         alpha=args.alpha,
@@ -303,7 +327,8 @@ def _run_render_and_denoise(args: argparse.Namespace) -> int:
         "scene": args.scene,
         "method": args.method,
         "alpha": args.alpha,
-        "spp": args.spp,
+        "spp": result.spp,
+        "seconds": result.budget,
         "timings": result.timings,
         "render": result.buffers.metadata,
     }
@@ -318,9 +343,32 @@ def _run_render_and_denoise(args: argparse.Namespace) -> int:
         args.save_buffers.parent.mkdir(parents=True, exist_ok=True)
         save_buffers(args.save_buffers, result.buffers, force=args.force)
         print(f"wrote {args.save_buffers}")
-    times = ", ".join(f"{k} {v:.2f} s" for k, v in result.timings.items())
-    print(f"timings: {times} (render includes kernel compilation)")
+    print(timings_line(result, args.method))
     return 0
+
+
+def timings_line(result, method: str) -> str:
+    """The ``timings:`` line of ``render-and-denoise`` for a :class:`gdpt.pipeline.RenderResult`:
+    the stages and their ``total`` (with ``--time``, against the budget) and the sample count
+    of ``method``, then what was not timed: kernel compilation and ``--time``'s setup."""
+    timings = dict(result.timings)
+    apart = {k: timings.pop(k) for k in ("compile", "setup") if k in timings}
+    line = "timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in timings.items())
+    if method == "auto":
+        count = f"{result.spp} spp, plain samples' worth"
+    else:
+        count = f"{result.spp} {'gradient ' if METHODS[method].gradients else ''}spp"
+    if result.budget is not None:
+        line += f" of a {result.budget:.2f} s budget ({count})"
+    else:
+        line += f" ({count})"
+    words = [f"kernel compilation {apart.get('compile', 0.0):.2f} s"]
+    if "setup" in apart:
+        words.append(
+            f"setup {apart['setup']:.2f} s (compilation, pass recording, cost-model probes; "
+            "once per scene and configuration in a process)"
+        )
+    return f"{line}; not timed: {', '.join(words)}"
 
 
 #: The render commands, in the order ``gdpt --help`` lists them.

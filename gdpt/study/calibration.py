@@ -1,6 +1,6 @@
-"""Sample counts that meet a time budget: a measured linear time model per render
-configuration and scene (:class:`TimeModel`, :func:`calibrate`) and one timed cell
-(:func:`run_at_budget`).
+"""Sample counts that meet a time budget: the linear time model per render configuration and
+scene (:class:`gdpt.cost_model.TimeModel`) fitted by timing a study method (:func:`calibrate`),
+and one timed cell (:func:`run_at_budget`).
 
 Methods that render the same thing share one calibration: :func:`configuration_key` names what
 a method's ``spp`` buys (:attr:`EvalMethod.configuration`), and :func:`calibration_runner` is
@@ -16,13 +16,9 @@ sec. 4, give every method the same input rendering time).
 from __future__ import annotations
 
 import json
-import math
-import statistics
-from dataclasses import dataclass, field
 from typing import Any
 
-import torch
-
+from gdpt.cost_model import TimeModel, fit_by_probing
 from gdpt.study.config import PROTOCOLS
 from gdpt.study.methods import EVAL_METHODS, EvalMethod, MethodResult
 from gdpt.study.scenes import EvalScene
@@ -69,78 +65,33 @@ def calibration_runner(method: EvalMethod, protocol: str) -> EvalMethod:
 
 
 # ------------------------------------------------------------------------------- calibration
-@dataclass
-class TimeModel:
-    """Linear cost model ``seconds(spp) = fixed + per_spp * spp`` of one method on one scene.
-
-    Attributes:
-        fixed: seconds independent of the sample count (reconstruction, launch overheads).
-        per_spp: seconds per sample per pixel.
-        measurements: the ``(spp, seconds)`` timings the model is fitted to (least squares).
-    """
-
-    fixed: float
-    per_spp: float
-    measurements: list[tuple[int, float]] = field(default_factory=list)
-
-    @classmethod
-    def fit(cls, measurements: list[tuple[int, float]]) -> TimeModel:
-        """Least-squares line through ``(spp, seconds)`` timings (at least one).
-
-        A non-positive slope (timing noise) falls back to the line through the origin and the
-        largest measurement; a negative intercept to the least-squares line through the origin.
-        """
-        spp = torch.tensor([m[0] for m in measurements], dtype=torch.float64)
-        sec = torch.tensor([m[1] for m in measurements], dtype=torch.float64)
-        slope = fixed = 0.0
-        if len(set(spp.tolist())) > 1:
-            ds = spp - spp.mean()
-            slope = float((ds * (sec - sec.mean())).sum() / ds.square().sum())
-            fixed = float(sec.mean()) - slope * float(spp.mean())
-        if slope <= 0:
-            largest = int(spp.argmax())
-            slope, fixed = float(sec[largest] / spp[largest]), 0.0
-        elif fixed < 0:
-            slope, fixed = float((spp * sec).sum() / spp.square().sum()), 0.0
-        return cls(fixed=fixed, per_spp=max(slope, 1e-9), measurements=list(measurements))
-
-    def spp_for(self, budget: float) -> int:
-        """The sample count whose predicted time is closest to ``budget`` (at least 1).
-
-        Extrapolation is capped at 16 times the through-origin estimate from the largest
-        measurement, so that a noisy fit cannot ask for an absurd sample count.
-        """
-        spp = round((budget - self.fixed) / self.per_spp)
-        if self.measurements:
-            s_max, t_max = max(self.measurements)
-            spp = min(spp, math.ceil(16 * s_max * budget / max(t_max, 1e-9)))
-        return max(1, spp)
-
-    def update(self, spp: int, seconds: float) -> None:
-        """Add a timing and refit."""
-        refit = TimeModel.fit([*self.measurements, (spp, seconds)])
-        self.fixed, self.per_spp, self.measurements = refit.fixed, refit.per_spp, refit.measurements
-
-
 def timed_run(
     method: EvalMethod, scene: EvalScene, spp: int, seed: int, *, render_only: bool = False
 ) -> MethodResult:
-    """A timed render, after an untimed one at the same ``spp`` and seed; with
-    ``render_only``, without the reconstruction where the method can be split
+    """A timed render, after an untimed one at the same ``spp`` and seed unless it is warm;
+    with ``render_only``, without the reconstruction where the method can be split
     (:attr:`EvalMethod.render`).
 
     The warm-up records what a configuration needs once (kernel compilation, and the Python
     tracing of a frozen pass, which the integrators record per spp per pass and replay
     afterwards: about 0.35 s for ``gdpt`` on a 49-BSDF scene at 128 px); the timed render
     replays it, as any repeated render of that configuration does. The warm-up only samples
-    where the method can be split (the reconstruction has nothing to record per spp). The same
-    seed, so that a method whose work depends on it records what the timed render replays
-    (``auto``: its pilot's tiles and the route they choose; a warm-up on the other route left
-    the timed render to record the route's passes, charged as samples it then did not render).
+    where the method can be split (the reconstruction has nothing to record per spp). A
+    method that can be split renders a configuration set by ``spp`` alone: once it ran at
+    ``spp`` on this scene object (:attr:`EvalScene.warm`), its next runs there replay, with
+    no warm-up. The others (``auto``: its pilot's tiles and the route they choose depend on
+    the seed) warm up every time, at the same seed, so that the warm-up records what the timed
+    render replays (a warm-up on the other route left the timed render to record the route's
+    passes, charged as samples it then did not render).
     """
     render = method.render or method.run
-    render(scene, spp=spp, seed=seed)
-    return (render if render_only else method.run)(scene, spp=spp, seed=seed)
+    key, split = (method.name, spp, render_only), method.render is not None
+    if not (split and key in scene.warm):
+        render(scene, spp=spp, seed=seed)
+    result = (render if render_only else method.run)(scene, spp=spp, seed=seed)
+    if split:
+        scene.warm.add(key)
+    return result
 
 
 def calibrate(
@@ -182,17 +133,15 @@ def calibrate(
     split = protocol == "render-time"  # the reconstruction is not charged: not run
     timed_run(method, scene, 1, seed, render_only=split)
     timed_run(method, scene, 2, seed, render_only=split)
-    t = statistics.median(
-        charged_seconds(timed_run(method, scene, 1, seed + i, render_only=split), protocol)
-        for i in range(repeats)
+    return fit_by_probing(
+        lambda spp, offset: charged_seconds(
+            timed_run(method, scene, spp, seed + offset, render_only=split), protocol
+        ),
+        budget=budget,
+        repeats=repeats,
+        probe_fraction=probe_fraction,
+        max_probe_spp=max_probe_spp,
     )
-    measurements = [(1, t)]
-    spp, target = 1, probe_fraction * budget
-    while (t < target or len(measurements) < 3) and spp < max_probe_spp:
-        spp = min(max_probe_spp, spp * min(8, max(2, round(target / max(t, 1e-6)))))
-        t = charged_seconds(timed_run(method, scene, spp, seed + spp, render_only=split), protocol)
-        measurements.append((spp, t))
-    return TimeModel.fit(measurements)
 
 
 def run_at_budget(

@@ -10,11 +10,14 @@ cell:
   linear drift of speed within a cell pair (Fisher, *The Design of Experiments*, 1935, ch. 4;
   the same alternation as the ABBA benchmark protocol of Kalibera and Jones, "Rigorous
   Benchmarking in Reasonable Time", ISMM 2013);
-* each render configuration (:func:`~gdpt.study.calibration.configuration_key`) is calibrated
-  when its first method's turn comes, in the cell, by its runner
-  (:func:`~gdpt.study.calibration.calibrate`, then
-  :func:`~gdpt.study.calibration.run_at_budget`): methods that render the same thing (``auto``
-  and ``pt+oidn-tuned``) still get the same sample count;
+* each render configuration (:func:`~gdpt.study.calibration.configuration_key`) takes its
+  sample count when its first method's turn comes, in the cell, from the configuration's cost
+  model in its current state (:data:`_MODELS`: probed by
+  :func:`~gdpt.study.calibration.calibrate` in the configuration's first cell on the worker,
+  refined by every timed run since), timed by its runner
+  (:func:`~gdpt.study.calibration.run_at_budget`, which redoes a miss at the refitted count):
+  methods that render the same thing (``auto`` and ``pt+oidn-tuned``) still get the same
+  sample count;
 * every replicate records its timed run against the budget: ``charged_seconds``,
   ``relative_error``, the 1-minute load average before it (``os.getloadavg``), and
   ``cpu_seconds`` / ``wall_seconds`` / ``cpu_per_wall`` of the timed run (the process's CPU
@@ -42,6 +45,7 @@ from typing import Any
 
 import torch
 
+from gdpt.cost_model import TimeModel
 from gdpt.interrupt import caused_by_interrupt
 from gdpt.pipeline import release_scene
 from gdpt.study.calibration import (
@@ -61,6 +65,7 @@ from gdpt.study.scoring import interval_too_wide, score, summarise
 __all__ = [
     "MISS_TOLERANCE",
     "apply_cell",
+    "forget_cost_models",
     "method_order",
     "pending_cells",
     "redo_spp",
@@ -69,6 +74,18 @@ __all__ = [
     "thread_counts",
     "worker_scene",
 ]
+
+#: The cost model of each ``(scene name, resolution, configuration key)`` in this process
+#: (:class:`gdpt.cost_model.TimeModel`): fitted by the configuration's first cell
+#: (:func:`~gdpt.study.calibration.calibrate`), refined by every timed run after it; a run that
+#: misses is redone at the refitted count (:func:`~gdpt.study.calibration.run_at_budget`).
+_MODELS: dict[tuple[str, str, str], TimeModel] = {}
+
+
+def forget_cost_models() -> None:
+    """Start the next study's cells without models (each study fits its own)."""
+    _MODELS.clear()
+
 
 #: A replicate whose charged seconds differ from the budget by more than this share is
 #: rendered once more, then flagged (``missed_budget``). The calibration inside a cell aims at
@@ -287,15 +304,21 @@ def run_cell(
             if config_key not in calibrations:
                 runner = calibration_runner(method, cfg.protocol)
                 wrapped, log = _measured(runner)
-                calibration_seed = cell_seed(cfg.seed, scene.name, runner.name, key, str(replicate))
-                model = calibrate(
-                    wrapped,
-                    scene,
-                    budget=budget,
-                    seed=calibration_seed,
-                    probe_fraction=cfg.probe_fraction,
-                    protocol=cfg.protocol,
-                )
+                model_key = (scene.name, str(scene.resolution), config_key)
+                model, source = _MODELS.get(model_key), "model"
+                if model is None:  # the configuration's first cell in this process probes
+                    calibration_seed = cell_seed(
+                        cfg.seed, scene.name, runner.name, key, str(replicate)
+                    )
+                    model = _MODELS[model_key] = calibrate(
+                        wrapped,
+                        scene,
+                        budget=budget,
+                        seed=calibration_seed,
+                        probe_fraction=cfg.probe_fraction,
+                        protocol=cfg.protocol,
+                    )
+                    source = "calibrated"
                 stage = "run"  # the method runs; a failure from here on is one of this cell
                 result, at_budget = run_at_budget(
                     wrapped,
@@ -307,6 +330,8 @@ def run_cell(
                     max_rounds=cfg.max_rounds,
                     protocol=cfg.protocol,
                 )
+                if at_budget["within_tolerance"]:  # a miss was added by run_at_budget
+                    model.update(at_budget["spp"], at_budget["charged_seconds"])
                 calibrations[config_key] = (runner, result, at_budget, log)
                 configuration = runner.configuration() if runner.configuration else None
                 record["calibrations"][config_key] = {
@@ -314,6 +339,7 @@ def run_cell(
                     "runner": runner.name,
                     "configuration": configuration,
                     "model": dataclasses.asdict(model),
+                    "model_source": source,
                     "methods": [],
                 }
             runner, result, at_budget, log = calibrations[config_key]

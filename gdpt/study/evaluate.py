@@ -64,6 +64,7 @@ from gdpt.interrupt import caused_by_interrupt
 from gdpt.pipeline import release_scene
 from gdpt.study.cells import (
     MISS_TOLERANCE,
+    forget_cost_models,
     pending_cells,
     run_cell,
     set_threads,
@@ -85,9 +86,11 @@ from gdpt.study.references import reference_seed, render_reference
 from gdpt.study.results import (
     CONVENTIONS,
     budget_key,
+    cell_keys,
     cells_done,
     load_results,
     machine_info,
+    study_cost,
     versions,
     write_json,
 )
@@ -233,6 +236,8 @@ def _evaluate(
 
     from gdpt.backend import ensure_variant
 
+    started = time.perf_counter()
+    forget_cost_models()
     out.mkdir(parents=True, exist_ok=True)
     (out / "images").mkdir(exist_ok=True)
     results_path = out / "results.json"
@@ -278,6 +283,7 @@ def _evaluate(
     history_flag = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     before = thread_counts()
+    cells_before = cell_keys(results)
     try:
         if engine is None:  # this process owns the machine's usable cores
             owned = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
@@ -293,6 +299,9 @@ def _evaluate(
         dr.set_flag(dr.JitFlag.KernelHistory, history_flag)
         bar.close()
         results["runs"][-1]["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        results["runs"][-1]["cost"] = study_cost(
+            results, cells_before, time.perf_counter() - started
+        )
         if hasattr(os, "getloadavg"):
             results["machine"]["loadavg_at_end"] = list(os.getloadavg())
         write_json(results_path, results)

@@ -59,6 +59,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
+from gdpt.cost_model import drain_compile_seconds
 from gdpt.deprecated import EVAL_METHOD_ALIASES
 from gdpt.methods import METHODS as DENOISERS
 from gdpt.methods import Method, reconstruct_image
@@ -221,16 +222,6 @@ def with_properties(base: EvalMethod, name: str, properties: dict[str, Any]) -> 
 
 
 # ------------------------------------------------------------------------------------ timing
-def _drain_compile_seconds() -> float:
-    """Seconds of kernel compilation recorded by Dr.Jit since the last call (clears it)."""
-    import drjit as dr
-
-    if not dr.flag(dr.JitFlag.KernelHistory):
-        return 0.0
-    history = dr.kernel_history()
-    return sum(k.get("codegen_time", 0.0) + k.get("backend_time", 0.0) for k in history) / 1e3
-
-
 def _timed_run(
     scene: EvalScene,
     spp: int,
@@ -246,11 +237,11 @@ def _timed_run(
         from gdpt.rendering import render
 
     props = {"max_depth": scene.max_depth, **props}  # (a method's properties may set it)
-    _drain_compile_seconds()
+    drain_compile_seconds()
     start = time.perf_counter()
     buffers = render(scene.scene, spp=spp, seed=seed, **props)
     middle = time.perf_counter()
-    compile_seconds = _drain_compile_seconds()
+    compile_seconds = drain_compile_seconds()
     image = buffers.primal if reconstruct is None else reconstruct(buffers)
     image = image.detach().to("cpu", torch.float32).contiguous()  # waits for the device
     end = time.perf_counter()
@@ -356,13 +347,13 @@ def auto_route(scene: EvalScene, *, spp: int, seed: int, **properties: Any) -> M
 
     if reason := DENOISERS["oidn"].check() and DENOISERS["oidn-tuned"].check():
         raise MethodUnavailable(reason)
-    _drain_compile_seconds()
+    drain_compile_seconds()
     start = time.perf_counter()
     props = {"max_depth": scene.max_depth, **properties}
     result = render_and_denoise(scene.scene, spp=spp, seed=seed, **props)
     image = result.image.detach().to("cpu", torch.float32).contiguous()
     seconds = time.perf_counter() - start
-    compile_seconds = _drain_compile_seconds()
+    compile_seconds = result.timings["compile"] + drain_compile_seconds()  # it drains its own
     reconstruct_seconds = result.timings["reconstruct"]
     return MethodResult(
         image=image,

@@ -233,6 +233,12 @@ def _run_summary(results: dict[str, Any]) -> list[str]:
     ]
     if cells := _cells_line(results):
         lines.append(cells)
+    if (cost := (runs[-1].get("cost") if runs else None)) and cost.get("ratio"):
+        lines.append(
+            f"The study's own cost (last run): {cost['wall_seconds']:.0f} s of wall time for "
+            f"{cost['timed_seconds']:.0f} s of timed renders ({cost['ratio']:.1f}x; the rest: "
+            "loading, references, compilation, calibration, warm-ups)."
+        )
     if command:
         lines.insert(0, f"Command: `{command}`")
     return lines

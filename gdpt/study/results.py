@@ -171,3 +171,32 @@ def load_results(path: Path, cfg: EvaluateConfig) -> dict[str, Any]:
             )
         return {**old, "format": RESULTS_FORMAT}
     return {"format": RESULTS_FORMAT, "scenes": {}, "runs": []}
+
+
+def study_cost(results: dict[str, Any], before: set[tuple[str, str]], wall: float) -> dict:
+    """The cost of one run of a study: ``wall_seconds`` (``wall``), ``timed_seconds`` (the
+    seconds of every timed render of the cells it added, redone ones included: the charged
+    seconds of each attempt) and ``ratio`` (wall over timed; ``None`` without timed renders).
+    ``before``: the ``(scene, cell)`` keys of ``cell_runs`` before the run (left out)."""
+    timed = 0.0
+    for scene, entry in results.get("scenes", {}).items():
+        for unit, record in entry.get("cell_runs", {}).items():
+            if (scene, unit) in before:
+                continue
+            for replicate in record.get("replicates", {}).values():
+                attempts = replicate.get("attempts") or [replicate]
+                timed += sum(a.get("charged_seconds", a.get("seconds", 0.0)) for a in attempts)
+    return {
+        "wall_seconds": wall,
+        "timed_seconds": timed,
+        "ratio": wall / timed if timed > 0 else None,
+    }
+
+
+def cell_keys(results: dict[str, Any]) -> set[tuple[str, str]]:
+    """The ``(scene, cell)`` keys of every ``cell_runs`` record in ``results``."""
+    return {
+        (scene, unit)
+        for scene, entry in results.get("scenes", {}).items()
+        for unit in entry.get("cell_runs", {})
+    }

@@ -40,6 +40,9 @@ class EvalScene:
         resolution: film ``(width, height)``.
         notes: changes made to the scene when loading it (e.g. the filter override).
         film_filter: ``{"original": ..., "used": "box"}``.
+        warm: ``(method, spp, render_only)`` renders done on this scene object, whose kernels
+            and frozen passes a later render of the same replays
+            (:func:`gdpt.study.calibration.timed_run`).
     """
 
     name: str
@@ -48,6 +51,7 @@ class EvalScene:
     resolution: tuple[int, int]
     notes: list[str] = field(default_factory=list)
     film_filter: dict[str, str | None] = field(default_factory=dict)
+    warm: set[tuple[str, int, bool]] = field(default_factory=set, repr=False, compare=False)
 
 
 def _scene_name(path: Path) -> str:

@@ -164,6 +164,15 @@ def tiny_run_config() -> Callable[..., TrainConfig]:
     return make_tiny_run_config
 
 
+@pytest.fixture(autouse=True)
+def fresh_study_cost_models(monkeypatch):
+    """Every test starts the study's cells without cost models (:data:`gdpt.study.cells._MODELS`
+    is per process: a model of another test's clock would set this test's counts)."""
+    from gdpt.study import cells
+
+    monkeypatch.setattr(cells, "_MODELS", {})
+
+
 @pytest.fixture
 def cost_clock(monkeypatch) -> Callable[[str, float, float], None]:
     """A function ``(name, fixed, per_spp)``: the study method ``name``

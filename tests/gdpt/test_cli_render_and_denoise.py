@@ -76,6 +76,10 @@ def test_creates_the_output_folders_like_render(tmp_path, capsys):
         ({"--save-buffers": "{tmp}/afile/b.exr"}, "--save-buffers .*: a parent of it is a file"),
         ({"--save-buffers": "{tmp}/out.exr"}, "--save-buffers and --output are the same file"),
         ({"--spp": "0"}, "--spp must be >= 1, got 0"),
+        ({"--time": "2"}, "give --spp or --time, not both"),
+        ({"--spp": None, "--time": "0"}, "--time must be a finite number of seconds > 0, got 0"),
+        ({"--spp": None, "--time": "-1"}, "--time must be a finite number .* got -1"),
+        ({"--spp": None, "--time": "nan"}, "--time must be a finite number .* got nan"),
         ({"--alpha": "0"}, "--alpha must be a finite number > 0"),
         ({"--long-side": "0"}, "--long-side must be >= 1"),
         ({"--max-depth": "-2"}, "--max-depth must be -1 .* or >= 0"),
@@ -98,7 +102,7 @@ def test_bad_options_fail_before_rendering(tmp_path, capsys, monkeypatch, change
         (tmp_path / existing).write_text("keep me")
     argv = ["render-and-denoise", options.pop("scene").format(tmp=tmp_path), "--long-side", "16"]
     for key, value in options.items():
-        argv += [key, value.format(tmp=tmp_path)]
+        argv += [] if value is None else [key, value.format(tmp=tmp_path)]
     assert main(argv) == 2
     line = one_line_error(capsys.readouterr().err)
     assert line.startswith("gdpt render-and-denoise: error: ")
@@ -163,3 +167,19 @@ def test_render_box_filter_long_side_and_the_scenes_depth(
     buffers = load_buffers(out)
     assert (buffers.width, buffers.height) == (16, 8)
     assert buffers.metadata["max_depth"] == depth
+
+
+def test_timings_line_says_the_budget_the_count_and_what_was_not_timed():
+    from types import SimpleNamespace
+
+    from gdpt.cli.render import timings_line
+
+    timings = {"render": 2.5, "reconstruct": 0.55, "total": 3.05, "compile": 0.4, "setup": 9.0}
+    result = SimpleNamespace(timings=timings, budget=3.0, spp=27)
+    line = timings_line(result, "fuse")
+    assert line.startswith("timings: render 2.50 s, reconstruct 0.55 s, total 3.05 s of a 3.00 s ")
+    assert "budget (27 gradient spp); not timed: kernel compilation 0.40 s, setup 9.00 s" in line
+    counted = timings_line(SimpleNamespace(timings={"total": 1.0}, budget=None, spp=64), "auto")
+    assert counted == (
+        "timings: total 1.00 s (64 spp, plain samples' worth); not timed: kernel compilation 0.00 s"
+    )

@@ -165,6 +165,13 @@ def test_quick_cli_writes_every_output(variant, tmp_path, capsys, cost_clock):
             assert (out / cell["image"]).is_file(), (method, cell["image"])
     assert "| random-3 |" in (out / "results.md").read_text()
     assert "wrote" in capsys.readouterr().out
+    cost = results["runs"][-1]["cost"]  # every timed render on the cost clocks, one attempt each
+    per_seed = (
+        (0.004 + 0.004 * 24) + (0.004 + 0.004 * 49) + (0.01 + 0.008 * 11) + (0.01 + 0.008 * 24)
+    )
+    assert cost["timed_seconds"] == pytest.approx(results["config"]["seeds"] * per_seed)
+    assert cost["ratio"] == pytest.approx(cost["wall_seconds"] / cost["timed_seconds"])
+    assert "The study's own cost (last run): " in (out / "results.md").read_text()
 
 
 def test_bad_input_is_reported_and_resume_skips_done_cells(variant, tmp_path, monkeypatch):

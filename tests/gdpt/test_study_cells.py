@@ -116,6 +116,31 @@ def test_cells_run_methods_back_to_back_in_rotated_order_fake_clock(tmp_path, mo
         assert replicate["wall_seconds"] > 0 and not replicate["missed_budget"]
 
 
+def test_a_configuration_probes_once_then_takes_counts_from_its_model_fake_clock(
+    tmp_path, monkeypatch
+):
+    """The first cell of a configuration fits its cost model by probes; the later cells (other
+    budgets, other replicates) take their counts from the model, refined by every timed run,
+    and render only their timed runs (each after its warm-up)."""
+    clock = Clock()
+    monkeypatch.setitem(EVAL_METHODS, "fake-a", clock.method("fake-a"))
+    cfg = _cfg(methods=("fake-a",), budgets=(0.2, 0.4), seeds=2)
+    results = evaluate(["random:3"], tmp_path / "report", cfg, progress=False, report=False)
+    runs = results["scenes"]["random-3"]["cell_runs"]
+    sources = {u: r["calibrations"]["method fake-a"]["model_source"] for u, r in runs.items()}
+    assert sources == {"0.2/0": "calibrated", "0.2/1": "model", "0.4/0": "model", "0.4/1": "model"}
+    later = [
+        c for c in clock.calls if c[2] in {runs[u]["seed"] for u in ("0.2/1", "0.4/0", "0.4/1")}
+    ]
+    assert len(clock.calls) - len(later) > 6  # the first cell probed (and timed)
+    assert len(later) == 6  # three cells: a warm-up and a timed run each, no probes
+    for unit, budget in (("0.2/1", 0.2), ("0.4/0", 0.4), ("0.4/1", 0.4)):
+        assert runs[unit]["calibrations"]["method fake-a"]["spp"] == round((budget - 0.05) / 0.01)
+    models = [r["calibrations"]["method fake-a"]["model"]["measurements"] for r in runs.values()]
+    assert [len(m) for m in models] == sorted(len(m) for m in models)  # each run adds one
+    assert len(models[-1]) == len(models[0]) + 3
+
+
 def test_replicate_over_budget_is_redone_then_flagged_fake_clock(tmp_path, monkeypatch):
     """A method that shares another's calibration and misses the budget by more than
     MISS_TOLERANCE is timed once more at the count corrected by its miss (redo_spp): on time,
