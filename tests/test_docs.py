@@ -258,6 +258,7 @@ REQUIRED_NAMES = {
     "gradient-sample-cost",  # a gradient sample in plain samples
     "auto-gradient-runs",
     "auto-over-fuse",
+    "primal-mis-fuse",  # fuse with primal="mis" over "base" at the same count
 }
 
 
