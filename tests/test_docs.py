@@ -75,51 +75,61 @@ def _quick_start_commands() -> list[str]:
     return [line for line in lines if line.startswith("gdpt ")]
 
 
-@pytest.mark.slow
-def test_readme_quick_start_commands_run(tmp_path):
-    """Every quick-start command, in order, in an empty folder holding the guide's scene.xml."""
+@pytest.fixture(scope="module")
+def quick_start_runs(tmp_path_factory) -> list[tuple[str, subprocess.CompletedProcess]]:
+    """Every quick-start command run once, in order, in an empty folder holding the guide's
+    scene.xml: ``(command, its finished process)``, up to the first that fails."""
+    folder = tmp_path_factory.mktemp("quick-start")
     xml = re.findall(r"```xml\n(.*?)```", (ROOT / "docs" / "guide.md").read_text(), re.S)
-    (tmp_path / "scene.xml").write_text(xml[0])
-    commands = _quick_start_commands()
-    assert len(commands) >= 4, commands
-    for command in commands:
+    (folder / "scene.xml").write_text(xml[0])
+    runs = []
+    for command in _quick_start_commands():
         result = subprocess.run(
             [sys.executable, "-m", "gdpt", *shlex.split(command)[1:]],
             check=False,
-            cwd=tmp_path,
+            cwd=folder,
             capture_output=True,
             text=True,
             timeout=900,
             env={**os.environ, "OMP_NUM_THREADS": "1"},
         )
+        runs.append((command, result))
+        if result.returncode != 0:  # later commands may read what it writes
+            break
+    return runs
+
+
+@pytest.mark.slow
+def test_readme_quick_start_commands_run(quick_start_runs):
+    """Every quick-start command runs (exit status 0)."""
+    commands = _quick_start_commands()
+    assert len(commands) >= 4, commands
+    for command, result in quick_start_runs:
         assert result.returncode == 0, f"{command}: {result.stderr[-2000:]}"
+    assert [command for command, _ in quick_start_runs] == commands
 
 
-def test_readme_auto_example_shows_a_route(variant):
-    """The quick start's ``auto`` commands (``render-and-denoise`` without ``--method``) render
-    at least :func:`gdpt.auto_route.pilot_threshold` spp on a film with enough whole 16 px tiles
-    for a pilot (:func:`gdpt.auto_route.tile_count`): each shows a route, not "no pilot"."""
-    from gdpt.auto_route import pilot_threshold, tile_count
-    from gdpt.scenes.loading import read_scene
-
+@pytest.mark.slow
+def test_readme_auto_example_shows_a_route(quick_start_runs):
+    """The quick start's ``auto`` commands (``render-and-denoise`` without ``--method``) print a
+    route decided by a pilot (``on N pilot tiles at M gradient spp``), not one taken without a
+    pilot (too few spp for one in the budget, or too few whole 16 px tiles), and, given
+    ``--time``, their timings against that budget."""
     autos = [
-        shlex.split(c)
-        for c in _quick_start_commands()
-        if c.startswith("gdpt render-and-denoise ") and "--method" not in c
+        (command, result)
+        for command, result in quick_start_runs
+        if command.startswith("gdpt render-and-denoise ") and "--method" not in command
     ]
-    assert autos, "the quick start has no auto example"
-    for words in autos:
-        options = dict(zip(words[3:-1], words[4:], strict=True))
-        spp = int(options.get("--spp", 64))  # the command's default
-        long_side = options.get("--long-side")
-        loaded = read_scene(
-            words[2],
-            box_filter="--box-filter" in words,
-            long_side=None if long_side is None else int(long_side),
-        )
-        width, height = loaded.resolution
-        assert spp >= pilot_threshold(), (words, pilot_threshold())
-        assert tile_count(height, width) > 0, (words, loaded.resolution)
+    assert autos, "the quick start has no auto example (or a command before it failed)"
+    for command, result in autos:
+        assert result.returncode == 0, f"{command}: {result.stderr[-2000:]}"
+        route = [line for line in result.stdout.splitlines() if line.startswith("auto: ")]
+        assert len(route) == 1, (command, result.stdout)
+        assert re.search(r" on \d+ pilot tiles at \d+ gradient spp: ", route[0]), (command, route)
+        words = shlex.split(command)
+        if "--time" in words:
+            budget = float(words[words.index("--time") + 1])
+            assert f"s of a {budget:.2f} s budget (" in result.stdout, (command, result.stdout)
 
 
 def _markdown_table(text: str) -> dict[str, dict[str, str]]:
