@@ -5,7 +5,9 @@ and one timed cell (:func:`run_at_budget`).
 Methods that render the same thing share one calibration: :func:`configuration_key` names what
 a method's ``spp`` buys (:attr:`EvalMethod.configuration`), and :func:`calibration_runner` is
 the registered method that renders exactly that and is timed for all of them, so they get the
-same sample count at every budget (``auto`` on its plain route and ``pt+oidn-tuned``).
+same sample count at every budget (``auto`` on its plain route and ``pt+oidn-tuned`` under
+``render-time``). A method that fills a budget in seconds itself (:func:`fills_seconds`:
+``auto`` under ``total``) is given the seconds instead, as a user gives them.
 
 What the budget pays for is the *protocol* (:data:`PROTOCOLS`, :func:`charged_seconds`):
 ``"total"``, sampling and reconstruction (what a user waits for); ``"render-time"``, sampling
@@ -49,6 +51,13 @@ def configuration_key(method: EvalMethod, protocol: str) -> str:
     return json.dumps(config, sort_keys=True)
 
 
+def fills_seconds(method: EvalMethod, protocol: str) -> bool:
+    """Whether the study gives ``method`` its budget in seconds (:attr:`EvalMethod.run_for`:
+    its count its own, as a user's ``render_and_denoise(seconds=...)``) rather than a
+    calibrated count: a method that can, under ``"total"`` (what it fills)."""
+    return method.run_for is not None and protocol == "total"
+
+
 def calibration_runner(method: EvalMethod, protocol: str) -> EvalMethod:
     """The method timed for ``method``'s calibration: the first registered method
     (:data:`~gdpt.study.methods.EVAL_METHODS` order) of the same :func:`configuration_key`
@@ -66,11 +75,18 @@ def calibration_runner(method: EvalMethod, protocol: str) -> EvalMethod:
 
 # ------------------------------------------------------------------------------- calibration
 def timed_run(
-    method: EvalMethod, scene: EvalScene, spp: int, seed: int, *, render_only: bool = False
+    method: EvalMethod,
+    scene: EvalScene,
+    spp: int | None,
+    seed: int,
+    *,
+    render_only: bool = False,
+    seconds: float | None = None,
 ) -> MethodResult:
     """A timed render, after an untimed one at the same ``spp`` and seed unless it is warm;
     with ``render_only``, without the reconstruction where the method can be split
-    (:attr:`EvalMethod.render`).
+    (:attr:`EvalMethod.render`); with ``seconds`` (``spp`` ``None``), the method's
+    :attr:`~EvalMethod.run_for` at that budget, warmed up the same way at the same seed.
 
     The warm-up records what a configuration needs once (kernel compilation, and the Python
     tracing of a frozen pass, which the integrators record per spp per pass and replay
@@ -84,6 +100,10 @@ def timed_run(
     render replays (a warm-up on the other route left the timed render to record the route's
     passes, charged as samples it then did not render).
     """
+    if seconds is not None:
+        assert method.run_for is not None
+        method.run_for(scene, seconds=seconds, seed=seed)
+        return method.run_for(scene, seconds=seconds, seed=seed)
     render = method.render or method.run
     key, split = (method.name, spp, render_only), method.render is not None
     if not (split and key in scene.warm):
