@@ -22,8 +22,9 @@ Protocol, per scene:
 3. Cells (:mod:`gdpt.study.cells`): per budget and replicate seed, every method is calibrated
    and run back to back in one cell, the order reversed on odd replicates; each render
    configuration (:func:`~gdpt.study.calibration.configuration_key`: methods that render the
-   same thing, such as ``auto`` on its plain route and ``pt+oidn-tuned``, share it; recorded
-   per scene in ``calibrations``) is calibrated inside the cell by its
+   same thing share it; recorded per scene in ``calibrations``; ``auto`` under ``total`` is
+   given the budget in seconds instead, :func:`~gdpt.study.calibration.fills_seconds`) is
+   calibrated inside the cell by its
    :func:`~gdpt.study.calibration.calibration_runner`: warm up (1 and 2 spp, untimed, compiles
    the kernels), fit ``t(spp) = a + b * spp`` from a median of 1-spp runs and geometrically
    growing probe runs (:func:`~gdpt.study.calibration.calibrate`), render at the budget and
