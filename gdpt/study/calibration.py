@@ -91,12 +91,14 @@ def timed_run(
     The warm-up records what a configuration needs once (kernel compilation, and the Python
     tracing of a frozen pass, which the integrators record per spp per pass and replay
     afterwards: about 0.35 s for ``gdpt`` on a 49-BSDF scene at 128 px); the timed render
-    replays it, as any repeated render of that configuration does. The warm-up only samples
-    where the method can be split (the reconstruction has nothing to record per spp). A
-    method that can be split renders a configuration set by ``spp`` alone: once it ran at
-    ``spp`` on this scene object (:attr:`EvalScene.warm`), its next runs there replay, with
-    no warm-up. The others (``auto``: its pilot's tiles and the route they choose depend on
-    the seed) warm up every time, at the same seed, so that the warm-up records what the timed
+    replays it, as any repeated render of that configuration does. A method that can be
+    split renders a configuration set by ``spp`` alone, and records a frozen pass per pass
+    size (:func:`gdpt.integrators.common.plan_passes`: a new count mostly replays passes
+    recorded for others): at a count new on this scene object (:attr:`EvalScene.warm`) its
+    first run is the timing unless it recorded passes (:attr:`MethodResult.recorded`; then
+    it is the warm-up and runs again), and its next runs there replay, with no warm-up. The
+    others (``auto``: its pilot's tiles and the route they choose depend on the seed) warm up
+    every time, at the same seed, so that the warm-up records what the timed
     render replays (a warm-up on the other route left the timed render to record the route's
     passes, charged as samples it then did not render).
     """
@@ -105,13 +107,16 @@ def timed_run(
         method.run_for(scene, seconds=seconds, seed=seed)
         return method.run_for(scene, seconds=seconds, seed=seed)
     render = method.render or method.run
+    timed = render if render_only else method.run
     key, split = (method.name, spp, render_only), method.render is not None
-    if not (split and key in scene.warm):
+    if not split:
         render(scene, spp=spp, seed=seed)
-    result = (render if render_only else method.run)(scene, spp=spp, seed=seed)
-    if split:
+    elif key not in scene.warm:  # a count new here: warmed up only where it recorded passes
         scene.warm.add(key)
-    return result
+        result = timed(scene, spp=spp, seed=seed)
+        if not result.recorded:
+            return result
+    return timed(scene, spp=spp, seed=seed)
 
 
 def calibrate(
@@ -162,6 +167,35 @@ def calibrate(
         probe_fraction=probe_fraction,
         max_probe_spp=max_probe_spp,
     )
+
+
+#: The cost model of each ``(scene name, resolution, configuration key)`` in this process
+#: (:func:`configuration_model`): fitted by the configuration's first calibration
+#: (:func:`calibrate`), refined by every timed run after it (the study's cells, ``advise``).
+_MODELS: dict[tuple[str, str, str], TimeModel] = {}
+
+
+def forget_cost_models() -> None:
+    """Start without models (each study fits its own)."""
+    _MODELS.clear()
+
+
+def configuration_model(
+    runner: EvalMethod, scene: EvalScene, key: str, **calibration: Any
+) -> tuple[TimeModel, str]:
+    """The cost model of configuration ``key`` (:func:`configuration_key`) on ``scene`` (its
+    name and resolution) kept in this process, refined in place by its callers' timed runs;
+    where there is none, :func:`calibrate` times ``runner`` with ``calibration`` (its keyword
+    arguments) and keeps the model.
+
+    Returns:
+        The model and where it came from: ``"model"`` (kept) or ``"calibrated"`` (probed now).
+    """
+    model_key = (scene.name, str(scene.resolution), key)
+    if (model := _MODELS.get(model_key)) is not None:
+        return model, "model"
+    model = _MODELS[model_key] = calibrate(runner, scene, **calibration)
+    return model, "calibrated"
 
 
 def run_at_budget(

@@ -12,7 +12,7 @@ cell:
   Benchmarking in Reasonable Time", ISMM 2013);
 * each render configuration (:func:`~gdpt.study.calibration.configuration_key`) takes its
   sample count when its first method's turn comes, in the cell, from the configuration's cost
-  model in its current state (:data:`_MODELS`: probed by
+  model in its current state (:func:`~gdpt.study.calibration.configuration_model`: probed by
   :func:`~gdpt.study.calibration.calibrate` in the configuration's first cell on the worker,
   refined by every timed run since), timed by its runner
   (:func:`~gdpt.study.calibration.run_at_budget`, which redoes a miss at the refitted count):
@@ -47,14 +47,13 @@ from typing import Any
 
 import torch
 
-from gdpt.cost_model import TimeModel
 from gdpt.interrupt import caused_by_interrupt
 from gdpt.pipeline import release_scene
 from gdpt.study.calibration import (
-    calibrate,
     calibration_runner,
     charged_seconds,
     configuration_key,
+    configuration_model,
     fills_seconds,
     run_at_budget,
     timed_run,
@@ -68,7 +67,6 @@ from gdpt.study.scoring import interval_too_wide, score, summarise
 __all__ = [
     "MISS_TOLERANCE",
     "apply_cell",
-    "forget_cost_models",
     "method_order",
     "pending_cells",
     "redo_spp",
@@ -77,18 +75,6 @@ __all__ = [
     "thread_counts",
     "worker_scene",
 ]
-
-#: The cost model of each ``(scene name, resolution, configuration key)`` in this process
-#: (:class:`gdpt.cost_model.TimeModel`): fitted by the configuration's first cell
-#: (:func:`~gdpt.study.calibration.calibrate`), refined by every timed run after it; a run that
-#: misses is redone at the refitted count (:func:`~gdpt.study.calibration.run_at_budget`).
-_MODELS: dict[tuple[str, str, str], TimeModel] = {}
-
-
-def forget_cost_models() -> None:
-    """Start the next study's cells without models (each study fits its own)."""
-    _MODELS.clear()
-
 
 #: A replicate whose charged seconds differ from the budget by more than this share is
 #: rendered once more, then flagged (``missed_budget``). The calibration inside a cell aims at
@@ -361,21 +347,15 @@ def run_cell(
                 if config_key not in calibrations:
                     runner = calibration_runner(method, cfg.protocol)
                     wrapped, log = _measured(runner)
-                    model_key = (scene.name, str(scene.resolution), config_key)
-                    model, source = _MODELS.get(model_key), "model"
-                    if model is None:  # the configuration's first cell in this process probes
-                        calibration_seed = cell_seed(
-                            cfg.seed, scene.name, runner.name, key, str(replicate)
-                        )
-                        model = _MODELS[model_key] = calibrate(
-                            wrapped,
-                            scene,
-                            budget=budget,
-                            seed=calibration_seed,
-                            probe_fraction=cfg.probe_fraction,
-                            protocol=cfg.protocol,
-                        )
-                        source = "calibrated"
+                    model, source = configuration_model(  # probed in its first cell here
+                        wrapped,
+                        scene,
+                        config_key,
+                        budget=budget,
+                        seed=cell_seed(cfg.seed, scene.name, runner.name, key, str(replicate)),
+                        probe_fraction=cfg.probe_fraction,
+                        protocol=cfg.protocol,
+                    )
                     stage = "run"  # the method runs; a failure from here on is one of this cell
                     result, at_budget = run_at_budget(
                         wrapped,

@@ -63,9 +63,9 @@ import torch
 
 from gdpt.interrupt import caused_by_interrupt
 from gdpt.pipeline import release_scene
+from gdpt.study.calibration import forget_cost_models
 from gdpt.study.cells import (
     MISS_TOLERANCE,
-    forget_cost_models,
     pending_cells,
     run_cell,
     set_threads,

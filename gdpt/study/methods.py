@@ -99,6 +99,8 @@ class MethodResult:
         route: for ``auto``, the route it chose (:class:`gdpt.auto_route.RouteChoice` as a dict).
         spp: the sample count a run in seconds (:attr:`EvalMethod.run_for`) chose; ``None``
             for a run at a given count.
+        recorded: the run recorded frozen passes (``metadata["recorded_passes"]`` of its
+            render: the Python tracing of a pass new to the integrator is in its seconds).
     """
 
     image: torch.Tensor
@@ -108,6 +110,7 @@ class MethodResult:
     compile_seconds: float = 0.0
     route: dict[str, Any] | None = None
     spp: int | None = None
+    recorded: bool = False
 
 
 #: ``f(scene, *, spp, seed) -> MethodResult``.
@@ -265,6 +268,7 @@ def _timed_run(
         render_seconds=render_seconds,
         reconstruct_seconds=end - middle,
         compile_seconds=compile_seconds,
+        recorded=bool(buffers.metadata.get("recorded_passes", 0)),
         **(
             {"route": {"pilot_mask": buffers.metadata["pilot_mask"]}}
             if "pilot_mask" in buffers.metadata

@@ -64,34 +64,49 @@ def test_an_unknown_protocol_is_refused_by_name():
 
 
 def test_render_time_calibration_skips_the_reconstruction_where_the_method_splits():
-    calls = []
+    """Under ``render-time`` the probes only sample; a run at a count new on the scene is the
+    timing unless it recorded frozen passes (then it is the warm-up and runs again), and a
+    count already run there is not warmed up again. The fake records at a count never
+    rendered before (by either function)."""
+    calls, rendered = [], set()
+
+    def recorded(spp: int) -> bool:
+        new = spp not in rendered
+        rendered.add(spp)
+        return new
 
     def run(scene, *, spp: int, seed: int) -> MethodResult:
-        calls.append("run")
+        calls.append(("run", spp))
         return MethodResult(
             torch.zeros(3, 4, 3),
             seconds=PER_SPP * spp + 9.0,
             render_seconds=PER_SPP * spp,
             reconstruct_seconds=9.0,
+            recorded=recorded(spp),
         )
 
     def render(scene, *, spp: int, seed: int) -> MethodResult:
-        calls.append("render")
+        calls.append(("render", spp))
         return MethodResult(
-            torch.zeros(3, 4, 3), seconds=PER_SPP * spp, render_seconds=PER_SPP * spp
+            torch.zeros(3, 4, 3),
+            seconds=PER_SPP * spp,
+            render_seconds=PER_SPP * spp,
+            recorded=recorded(spp),
         )
 
     method = EvalMethod("split", "fake split method", run, render=render)
     scene = types.SimpleNamespace(name="fake", resolution=(4, 3), warm=set())
     model = calibrate(method, scene, budget=1.0, seed=1, protocol="render-time")
-    assert set(calls) == {"render"} and model.per_spp == pytest.approx(PER_SPP)
+    assert {kind for kind, _ in calls} == {"render"} and model.per_spp == pytest.approx(PER_SPP)
+    assert calls[:5] == [("render", 1), ("render", 1), ("render", 2), ("render", 2)] + [
+        ("render", 1)
+    ]  # 1 and 2 spp recorded: run again; the 1-spp timings replay
     calls.clear()
     _, record = run_at_budget(method, scene, model, budget=1.0, seed=2, protocol="render-time")
-    assert calls == ["render", "run"] and record["reconstruct_seconds"] == 9.0  # warm-up, cell
+    spp = record["spp"]
+    assert calls == [("run", spp)] * 2 and record["reconstruct_seconds"] == 9.0  # recorded
     calls.clear()
     calibrate(method, scene, budget=20.0, seed=1, protocol="total")
-    # every warm-up only samples, every timed run is charged in full, and a count rendered on
-    # the scene already is not warmed up again (the three 1-spp timings after the warm-ups)
-    assert calls[:7] == ["render", "run", "render", "run", "run", "run", "run"]
-    pairs = zip(calls, calls[1:], strict=False)
-    assert all(after == "run" for before, after in pairs if before == "render")
+    # every timed run is charged in full; 1 and 2 spp were recorded by the render-time probes:
+    # each is timed at once (no warm-up), and the 1-spp timings after them as well
+    assert calls[:5] == [("run", 1), ("run", 2), ("run", 1), ("run", 1), ("run", 1)]
