@@ -50,6 +50,8 @@ import os
 import shlex
 import statistics
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -119,9 +121,16 @@ class Advice:
         plains: each plain render ``P`` that scored them, one per replicate
             (:func:`gdpt.study.estimate.plain_render`: ``image``, ``variance`` ``(H, W, 1)``,
             ``counts``, ``folds``).
-        calibrations: per candidate, how its sample count was found: ``"calibrated"``,
-            ``"shared with NAME"`` (the same render, its reconstruction timed apart) or
-            ``"spp"`` (given); and ``"P"``: the same for ``P``.
+        calibrations: per candidate, how its sample count was found: ``"calibrated"``
+            (probed now), ``"model"`` (the configuration's cost model kept in this process,
+            :func:`gdpt.study.calibration.configuration_model`), ``"shared with NAME"`` (the
+            same render, its reconstruction timed apart) or ``"spp"`` (given); and ``"P"``:
+            the same for ``P``.
+        plain_budget: seconds of each ``P`` (``None`` with ``spp``).
+        models: the cost model of each candidate timed for its own configuration, refined by
+            its renders here.
+        stage_seconds: wall seconds of ``calibration``, ``renders`` (the candidates'),
+            ``plain`` (``P``) and ``other`` (loading, the rest).
     """
 
     scene: str
@@ -138,6 +147,9 @@ class Advice:
     images: dict[str, list[torch.Tensor]] = field(default_factory=dict)
     plains: list[dict[str, Any]] = field(default_factory=list)
     calibrations: dict[str, str] = field(default_factory=dict)
+    plain_budget: float | None = None
+    models: dict[str, TimeModel] = field(default_factory=dict)
+    stage_seconds: dict[str, float] = field(default_factory=dict)
 
     def __str__(self) -> str:
         return "\n".join(self.lines)
@@ -219,8 +231,29 @@ def _render_command(
     return shlex.join([*words, "-o", f"out/{out_name}-{method or name}.exr"])
 
 
+class _Stages:
+    """:func:`advise`'s progress, one bar per stage in seconds
+    (:class:`gdpt.seconds_bar.SecondsBar` on stderr: against the stage's budget where it has
+    one), and the wall seconds per kind of stage (:attr:`Advice.stage_seconds`)."""
+
+    def __init__(self, progress: bool):
+        self.progress = progress
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, kind: str, label: str, budget: float | None = None) -> Iterator[None]:
+        from gdpt.seconds_bar import SecondsBar
+
+        start = time.perf_counter()
+        try:
+            with SecondsBar(budget, label, disable=not self.progress):
+                yield
+        finally:
+            self.seconds[kind] = self.seconds.get(kind, 0.0) + time.perf_counter() - start
+
+
 def _render_and_score(
-    advice: Advice, scene: EvalScene, candidates: list, seed: int, bar: Any
+    advice: Advice, scene: EvalScene, candidates: list, seed: int, stages: _Stages
 ) -> None:
     """Render ``P`` and the candidates per replicate, score them and fill ``advice.lines`` and
     ``advice.recommended`` (stops after ``P`` where ``P`` is unusable: one line why)."""
@@ -239,11 +272,10 @@ def _render_and_score(
     )
     plains = []
     for r in range(advice.replicates):
-        bar.set_postfix_str(f"plain render P {r + 1}")
-        plain = plain_render(
-            scene, advice.plain_spp, cell_seed(seed, scene.name, "advise-plain", str(r))
-        )
-        bar.update(1)
+        with stages("plain", f"plain render P {r + 1}/{advice.replicates}", advice.plain_budget):
+            plain = plain_render(
+                scene, advice.plain_spp, cell_seed(seed, scene.name, "advise-plain", str(r))
+            )
         bad = int((~torch.isfinite(plain["image"])).any(-1).sum())
         bright = float((plain["image"].mean(-1) > math.sqrt(EPS)).float().mean())
         if bad:
@@ -263,11 +295,13 @@ def _render_and_score(
     images: list[list[torch.Tensor]] = [[] for _ in candidates]
     for r in range(advice.replicates):
         for m, (method, record) in enumerate(zip(candidates, advice.methods, strict=True)):
-            bar.set_postfix_str(f"{method.name} {r + 1}")
-            result = method.run(
-                scene, spp=record.spp, seed=replicate_seed(seed, scene.name, "advise", r)
-            )
-            bar.update(1)
+            label = f"{method.name} {r + 1}/{advice.replicates} ({record.spp} spp)"
+            with stages("renders", label, advice.budget):
+                result = method.run(
+                    scene, spp=record.spp, seed=replicate_seed(seed, scene.name, "advise", r)
+                )
+            if (model := advice.models.get(method.name)) is not None:
+                model.update(record.spp, result.seconds)  # every timed run refines its model
             record.seconds.append(result.seconds)
             images[m].append(result.image)
             advice.images.setdefault(method.name, []).append(result.image)
@@ -455,7 +489,8 @@ def advise(
         box_filter: replace an XML film's pixel filter by the box filter.
         max_depth: longest path (default: the scene's integrator setting, else 6).
         seed: base seed of the renders.
-        progress: a progress bar over the calibrations and renders (stderr).
+        progress: a progress bar in seconds per stage (stderr): each calibration (open-ended),
+            each candidate's render against ``budget``, each ``P`` against ``plain_budget``.
 
     Returns:
         The :class:`Advice` (``str(advice)``: the report).
@@ -465,11 +500,12 @@ def advise(
         FileNotFoundError: the scene file does not exist.
     """
     import drjit as dr
-    from tqdm.auto import tqdm
 
-    from gdpt.study.calibration import calibrate, configuration_key
+    from gdpt.study.calibration import configuration_key, configuration_model
+    from gdpt.study.cells import set_threads, thread_counts
     from gdpt.study.config import EvaluateConfig
     from gdpt.study.estimate import MIN_PLAIN_SPP
+    from gdpt.study.evaluate import set_threads_back
     from gdpt.study.methods import EVAL_METHODS
     from gdpt.study.results import cell_seed
 
@@ -484,38 +520,35 @@ def advise(
     plain_key = None
     if budget is not None:
         to_calibrate, shared, plain_key = _calibration_plan(candidates, plain_spp is None)
-    bar = tqdm(
-        total=len(to_calibrate) + len(shared) + replicates * (len(candidates) + 1),
-        unit="render",
-        desc="advise",
-        disable=not progress,
-        dynamic_ncols=True,
-    )
+    stages = _Stages(progress)
     history_flag = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
+    threads = thread_counts()  # the study's threads: torch's few (small tensors, busy cores)
+    set_threads(threads["drjit"])
     try:
         models: dict[str, TimeModel] = {}
-        for key, runner in to_calibrate.items():
-            bar.set_postfix_str(f"calibrating {runner.name}")
-            models[key] = calibrate(
-                runner,
-                loaded,
-                budget=budget,
-                seed=cell_seed(seed, loaded.name, runner.name, "calibration"),
-            )
-            bar.update(1)
+        sources: dict[str, str] = {}
+        for key, runner in to_calibrate.items():  # the study's models: probed once per process
+            with stages("calibration", f"calibration ({runner.name})"):
+                models[key], sources[key] = configuration_model(
+                    runner,
+                    loaded,
+                    key,
+                    budget=budget,
+                    seed=cell_seed(seed, loaded.name, runner.name, "calibration"),
+                    probe_fraction=EvaluateConfig.probe_fraction,
+                )
         runners = {configuration_key(m, "total"): m for m in candidates}
         reconstruction: dict[str, float] = {}
         for key, base in shared.items():  # the same render: only the reconstruction timed
-            bar.set_postfix_str(f"timing {runners[key].name}'s reconstruction")
-            for k in (base, key):
-                if k not in reconstruction:
-                    runner = to_calibrate.get(k, runners[k])
-                    reconstruction[k] = _reconstruction_seconds(
-                        runner, loaded, cell_seed(seed, loaded.name, runner.name, "reconstruct")
-                    )
+            with stages("calibration", f"timing {runners[key].name}'s reconstruction"):
+                for k in (base, key):
+                    if k not in reconstruction:
+                        runner = to_calibrate.get(k, runners[k])
+                        reconstruction[k] = _reconstruction_seconds(
+                            runner, loaded, cell_seed(seed, loaded.name, runner.name, "reconstruct")
+                        )
             models[key] = _shared_model(models[base], reconstruction[key] - reconstruction[base])
-            bar.update(1)
         for method in candidates:  # each candidate's one sample within the budget
             model = models.get(configuration_key(method, "total"))
             if model is not None and model.fixed + model.per_spp > budget * (
@@ -531,7 +564,7 @@ def advise(
         calibrations = {"P": "given"}
         for m in candidates:
             key = configuration_key(m, "total")
-            calibrations[m.name] = "spp" if budget is None else "calibrated"
+            calibrations[m.name] = "spp" if budget is None else sources.get(key, "calibrated")
             if key in shared:
                 calibrations[m.name] = f"shared with {runners[shared[key]].name}"
         if plain_key is not None:
@@ -550,6 +583,12 @@ def advise(
             plain_spp,
             replicates,
             calibrations=calibrations,
+            plain_budget=None if budget is None else plain_budget or budget,
+            models={
+                m.name: models[configuration_key(m, "total")]
+                for m in candidates
+                if configuration_key(m, "total") in to_calibrate
+            },
         )
         if plain_spp < MIN_PLAIN_SPP:
             raise ValueError(
@@ -557,22 +596,29 @@ def advise(
                 f"variance and weights cannot be measured; give a larger budget or plain_spp >= "
                 f"{MIN_PLAIN_SPP}"
             )  # before any scored render (plain_render says the same)
-        _render_and_score(advice, loaded, candidates, seed, bar)
+        _render_and_score(advice, loaded, candidates, seed, stages)
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, history_flag)
-        bar.close()
+        set_threads_back(threads)
     advice.seconds = time.perf_counter() - start
+    advice.stage_seconds = {
+        **stages.seconds,
+        "other": advice.seconds - sum(stages.seconds.values()),
+    }
     options = {"long_side": long_side, "box_filter": box_filter, "max_depth": max_depth}
     if advice.recommended is not None:
         chosen = next(m for m in advice.methods if m.name == advice.recommended)
         advice.command = _render_command(
             chosen.name, chosen.spp, scene, options, loaded.name, budget
         )
+    spent = advice.stage_seconds
     advice.lines += [
         f"time: {advice.seconds:.1f} s "
         + (f"({advice.seconds / budget:.1f}x the {budget:g} s budget: " if budget else "(")
-        + f"calibration, {replicates} x {len(candidates)} renders "
-        f"and {replicates} plain render(s) P)"
+        + f"calibration {spent.get('calibration', 0.0):.1f} s, {replicates} x "
+        f"{len(candidates)} renders {spent.get('renders', 0.0):.1f} s, {replicates} plain "
+        f"render(s) P {spent.get('plain', 0.0):.1f} s, loading and the rest "
+        f"{spent['other']:.1f} s)"
     ]
     if advice.command is not None:
         advice.lines.append(f"render it: {advice.command}")
