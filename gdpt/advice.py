@@ -300,7 +300,8 @@ def _render_and_score(
                 result = method.run(
                     scene, spp=record.spp, seed=replicate_seed(seed, scene.name, "advise", r)
                 )
-            if (model := advice.models.get(method.name)) is not None:
+            model = advice.models.get(method.name)
+            if model is not None and not result.recorded:  # (a recording is not the samples')
                 model.update(record.spp, result.seconds)  # every timed run refines its model
             record.seconds.append(result.seconds)
             images[m].append(result.image)

@@ -127,7 +127,9 @@ def fit_by_probing(
 ) -> TimeModel:
     """Fit a :class:`TimeModel` from probe timings: the median of ``repeats`` runs at
     ``first_spp`` (1; ``auto`` starts where its pilot runs, whose cost the line must hold),
-    then sample counts raised geometrically (x2 to x8, aiming at the target) until a run takes
+    then sample counts raised geometrically (x2 to x8, aiming at the target: the count the
+    line through the timings so far puts there, or the time ratio while one count was timed;
+    a large fixed cost, such as a reconstruction, then takes fewer probes) until a run takes
     at least ``probe_fraction * budget`` and at least three timings exist (or ``max_probe_spp``
     is reached).
 
@@ -145,7 +147,11 @@ def fit_by_probing(
     measurements = [(first_spp, t)]
     spp, target = first_spp, probe_fraction * budget
     while (t < target or len(measurements) < 3) and spp < max_probe_spp:
-        spp = min(max_probe_spp, spp * min(8, max(2, round(target / max(t, 1e-6)))))
+        step = target / max(t, 1e-6)
+        if len({n for n, _ in measurements}) > 1:  # aim with the line so far
+            line = TimeModel.fit(measurements)
+            step = (target - line.fixed) / line.per_spp / spp
+        spp = min(max_probe_spp, spp * min(8, max(2, math.ceil(step))))
         t = timed(spp, spp)
         measurements.append((spp, t))
     return TimeModel.fit(measurements)

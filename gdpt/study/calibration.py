@@ -132,8 +132,11 @@ def calibrate(
 ) -> TimeModel:
     """Fit a :class:`TimeModel` by timing ``method`` on ``scene``.
 
-    Warms up at 1 and 2 spp (untimed: the kernels compile), takes the median of ``repeats``
-    1-spp runs, then raises the sample count geometrically (x2 to x8, aiming at the target)
+    Warms up at 1 and 2 spp (untimed: the kernels compile) where the method cannot be split
+    (a split method's run at a new count is its own warm-up where it records passes:
+    :func:`timed_run`), takes the median of ``repeats`` 1-spp runs (a first call's loading
+    is one of them at most), then raises the sample count geometrically (x2 to x8, aiming at
+    the target: :func:`gdpt.cost_model.fit_by_probing`)
     until a run takes at least ``probe_fraction * budget`` (and at least two probes ran); the
     least-squares line through these timings is the model. Under ``render-time`` the
     reconstruction is not charged, so the probes skip it where the method can be split
@@ -156,8 +159,9 @@ def calibrate(
         MethodUnavailable: the method cannot run here.
     """
     split = protocol == "render-time"  # the reconstruction is not charged: not run
-    timed_run(method, scene, 1, seed, render_only=split)
-    timed_run(method, scene, 2, seed, render_only=split)
+    if method.render is None:  # (a split method's first run at a count warms up where needed)
+        timed_run(method, scene, 1, seed, render_only=split)
+        timed_run(method, scene, 2, seed, render_only=split)
     return fit_by_probing(
         lambda spp, offset: charged_seconds(
             timed_run(method, scene, spp, seed + offset, render_only=split), protocol

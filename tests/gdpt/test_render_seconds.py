@@ -242,3 +242,16 @@ def test_auto_timed_render_gets_its_deadline_and_its_gradient_route_learns_fuse(
     assert deadlines[-1] is None
     pipeline.release_scene(scene)
     assert learned_reconstruct_seconds(scene, {"max_depth": 4}) is None
+
+
+def test_probing_aims_with_the_line_past_a_large_fixed_cost():
+    """A reconstruction's fixed seconds dominate the first probes: aiming with the line (not
+    the time ratio, which would take 1, 4, 12, 24, 48 spp) reaches the target in three."""
+    seen = []
+
+    def timed(spp, offset):
+        seen.append(spp)
+        return 0.5 + 0.05 * spp
+
+    model = fit_by_probing(timed, budget=4.0, repeats=1, probe_fraction=0.5)
+    assert seen == [1, 4, 32] and model.spp_for(4.0) == 70
