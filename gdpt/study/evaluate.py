@@ -25,13 +25,14 @@ Protocol, per scene:
    same thing share it; recorded per scene in ``calibrations``; ``auto`` under ``total`` is
    given the budget in seconds instead, :func:`~gdpt.study.calibration.fills_seconds`) is
    calibrated inside the cell by its
-   :func:`~gdpt.study.calibration.calibration_runner`: warm up (1 and 2 spp, untimed, compiles
-   the kernels), fit ``t(spp) = a + b * spp`` from a median of 1-spp runs and geometrically
-   growing probe runs (:func:`~gdpt.study.calibration.calibrate`), render at the budget and
-   correct (:func:`~gdpt.study.calibration.run_at_budget`). Every timed render follows an
-   untimed render of the same method at the same spp: the integrators record a frozen pass per
-   spp per pass and replay it afterwards, so the timed render pays neither kernel compilation
-   nor the Python tracing of the path loop. A replicate that misses its budget by more than
+   :func:`~gdpt.study.calibration.calibration_runner`: fit ``t(spp) = a + b * spp`` from a
+   median of 1-spp runs and geometrically growing probe runs
+   (:func:`~gdpt.study.calibration.calibrate`), render at the budget and correct
+   (:func:`~gdpt.study.calibration.run_at_budget`). No timed render pays kernel compilation
+   (subtracted) or the Python tracing of a frozen pass (the integrators record one per pass
+   size and replay it afterwards): a run that recorded passes was the warm-up and runs again
+   (:func:`~gdpt.study.calibration.timed_run`; ``auto`` and methods that cannot be split warm
+   up before every timed render). A replicate that misses its budget by more than
    :data:`~gdpt.study.cells.MISS_TOLERANCE` is redone once, then flagged.
 4. Metrics of every replicate; ``results.json`` is rewritten (atomically) after each cell, so
    an interrupted run resumes without recomputing finished cells. With ``workers`` or
