@@ -258,12 +258,12 @@ def _evaluate(
             "to back on one worker (order reversed on odd replicates; timings compare only "
             "within a cell); each render configuration's spp is calibrated by timing inside "
             "the cell and shared by every method that renders it ('calibrations' per scene; "
+            "auto is given the budget in seconds under total; "
             "t = a + b*spp fitted to 1-spp medians and growing probes, then verified and "
             f"re-rendered if off by more than {min(cfg.tolerance, MISS_TOLERANCE):.0%}); a "
             f"replicate that misses its budget by more than {MISS_TOLERANCE:.0%} is redone "
-            "once, then flagged (missed_budget); every timed "
-            "render follows an untimed one at the same spp (kernel compilation and frozen-pass "
-            "recording are paid once per configuration, not timed); reference: "
+            "once, then flagged (missed_budget); no timed render pays kernel compilation or "
+            "frozen-pass recording (a run that recorded passes is run again); reference: "
             f"path tracing at {cfg.reference_spp} spp on the same box-filtered film"
         ),
     )
