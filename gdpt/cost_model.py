@@ -116,6 +116,11 @@ class TimeModel:
         self.fixed, self.per_spp, self.measurements = refit.fixed, refit.per_spp, refit.measurements
 
 
+#: :func:`fit_by_probing` aims each probe at this multiple of its target (a probe that lands
+#: just short of the target would take one more, the largest).
+PROBE_AIM = 1.2
+
+
 def fit_by_probing(
     timed: Callable[[int, int], float],
     *,
@@ -127,8 +132,9 @@ def fit_by_probing(
 ) -> TimeModel:
     """Fit a :class:`TimeModel` from probe timings: the median of ``repeats`` runs at
     ``first_spp`` (1; ``auto`` starts where its pilot runs, whose cost the line must hold),
-    then sample counts raised geometrically (x2 to x8, aiming at the target: the count the
-    line through the timings so far puts there, or the time ratio while one count was timed;
+    then sample counts raised geometrically (x2 to x8, aiming at :data:`PROBE_AIM` times the
+    target: the count the line through the timings so far puts there, or the time ratio while
+    one count was timed;
     a large fixed cost, such as a reconstruction, then takes fewer probes) until a run takes
     at least ``probe_fraction * budget`` and at least three timings exist (or ``max_probe_spp``
     is reached).
@@ -146,11 +152,12 @@ def fit_by_probing(
     t = statistics.median(timed(first_spp, i) for i in range(repeats))
     measurements = [(first_spp, t)]
     spp, target = first_spp, probe_fraction * budget
+    aim = PROBE_AIM * target  # a probe just short of the target would take another
     while (t < target or len(measurements) < 3) and spp < max_probe_spp:
-        step = target / max(t, 1e-6)
+        step = aim / max(t, 1e-6)
         if len({n for n, _ in measurements}) > 1:  # aim with the line so far
             line = TimeModel.fit(measurements)
-            step = (target - line.fixed) / line.per_spp / spp
+            step = (aim - line.fixed) / line.per_spp / spp
         spp = min(max_probe_spp, spp * min(8, max(2, math.ceil(step))))
         t = timed(spp, spp)
         measurements.append((spp, t))

@@ -246,7 +246,8 @@ def test_auto_timed_render_gets_its_deadline_and_its_gradient_route_learns_fuse(
 
 def test_probing_aims_with_the_line_past_a_large_fixed_cost():
     """A reconstruction's fixed seconds dominate the first probes: aiming with the line (not
-    the time ratio, which would take 1, 4, 12, 24, 48 spp) reaches the target in three."""
+    the time ratio, which would take 1, 5, 20, 40 spp) past the target (2 s) reaches it in
+    three."""
     seen = []
 
     def timed(spp, offset):
@@ -254,4 +255,4 @@ def test_probing_aims_with_the_line_past_a_large_fixed_cost():
         return 0.5 + 0.05 * spp
 
     model = fit_by_probing(timed, budget=4.0, repeats=1, probe_fraction=0.5)
-    assert seen == [1, 4, 32] and model.spp_for(4.0) == 70
+    assert seen == [1, 5, 40] and model.spp_for(4.0) == 70
