@@ -2,11 +2,13 @@
 
 The candidate methods (study methods of :data:`gdpt.study.methods.EVAL_METHODS`, default
 :data:`DEFAULT_METHODS`) get the same wall time on this machine through the study's
-calibration (:func:`gdpt.study.calibration.calibrate`, shared by methods that render the same
-configuration), each renders once per replicate, and one independent plain render ``P`` per
-replicate (two folds of two halves: its per-pixel variance and weights) scores them: the
-relMSE ratio of each method to the first, with a 95% Fieller interval, from the
-reference-free estimator of :mod:`gdpt.reconstruct.reference_free` (relMSE weights from
+cost models (:func:`gdpt.study.calibration.configuration_model`: probed once per scene,
+resolution and configuration in a process, up to :data:`gdpt.pipeline.PROBE_FRACTION` of the
+budget as ``render_and_denoise(seconds=...)``, refined by each render; shared by methods that
+render the same configuration), each renders once per replicate, and one independent plain
+render ``P`` per replicate (two folds of two halves: its per-pixel variance and weights)
+scores them: the relMSE ratio of each method to the first, with a 95% Fieller interval, from
+the reference-free estimator of :mod:`gdpt.reconstruct.reference_free` (relMSE weights from
 ``P``'s two independent folds, each fold's terms weighted by the other's: unbiased
 denominators, alike for every method; standard errors from 8 px block sums, replicates
 pooled)::
@@ -502,6 +504,7 @@ def advise(
     """
     import drjit as dr
 
+    from gdpt.pipeline import PROBE_FRACTION
     from gdpt.study.calibration import configuration_key, configuration_model
     from gdpt.study.cells import set_threads, thread_counts
     from gdpt.study.config import EvaluateConfig
@@ -537,7 +540,7 @@ def advise(
                     key,
                     budget=budget,
                     seed=cell_seed(seed, loaded.name, runner.name, "calibration"),
-                    probe_fraction=EvaluateConfig.probe_fraction,
+                    probe_fraction=PROBE_FRACTION,  # as render_and_denoise(seconds=)
                 )
         runners = {configuration_key(m, "total"): m for m in candidates}
         reconstruction: dict[str, float] = {}
