@@ -25,8 +25,9 @@ seconds per sample and its fixed seconds shifted by the difference of their reco
 seconds (each the median of 3 runs at 1 spp, :func:`_shared_model`), instead of a calibration of
 their own (2-3 budgets each, the untimed warm-up renders included).
 
-``P``'s sample count: the plain samples that fill ``plain_budget`` seconds (default: the
-candidates' budget, so ``P`` costs about as much as one candidate; with ``spp``, ``plain_spp``
+``P``'s sample count: the plain samples that fill ``plain_budget`` seconds, to three
+significant bits (:func:`few_pass_sizes`; default: the candidates' budget, so ``P`` costs about
+as much as one candidate; with ``spp``, ``plain_spp``
 defaults to that count), at the cost per sample of the first candidate that renders plain
 samples (``P`` renders no features and reconstructs nothing, so it takes a little less than
 ``plain_budget``); only where no candidate renders plain samples is ``pt`` calibrated for it.
@@ -155,6 +156,20 @@ class Advice:
 
     def __str__(self) -> str:
         return "\n".join(self.lines)
+
+
+def few_pass_sizes(spp: int, bits: int = 3) -> int:
+    """``spp`` rounded down to its ``bits`` highest set bits (at most a quarter fewer samples):
+    a render splits its count into passes whose sizes are powers of two below a full pass
+    (:func:`gdpt.integrators.common.plan_passes`), each size traced once per integrator, so
+    ``P`` (an integrator of its own) traces at most ``bits`` of them (about 1 s each on a
+    room at 128 px)."""
+    kept = 0
+    for _ in range(bits):
+        if spp <= kept:
+            break
+        kept |= 1 << ((spp - kept).bit_length() - 1)
+    return max(1, kept)
 
 
 def _check_arguments(
@@ -564,7 +579,11 @@ def advise(
                     "lower the resolution (--long-side)"
                 )
         if plain_spp is None:
-            plain_spp = spp if budget is None else models[plain_key].spp_for(plain_budget or budget)
+            plain_spp = (
+                spp
+                if budget is None
+                else few_pass_sizes(models[plain_key].spp_for(plain_budget or budget))
+            )
         calibrations = {"P": "given"}
         for m in candidates:
             key = configuration_key(m, "total")

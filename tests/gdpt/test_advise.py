@@ -290,3 +290,14 @@ def test_feature_a_second_advice_takes_its_counts_from_the_kept_models(
     time_line = next(line for line in second.lines if line.startswith("time: "))
     assert re.search(r"calibration [0-9.]+ s, 1 x 2 renders [0-9.]+ s, 1 plain", time_line)
     assert second.stage_seconds["calibration"] < first.stage_seconds["calibration"]
+
+
+def test_feature_plain_count_keeps_three_pass_sizes():
+    """``P``'s count from a budget keeps its three highest bits (its passes: three sizes to
+    trace at most), losing under a quarter of the samples."""
+    from gdpt.advice import few_pass_sizes
+
+    for spp in range(1, 2000):
+        kept = few_pass_sizes(spp)
+        assert bin(kept).count("1") <= 3 and 0.75 * spp < kept <= spp
+    assert few_pass_sizes(109) == 104 and few_pass_sizes(7) == 7
