@@ -196,7 +196,7 @@ def redo_spp(spp: int, charged: float, budget: float, per_spp: float) -> int:
 def _timed_replicate(
     method: EvalMethod,
     scene: EvalScene,
-    spp: int,
+    spp: int | None,
     seed: int,
     budget: float,
     protocol: str,
