@@ -22,13 +22,13 @@ pooled)::
 Candidates that render the same samples and differ only in their reconstruction
 (``pt+oidn-tuned`` and ``pt+oidn``) share one calibration of the render: the later ones take its
 seconds per sample and its fixed seconds shifted by the difference of their reconstructions'
-seconds (each the median of 3 runs at 1 spp, :func:`_shared_model`), instead of a calibration of
-their own (2-3 budgets each, the untimed warm-up renders included).
+seconds (each the median of 3 runs at 1 spp, :meth:`gdpt.cost_model.TimeModel.shifted`),
+instead of a calibration of their own (2-3 budgets each, the untimed warm-up renders included).
 
 ``P``'s sample count: the plain samples that fill ``plain_budget`` seconds, to three
-significant bits (:func:`few_pass_sizes`; default: the candidates' budget, so ``P`` costs about
-as much as one candidate; with ``spp``, ``plain_spp``
-defaults to that count), at the cost per sample of the first candidate that renders plain
+significant bits (:func:`gdpt.study.estimate.few_pass_sizes`; default: the candidates'
+budget, so ``P`` costs about as much as one candidate; with ``spp``, ``plain_spp`` defaults
+to that count), at the cost per sample of the first candidate that renders plain
 samples (``P`` renders no features and reconstructs nothing, so it takes a little less than
 ``plain_budget``); only where no candidate renders plain samples is ``pt`` calibrated for it.
 ``P``'s noise adds to a difference's variance in proportion to ``1 / n``
@@ -53,8 +53,6 @@ import os
 import shlex
 import statistics
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -63,6 +61,7 @@ if TYPE_CHECKING:
 
     from gdpt.cost_model import TimeModel
     from gdpt.reconstruct.reference_free import RatioEstimate
+    from gdpt.seconds_bar import StageBars
     from gdpt.study.methods import EvalMethod
     from gdpt.study.scenes import EvalScene
 
@@ -158,20 +157,6 @@ class Advice:
         return "\n".join(self.lines)
 
 
-def few_pass_sizes(spp: int, bits: int = 3) -> int:
-    """``spp`` rounded down to its ``bits`` highest set bits (at most a quarter fewer samples):
-    a render splits its count into passes whose sizes are powers of two below a full pass
-    (:func:`gdpt.integrators.common.plan_passes`), each size traced once per integrator, so
-    ``P`` (an integrator of its own) traces at most ``bits`` of them (about 1 s each on a
-    room at 128 px)."""
-    kept = 0
-    for _ in range(bits):
-        if spp <= kept:
-            break
-        kept |= 1 << ((spp - kept).bit_length() - 1)
-    return max(1, kept)
-
-
 def _check_arguments(
     budget: float | None, spp: int | None, methods: tuple[str, ...], replicates: int
 ) -> tuple[float | None, list[str]]:
@@ -248,29 +233,8 @@ def _render_command(
     return shlex.join([*words, "-o", f"out/{out_name}-{method or name}.exr"])
 
 
-class _Stages:
-    """:func:`advise`'s progress, one bar per stage in seconds
-    (:class:`gdpt.seconds_bar.SecondsBar` on stderr: against the stage's budget where it has
-    one), and the wall seconds per kind of stage (:attr:`Advice.stage_seconds`)."""
-
-    def __init__(self, progress: bool):
-        self.progress = progress
-        self.seconds: dict[str, float] = {}
-
-    @contextmanager
-    def __call__(self, kind: str, label: str, budget: float | None = None) -> Iterator[None]:
-        from gdpt.seconds_bar import SecondsBar
-
-        start = time.perf_counter()
-        try:
-            with SecondsBar(budget, label, disable=not self.progress):
-                yield
-        finally:
-            self.seconds[kind] = self.seconds.get(kind, 0.0) + time.perf_counter() - start
-
-
 def _render_and_score(
-    advice: Advice, scene: EvalScene, candidates: list, seed: int, stages: _Stages
+    advice: Advice, scene: EvalScene, candidates: list, seed: int, stages: StageBars
 ) -> None:
     """Render ``P`` and the candidates per replicate, score them and fill ``advice.lines`` and
     ``advice.recommended`` (stops after ``P`` where ``P`` is unusable: one line why)."""
@@ -413,18 +377,6 @@ def _reconstruction_seconds(
     )
 
 
-def _shared_model(model: TimeModel, difference: float) -> TimeModel:
-    """``model`` of a render with another reconstruction, ``difference`` seconds slower (or
-    faster): the same seconds per sample, every timing shifted by ``difference``."""
-    from gdpt.cost_model import TimeModel
-
-    return TimeModel(
-        fixed=max(0.0, model.fixed + difference),
-        per_spp=model.per_spp,
-        measurements=[(spp, max(1e-9, t + difference)) for spp, t in model.measurements],
-    )
-
-
 def _calibration_plan(
     candidates: list[EvalMethod], plain: bool
 ) -> tuple[dict[str, EvalMethod], dict[str, str], str | None]:
@@ -520,10 +472,11 @@ def advise(
     import drjit as dr
 
     from gdpt.pipeline import PROBE_FRACTION
+    from gdpt.seconds_bar import StageBars
     from gdpt.study.calibration import configuration_key, configuration_model
     from gdpt.study.cells import set_threads, thread_counts
     from gdpt.study.config import EvaluateConfig
-    from gdpt.study.estimate import MIN_PLAIN_SPP
+    from gdpt.study.estimate import MIN_PLAIN_SPP, few_pass_sizes
     from gdpt.study.evaluate import set_threads_back
     from gdpt.study.methods import EVAL_METHODS
     from gdpt.study.results import cell_seed
@@ -539,7 +492,7 @@ def advise(
     plain_key = None
     if budget is not None:
         to_calibrate, shared, plain_key = _calibration_plan(candidates, plain_spp is None)
-    stages = _Stages(progress)
+    stages = StageBars(progress)
     history_flag = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     threads = thread_counts()  # the study's threads: torch's few (small tensors, busy cores)
@@ -567,7 +520,7 @@ def advise(
                         reconstruction[k] = _reconstruction_seconds(
                             runner, loaded, cell_seed(seed, loaded.name, runner.name, "reconstruct")
                         )
-            models[key] = _shared_model(models[base], reconstruction[key] - reconstruction[base])
+            models[key] = models[base].shifted(reconstruction[key] - reconstruction[base])
         for method in candidates:  # each candidate's one sample within the budget
             model = models.get(configuration_key(method, "total"))
             if model is not None and model.fixed + model.per_spp > budget * (
@@ -579,11 +532,8 @@ def advise(
                     "lower the resolution (--long-side)"
                 )
         if plain_spp is None:
-            plain_spp = (
-                spp
-                if budget is None
-                else few_pass_sizes(models[plain_key].spp_for(plain_budget or budget))
-            )
+            filled = spp or models[plain_key].spp_for(plain_budget or budget)
+            plain_spp = filled if budget is None else few_pass_sizes(filled)
         calibrations = {"P": "given"}
         for m in candidates:
             key = configuration_key(m, "total")

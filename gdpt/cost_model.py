@@ -110,6 +110,15 @@ class TimeModel:
         self.per_spp *= scale
         self.measurements = [(n, t * scale) for n, t in self.measurements]
 
+    def shifted(self, difference: float) -> TimeModel:
+        """This model for a render with another reconstruction, ``difference`` seconds slower
+        (or faster): the same seconds per sample, every timing shifted by ``difference``."""
+        return TimeModel(
+            fixed=max(0.0, self.fixed + difference),
+            per_spp=self.per_spp,
+            measurements=[(spp, max(1e-9, t + difference)) for spp, t in self.measurements],
+        )
+
     def update(self, spp: int, seconds: float) -> None:
         """Add a timing and refit."""
         refit = TimeModel.fit([*self.measurements, (spp, seconds)])

@@ -109,15 +109,14 @@ def test_feature_calibration_plan_shares_the_render_of_equal_samples():
 
 
 def test_feature_shared_model_shifts_the_fixed_seconds():
-    from gdpt.advice import _shared_model
     from gdpt.study.calibration import TimeModel
 
     model = TimeModel.fit([(1, 0.11), (10, 0.2), (100, 1.1)])
-    slower = _shared_model(model, 0.5)
+    slower = model.shifted(0.5)
     assert slower.per_spp == model.per_spp
     assert slower.fixed == pytest.approx(model.fixed + 0.5)
     assert slower.spp_for(2.0) == model.spp_for(1.5)
-    assert _shared_model(model, -10.0).fixed == 0.0
+    assert model.shifted(-10.0).fixed == 0.0
 
 
 def test_feature_budget_calibrates_each_render_once(monkeypatch):
@@ -295,7 +294,7 @@ def test_feature_a_second_advice_takes_its_counts_from_the_kept_models(
 def test_feature_plain_count_keeps_three_pass_sizes():
     """``P``'s count from a budget keeps its three highest bits (its passes: three sizes to
     trace at most), losing under a quarter of the samples."""
-    from gdpt.advice import few_pass_sizes
+    from gdpt.study.estimate import few_pass_sizes
 
     for spp in range(1, 2000):
         kept = few_pass_sizes(spp)
