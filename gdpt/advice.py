@@ -2,11 +2,13 @@
 
 The candidate methods (study methods of :data:`gdpt.study.methods.EVAL_METHODS`, default
 :data:`DEFAULT_METHODS`) get the same wall time on this machine through the study's
-calibration (:func:`gdpt.study.calibration.calibrate`, shared by methods that render the same
-configuration), each renders once per replicate, and one independent plain render ``P`` per
-replicate (two folds of two halves: its per-pixel variance and weights) scores them: the
-relMSE ratio of each method to the first, with a 95% Fieller interval, from the
-reference-free estimator of :mod:`gdpt.reconstruct.reference_free` (relMSE weights from
+cost models (:func:`gdpt.study.calibration.configuration_model`: probed once per scene,
+resolution and configuration in a process, up to :data:`gdpt.pipeline.PROBE_FRACTION` of the
+budget as ``render_and_denoise(seconds=...)``, refined by each render; shared by methods that
+render the same configuration), each renders once per replicate, and one independent plain
+render ``P`` per replicate (two folds of two halves: its per-pixel variance and weights)
+scores them: the relMSE ratio of each method to the first, with a 95% Fieller interval, from
+the reference-free estimator of :mod:`gdpt.reconstruct.reference_free` (relMSE weights from
 ``P``'s two independent folds, each fold's terms weighted by the other's: unbiased
 denominators, alike for every method; standard errors from 8 px block sums, replicates
 pooled)::
@@ -20,12 +22,13 @@ pooled)::
 Candidates that render the same samples and differ only in their reconstruction
 (``pt+oidn-tuned`` and ``pt+oidn``) share one calibration of the render: the later ones take its
 seconds per sample and its fixed seconds shifted by the difference of their reconstructions'
-seconds (each the median of 3 runs at 1 spp, :func:`_shared_model`), instead of a calibration of
-their own (2-3 budgets each, the untimed warm-up renders included).
+seconds (each the median of 3 runs at 1 spp, :meth:`gdpt.cost_model.TimeModel.shifted`),
+instead of a calibration of their own (2-3 budgets each, the untimed warm-up renders included).
 
-``P``'s sample count: the plain samples that fill ``plain_budget`` seconds (default: the
-candidates' budget, so ``P`` costs about as much as one candidate; with ``spp``, ``plain_spp``
-defaults to that count), at the cost per sample of the first candidate that renders plain
+``P``'s sample count: the plain samples that fill ``plain_budget`` seconds, to three
+significant bits (:func:`gdpt.study.estimate.few_pass_sizes`; default: the candidates'
+budget, so ``P`` costs about as much as one candidate; with ``spp``, ``plain_spp`` defaults
+to that count), at the cost per sample of the first candidate that renders plain
 samples (``P`` renders no features and reconstructs nothing, so it takes a little less than
 ``plain_budget``); only where no candidate renders plain samples is ``pt`` calibrated for it.
 ``P``'s noise adds to a difference's variance in proportion to ``1 / n``
@@ -58,6 +61,7 @@ if TYPE_CHECKING:
 
     from gdpt.cost_model import TimeModel
     from gdpt.reconstruct.reference_free import RatioEstimate
+    from gdpt.seconds_bar import StageBars
     from gdpt.study.methods import EvalMethod
     from gdpt.study.scenes import EvalScene
 
@@ -119,9 +123,16 @@ class Advice:
         plains: each plain render ``P`` that scored them, one per replicate
             (:func:`gdpt.study.estimate.plain_render`: ``image``, ``variance`` ``(H, W, 1)``,
             ``counts``, ``folds``).
-        calibrations: per candidate, how its sample count was found: ``"calibrated"``,
-            ``"shared with NAME"`` (the same render, its reconstruction timed apart) or
-            ``"spp"`` (given); and ``"P"``: the same for ``P``.
+        calibrations: per candidate, how its sample count was found: ``"calibrated"``
+            (probed now), ``"model"`` (the configuration's cost model kept in this process,
+            :func:`gdpt.study.calibration.configuration_model`), ``"shared with NAME"`` (the
+            same render, its reconstruction timed apart) or ``"spp"`` (given); and ``"P"``:
+            the same for ``P``.
+        plain_budget: seconds of each ``P`` (``None`` with ``spp``).
+        models: the cost model of each candidate timed for its own configuration, refined by
+            its renders here.
+        stage_seconds: wall seconds of ``calibration``, ``renders`` (the candidates'),
+            ``plain`` (``P``) and ``other`` (loading, the rest).
     """
 
     scene: str
@@ -138,6 +149,9 @@ class Advice:
     images: dict[str, list[torch.Tensor]] = field(default_factory=dict)
     plains: list[dict[str, Any]] = field(default_factory=list)
     calibrations: dict[str, str] = field(default_factory=dict)
+    plain_budget: float | None = None
+    models: dict[str, TimeModel] = field(default_factory=dict)
+    stage_seconds: dict[str, float] = field(default_factory=dict)
 
     def __str__(self) -> str:
         return "\n".join(self.lines)
@@ -220,7 +234,7 @@ def _render_command(
 
 
 def _render_and_score(
-    advice: Advice, scene: EvalScene, candidates: list, seed: int, bar: Any
+    advice: Advice, scene: EvalScene, candidates: list, seed: int, stages: StageBars
 ) -> None:
     """Render ``P`` and the candidates per replicate, score them and fill ``advice.lines`` and
     ``advice.recommended`` (stops after ``P`` where ``P`` is unusable: one line why)."""
@@ -239,11 +253,10 @@ def _render_and_score(
     )
     plains = []
     for r in range(advice.replicates):
-        bar.set_postfix_str(f"plain render P {r + 1}")
-        plain = plain_render(
-            scene, advice.plain_spp, cell_seed(seed, scene.name, "advise-plain", str(r))
-        )
-        bar.update(1)
+        with stages("plain", f"plain render P {r + 1}/{advice.replicates}", advice.plain_budget):
+            plain = plain_render(
+                scene, advice.plain_spp, cell_seed(seed, scene.name, "advise-plain", str(r))
+            )
         bad = int((~torch.isfinite(plain["image"])).any(-1).sum())
         bright = float((plain["image"].mean(-1) > math.sqrt(EPS)).float().mean())
         if bad:
@@ -263,11 +276,14 @@ def _render_and_score(
     images: list[list[torch.Tensor]] = [[] for _ in candidates]
     for r in range(advice.replicates):
         for m, (method, record) in enumerate(zip(candidates, advice.methods, strict=True)):
-            bar.set_postfix_str(f"{method.name} {r + 1}")
-            result = method.run(
-                scene, spp=record.spp, seed=replicate_seed(seed, scene.name, "advise", r)
-            )
-            bar.update(1)
+            label = f"{method.name} {r + 1}/{advice.replicates} ({record.spp} spp)"
+            with stages("renders", label, advice.budget):
+                result = method.run(
+                    scene, spp=record.spp, seed=replicate_seed(seed, scene.name, "advise", r)
+                )
+            model = advice.models.get(method.name)
+            if model is not None and not result.recorded:  # (a recording is not the samples')
+                model.update(record.spp, result.seconds)  # every timed run refines its model
             record.seconds.append(result.seconds)
             images[m].append(result.image)
             advice.images.setdefault(method.name, []).append(result.image)
@@ -361,18 +377,6 @@ def _reconstruction_seconds(
     )
 
 
-def _shared_model(model: TimeModel, difference: float) -> TimeModel:
-    """``model`` of a render with another reconstruction, ``difference`` seconds slower (or
-    faster): the same seconds per sample, every timing shifted by ``difference``."""
-    from gdpt.cost_model import TimeModel
-
-    return TimeModel(
-        fixed=max(0.0, model.fixed + difference),
-        per_spp=model.per_spp,
-        measurements=[(spp, max(1e-9, t + difference)) for spp, t in model.measurements],
-    )
-
-
 def _calibration_plan(
     candidates: list[EvalMethod], plain: bool
 ) -> tuple[dict[str, EvalMethod], dict[str, str], str | None]:
@@ -455,7 +459,8 @@ def advise(
         box_filter: replace an XML film's pixel filter by the box filter.
         max_depth: longest path (default: the scene's integrator setting, else 6).
         seed: base seed of the renders.
-        progress: a progress bar over the calibrations and renders (stderr).
+        progress: a progress bar in seconds per stage (stderr): each calibration (open-ended),
+            each candidate's render against ``budget``, each ``P`` against ``plain_budget``.
 
     Returns:
         The :class:`Advice` (``str(advice)``: the report).
@@ -465,11 +470,14 @@ def advise(
         FileNotFoundError: the scene file does not exist.
     """
     import drjit as dr
-    from tqdm.auto import tqdm
 
-    from gdpt.study.calibration import calibrate, configuration_key
+    from gdpt.pipeline import PROBE_FRACTION
+    from gdpt.seconds_bar import StageBars
+    from gdpt.study.calibration import configuration_key, configuration_model
+    from gdpt.study.cells import set_threads, thread_counts
     from gdpt.study.config import EvaluateConfig
-    from gdpt.study.estimate import MIN_PLAIN_SPP
+    from gdpt.study.estimate import MIN_PLAIN_SPP, few_pass_sizes
+    from gdpt.study.evaluate import set_threads_back
     from gdpt.study.methods import EVAL_METHODS
     from gdpt.study.results import cell_seed
 
@@ -484,38 +492,35 @@ def advise(
     plain_key = None
     if budget is not None:
         to_calibrate, shared, plain_key = _calibration_plan(candidates, plain_spp is None)
-    bar = tqdm(
-        total=len(to_calibrate) + len(shared) + replicates * (len(candidates) + 1),
-        unit="render",
-        desc="advise",
-        disable=not progress,
-        dynamic_ncols=True,
-    )
+    stages = StageBars(progress)
     history_flag = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
+    threads = thread_counts()  # the study's threads: torch's few (small tensors, busy cores)
+    set_threads(threads["drjit"])
     try:
         models: dict[str, TimeModel] = {}
-        for key, runner in to_calibrate.items():
-            bar.set_postfix_str(f"calibrating {runner.name}")
-            models[key] = calibrate(
-                runner,
-                loaded,
-                budget=budget,
-                seed=cell_seed(seed, loaded.name, runner.name, "calibration"),
-            )
-            bar.update(1)
+        sources: dict[str, str] = {}
+        for key, runner in to_calibrate.items():  # the study's models: probed once per process
+            with stages("calibration", f"calibration ({runner.name})"):
+                models[key], sources[key] = configuration_model(
+                    runner,
+                    loaded,
+                    key,
+                    budget=budget,
+                    seed=cell_seed(seed, loaded.name, runner.name, "calibration"),
+                    probe_fraction=PROBE_FRACTION,  # as render_and_denoise(seconds=)
+                )
         runners = {configuration_key(m, "total"): m for m in candidates}
         reconstruction: dict[str, float] = {}
         for key, base in shared.items():  # the same render: only the reconstruction timed
-            bar.set_postfix_str(f"timing {runners[key].name}'s reconstruction")
-            for k in (base, key):
-                if k not in reconstruction:
-                    runner = to_calibrate.get(k, runners[k])
-                    reconstruction[k] = _reconstruction_seconds(
-                        runner, loaded, cell_seed(seed, loaded.name, runner.name, "reconstruct")
-                    )
-            models[key] = _shared_model(models[base], reconstruction[key] - reconstruction[base])
-            bar.update(1)
+            with stages("calibration", f"timing {runners[key].name}'s reconstruction"):
+                for k in (base, key):
+                    if k not in reconstruction:
+                        runner = to_calibrate.get(k, runners[k])
+                        reconstruction[k] = _reconstruction_seconds(
+                            runner, loaded, cell_seed(seed, loaded.name, runner.name, "reconstruct")
+                        )
+            models[key] = models[base].shifted(reconstruction[key] - reconstruction[base])
         for method in candidates:  # each candidate's one sample within the budget
             model = models.get(configuration_key(method, "total"))
             if model is not None and model.fixed + model.per_spp > budget * (
@@ -527,11 +532,12 @@ def advise(
                     "lower the resolution (--long-side)"
                 )
         if plain_spp is None:
-            plain_spp = spp if budget is None else models[plain_key].spp_for(plain_budget or budget)
+            filled = spp or models[plain_key].spp_for(plain_budget or budget)
+            plain_spp = filled if budget is None else few_pass_sizes(filled)
         calibrations = {"P": "given"}
         for m in candidates:
             key = configuration_key(m, "total")
-            calibrations[m.name] = "spp" if budget is None else "calibrated"
+            calibrations[m.name] = "spp" if budget is None else sources.get(key, "calibrated")
             if key in shared:
                 calibrations[m.name] = f"shared with {runners[shared[key]].name}"
         if plain_key is not None:
@@ -550,6 +556,12 @@ def advise(
             plain_spp,
             replicates,
             calibrations=calibrations,
+            plain_budget=None if budget is None else plain_budget or budget,
+            models={
+                m.name: models[configuration_key(m, "total")]
+                for m in candidates
+                if configuration_key(m, "total") in to_calibrate
+            },
         )
         if plain_spp < MIN_PLAIN_SPP:
             raise ValueError(
@@ -557,22 +569,29 @@ def advise(
                 f"variance and weights cannot be measured; give a larger budget or plain_spp >= "
                 f"{MIN_PLAIN_SPP}"
             )  # before any scored render (plain_render says the same)
-        _render_and_score(advice, loaded, candidates, seed, bar)
+        _render_and_score(advice, loaded, candidates, seed, stages)
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, history_flag)
-        bar.close()
+        set_threads_back(threads)
     advice.seconds = time.perf_counter() - start
+    advice.stage_seconds = {
+        **stages.seconds,
+        "other": advice.seconds - sum(stages.seconds.values()),
+    }
     options = {"long_side": long_side, "box_filter": box_filter, "max_depth": max_depth}
     if advice.recommended is not None:
         chosen = next(m for m in advice.methods if m.name == advice.recommended)
         advice.command = _render_command(
             chosen.name, chosen.spp, scene, options, loaded.name, budget
         )
+    spent = advice.stage_seconds
     advice.lines += [
         f"time: {advice.seconds:.1f} s "
         + (f"({advice.seconds / budget:.1f}x the {budget:g} s budget: " if budget else "(")
-        + f"calibration, {replicates} x {len(candidates)} renders "
-        f"and {replicates} plain render(s) P)"
+        + f"calibration {spent.get('calibration', 0.0):.1f} s, {replicates} x "
+        f"{len(candidates)} renders {spent.get('renders', 0.0):.1f} s, {replicates} plain "
+        f"render(s) P {spent.get('plain', 0.0):.1f} s, loading and the rest "
+        f"{spent['other']:.1f} s)"
     ]
     if advice.command is not None:
         advice.lines.append(f"render it: {advice.command}")

@@ -96,9 +96,10 @@ DEFAULT_COST_RATIO = 1.8
 #: render replays the frozen passes of an earlier one of the same ``N``.
 RELEARN = 0.2
 
-#: ``(id(scene), properties) -> (scene, cost ratio)``, least recently used first (the scene is
-#: kept so that its id stays unique).
-_LEARNED: OrderedDict[tuple, tuple[Any, float]] = OrderedDict()
+#: ``(id(scene), properties) -> (scene, {"cost_ratio": ..., "reconstruct_seconds": ...})``,
+#: what the scene's gradient routes measured, least recently used first (the scene is kept so
+#: that its id stays unique).
+_LEARNED: OrderedDict[tuple, tuple[Any, dict[str, float]]] = OrderedDict()
 _LEARNED_SIZE = 8
 
 
@@ -262,7 +263,7 @@ def run_pilot(
             f"the {width}x{height} film has {rows * cols} whole {tile} px tiles: too few for a "
             f"pilot of {MIN_TILES} tiles in at most {MAX_SHARE:.0%} of them; plain route"
         ), None
-    props = _integrator_props(props)
+    props = integrator_props(props)
     start = time.perf_counter()
     denoiser, denoise = methods.primal_only()
     corners = pilot_tiles(height, width, count, seed, tile)
@@ -338,8 +339,9 @@ def measured_cost_ratio(
     return min(max(measured, COST_RATIO_RANGE[0]), COST_RATIO_RANGE[1])
 
 
-def _integrator_props(props: dict[str, Any]) -> dict[str, Any]:
-    """``props`` without the sampling a route sets itself and without ``progress``."""
+def integrator_props(props: dict[str, Any]) -> dict[str, Any]:
+    """``props`` without the sampling a route sets itself and without ``progress``: what the
+    scene's learned cost ratio and reconstruction seconds are kept under."""
     routed = ("variance", "halves", "gradients", "features", "primal_spp", "progress")
     return {k: v for k, v in props.items() if k not in routed}
 
@@ -348,18 +350,31 @@ def _learned_key(scene: Any, props: dict[str, Any]) -> tuple:
     return (id(scene), tuple(sorted(props.items())))
 
 
-def learned_cost_ratio(scene: Any, props: dict[str, Any]) -> float | None:
-    """The cost ratio the last gradient route measured on ``scene`` (an ``mi.Scene``) rendered
-    with integrator ``props`` (the 8 most recently used scenes are kept), ``None`` before."""
+def _learned(scene: Any, props: dict[str, Any]) -> dict[str, float]:
     key = _learned_key(scene, props)
     if key not in _LEARNED:
-        return None
+        return {}
     _LEARNED.move_to_end(key)
     return _LEARNED[key][1]
 
 
+def _learn(scene: Any, props: dict[str, Any], name: str, value: float) -> None:
+    key = _learned_key(scene, props)
+    _LEARNED.setdefault(key, (scene, {}))[1][name] = value
+    _LEARNED.move_to_end(key)
+    while len(_LEARNED) > _LEARNED_SIZE:
+        _LEARNED.popitem(last=False)
+
+
+def learned_cost_ratio(scene: Any, props: dict[str, Any]) -> float | None:
+    """The cost ratio the last gradient route measured on ``scene`` (an ``mi.Scene``) rendered
+    with integrator ``props`` (the 8 most recently used scenes are kept), ``None`` before."""
+    return _learned(scene, props).get("cost_ratio")
+
+
 def forget_cost_ratios(scene: Any) -> None:
-    """Drop the cost ratios learned on ``scene`` (and the reference to it)."""
+    """Drop the cost ratios and reconstruction seconds learned on ``scene`` (and the reference
+    to it)."""
     for key in [k for k, (kept, _) in _LEARNED.items() if kept is scene]:
         del _LEARNED[key]
 
@@ -368,12 +383,21 @@ def learn_cost_ratio(scene: Any, props: dict[str, Any], ratio: float) -> None:
     """Remember ``ratio`` for ``scene`` and ``props`` where none is remembered or it differs from
     the remembered one by more than :data:`RELEARN` of it."""
     known = learned_cost_ratio(scene, props)
-    if known is not None and abs(ratio - known) <= RELEARN * known:
-        return
-    _LEARNED[_learned_key(scene, props)] = (scene, ratio)
-    _LEARNED.move_to_end(_learned_key(scene, props))
-    while len(_LEARNED) > _LEARNED_SIZE:
-        _LEARNED.popitem(last=False)
+    if known is None or abs(ratio - known) > RELEARN * known:
+        _learn(scene, props, "cost_ratio", ratio)
+
+
+def learned_reconstruct_seconds(scene: Any, props: dict[str, Any]) -> float | None:
+    """The seconds of ``fuse``'s reconstruction after the last gradient route on ``scene`` with
+    integrator ``props`` (:func:`learn_reconstruct_seconds`), ``None`` before."""
+    return _learned(scene, props).get("reconstruct_seconds")
+
+
+def learn_reconstruct_seconds(scene: Any, props: dict[str, Any], seconds: float) -> None:
+    """Remember the seconds a gradient route's reconstruction took on ``scene`` with ``props``
+    (the latest replaces the one before): what :func:`render_route` leaves for it before a
+    deadline."""
+    _learn(scene, props, "reconstruct_seconds", float(seconds))
 
 
 def _tile_terms(
@@ -412,6 +436,7 @@ def render_route(
     *,
     spp: int,
     seed: int,
+    deadline: float | None = None,
     **props: Any,
 ) -> GradientBuffers:
     """The main render of ``choice`` at the cost of ``spp`` plain samples per pixel, merged
@@ -423,8 +448,13 @@ def render_route(
     that render's measured time (at least 1, which brings the features), pooled into it
     (:func:`gdpt.buffers.pool_primal`); the cost ratio that render measured (offsets on most
     pixels; not where it recorded frozen passes, whose tracing and compilation it timed too)
-    sizes ``G`` of the scene's next renders (:func:`learn_cost_ratio`). ``props`` as
-    for :func:`gdpt.render` (they override the route's sampling).
+    sizes ``G`` of the scene's next renders (:func:`learn_cost_ratio`). With a ``deadline``
+    (a :func:`time.perf_counter` instant: the end of a budget in seconds) the gradient route's
+    plain samples fill the time left before it, less the seconds of the scene's last ``fuse``
+    reconstruction (:func:`learned_reconstruct_seconds`; where none was measured, the count
+    above), at the pilot's measured seconds per plain sample: the samples, the pilot's
+    statistics and ``fuse`` all within the budget. ``props`` as for :func:`gdpt.render` (they
+    override the route's sampling).
     """
     if pilot is None:
         return rendering.render(scene, seed=seed, **{**route_sampling(choice, spp), **props})
@@ -445,8 +475,12 @@ def render_route(
     seconds = gradient.metadata["render_seconds"]
     if not gradient.metadata["recorded_passes"]:  # a recording's time is not the samples'
         ratio = measured_cost_ratio(seconds, g, 1.0 - info["share"], info["seconds_per_spp"])
-        learn_cost_ratio(scene, _integrator_props(props), ratio)
+        learn_cost_ratio(scene, integrator_props(props), ratio)
     rest = max(1, round(left - seconds / info["seconds_per_spp"]))
+    finish = learned_reconstruct_seconds(scene, integrator_props(props))
+    if deadline is not None and finish is not None:
+        left_seconds = deadline - time.perf_counter() - finish
+        rest = max(1, round(left_seconds / info["seconds_per_spp"]))
     plain_sampling = {**fuse.sampling(rest), "gradients": False, "primal_spp": 0, **props}
     plain_seed = (int(seed) ^ rendering.PRIMAL_SEED_SALT) & 0xFFFFFFFF
     plain = rendering.render(scene, spp=rest, seed=plain_seed, **plain_sampling)

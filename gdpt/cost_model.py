@@ -110,10 +110,24 @@ class TimeModel:
         self.per_spp *= scale
         self.measurements = [(n, t * scale) for n, t in self.measurements]
 
+    def shifted(self, difference: float) -> TimeModel:
+        """This model for a render with another reconstruction, ``difference`` seconds slower
+        (or faster): the same seconds per sample, every timing shifted by ``difference``."""
+        return TimeModel(
+            fixed=max(0.0, self.fixed + difference),
+            per_spp=self.per_spp,
+            measurements=[(spp, max(1e-9, t + difference)) for spp, t in self.measurements],
+        )
+
     def update(self, spp: int, seconds: float) -> None:
         """Add a timing and refit."""
         refit = TimeModel.fit([*self.measurements, (spp, seconds)])
         self.fixed, self.per_spp, self.measurements = refit.fixed, refit.per_spp, refit.measurements
+
+
+#: :func:`fit_by_probing` aims each probe at this multiple of its target (a probe that lands
+#: just short of the target would take one more, the largest).
+PROBE_AIM = 1.2
 
 
 def fit_by_probing(
@@ -127,7 +141,10 @@ def fit_by_probing(
 ) -> TimeModel:
     """Fit a :class:`TimeModel` from probe timings: the median of ``repeats`` runs at
     ``first_spp`` (1; ``auto`` starts where its pilot runs, whose cost the line must hold),
-    then sample counts raised geometrically (x2 to x8, aiming at the target) until a run takes
+    then sample counts raised geometrically (x2 to x8, aiming at :data:`PROBE_AIM` times the
+    target: the count the line through the timings so far puts there, or the time ratio while
+    one count was timed;
+    a large fixed cost, such as a reconstruction, then takes fewer probes) until a run takes
     at least ``probe_fraction * budget`` and at least three timings exist (or ``max_probe_spp``
     is reached).
 
@@ -144,8 +161,13 @@ def fit_by_probing(
     t = statistics.median(timed(first_spp, i) for i in range(repeats))
     measurements = [(first_spp, t)]
     spp, target = first_spp, probe_fraction * budget
+    aim = PROBE_AIM * target  # a probe just short of the target would take another
     while (t < target or len(measurements) < 3) and spp < max_probe_spp:
-        spp = min(max_probe_spp, spp * min(8, max(2, round(target / max(t, 1e-6)))))
+        step = aim / max(t, 1e-6)
+        if len({n for n, _ in measurements}) > 1:  # aim with the line so far
+            line = TimeModel.fit(measurements)
+            step = (aim - line.fixed) / line.per_spp / spp
+        spp = min(max_probe_spp, spp * min(8, max(2, math.ceil(step))))
         t = timed(spp, spp)
         measurements.append((spp, t))
     return TimeModel.fit(measurements)

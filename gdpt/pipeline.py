@@ -173,10 +173,19 @@ def check_budget(spp: Any, seconds: Any) -> None:
 
 
 def _render_at(
-    scene: Any, spp: int, method: str, seed: int, alpha: float, bar: SecondsBar, props: dict
+    scene: Any,
+    spp: int,
+    method: str,
+    seed: int,
+    alpha: float,
+    bar: SecondsBar,
+    props: dict,
+    budget: float | None = None,
 ) -> RenderResult:
     """:func:`render_and_denoise` at ``spp``: each stage's wall seconds without the kernel
-    compilation seen during it (``timings["compile"]``), ``total`` their sum."""
+    compilation seen during it (``timings["compile"]``), ``total`` their sum. With ``budget``
+    (seconds), ``auto``'s gradient route fills what is left of it after its pilot
+    (:func:`gdpt.auto_route.render_route`'s ``deadline``)."""
     choice, timings, compiled = None, {}, 0.0
     drain_compile_seconds()
     start = time.perf_counter()
@@ -186,10 +195,13 @@ def _render_at(
         seed_pilot = (int(seed) ^ PILOT_SEED_SALT) & 0xFFFFFFFF
         choice, pilot = auto_route.run_pilot(scene, spp=spp, seed=seed_pilot, **props)
         compiled += (c := drain_compile_seconds())
+        deadline = None if budget is None else start + c + budget
         timings["pilot"] = max(0.0, time.perf_counter() - start - c)
         bar.stage(f"render ({choice.route} route)")
         start = time.perf_counter()
-        buffers = auto_route.render_route(scene, choice, pilot, spp=spp, seed=seed, **props)
+        buffers = auto_route.render_route(
+            scene, choice, pilot, spp=spp, seed=seed, deadline=deadline, **props
+        )
         method = choice.method
     else:
         bar.stage("render")
@@ -206,6 +218,9 @@ def _render_at(
         torch.cuda.synchronize(image.device)
     compiled += (c := drain_compile_seconds())
     timings["reconstruct"] = max(0.0, time.perf_counter() - start - c)
+    if choice is not None and choice.route == "gradient":
+        routed = auto_route.integrator_props(props)
+        auto_route.learn_reconstruct_seconds(scene, routed, timings["reconstruct"])
     timings["total"] = sum(timings.values())
     timings["compile"] = compiled
     return RenderResult(image=image, buffers=buffers, spp=spp, timings=timings, route=choice)
@@ -322,7 +337,7 @@ def _render_for(
                     spp = min(threshold - 1, spp)
         setup = time.perf_counter() - start
     with SecondsBar(seconds, "render", disable=not progress) as bar:
-        result = _render_at(scene, spp, method, seed, alpha, bar, props)
+        result = _render_at(scene, spp, method, seed, alpha, bar, props, seconds)
     model.update(spp, result.timings["total"])
     result.budget = seconds
     result.timings["setup"] = setup

@@ -1,9 +1,12 @@
-"""A progress bar in seconds over the stages of one piece of work (:class:`SecondsBar`)."""
+"""A progress bar in seconds over the stages of one piece of work (:class:`SecondsBar`), or one
+per stage (:class:`StageBars`)."""
 
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 
@@ -68,3 +71,22 @@ class SecondsBar:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class StageBars:
+    """Progress over work of several stages (:func:`gdpt.advise`): one :class:`SecondsBar` per
+    stage (``with bars(kind, label, budget):``, against the stage's budget where it has one),
+    and :attr:`seconds`, the wall seconds per kind of stage; ``progress`` off draws nothing."""
+
+    def __init__(self, progress: bool):
+        self.progress = progress
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, kind: str, label: str, budget: float | None = None) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            with SecondsBar(budget, label, disable=not self.progress):
+                yield
+        finally:
+            self.seconds[kind] = self.seconds.get(kind, 0.0) + time.perf_counter() - start

@@ -12,22 +12,23 @@ cell:
   Benchmarking in Reasonable Time", ISMM 2013);
 * each render configuration (:func:`~gdpt.study.calibration.configuration_key`) takes its
   sample count when its first method's turn comes, in the cell, from the configuration's cost
-  model in its current state (:data:`_MODELS`: probed by
+  model in its current state (:func:`~gdpt.study.calibration.configuration_model`: probed by
   :func:`~gdpt.study.calibration.calibrate` in the configuration's first cell on the worker,
   refined by every timed run since), timed by its runner
   (:func:`~gdpt.study.calibration.run_at_budget`, which redoes a miss at the refitted count):
-  methods that render the same thing (``auto`` and ``pt+oidn-tuned``) still get the same
-  sample count;
+  methods that render the same thing still get the same sample count; a method that fills
+  a budget in seconds itself (``auto`` under ``total``:
+  :func:`~gdpt.study.calibration.fills_seconds`) is given the budget, as a user gives it;
 * every replicate records its timed run against the budget: ``charged_seconds``,
   ``relative_error``, the 1-minute load average before it (``os.getloadavg``), and
   ``cpu_seconds`` / ``wall_seconds`` / ``cpu_per_wall`` of the timed run (the process's CPU
   time over its wall time: near the thread count when the machine is free, lower when other
   work takes the cores). A replicate that misses its budget by more than
   :data:`MISS_TOLERANCE` is rendered once more with the same seed: at the same spp when the
-  method ran its own calibration (its miss is the machine's: a slow-down that passed), at a
-  count corrected by the miss when it shares another method's calibration (its miss is its
-  own cost: :func:`redo_spp`); if it misses again it is kept with ``missed_budget: true`` and
-  the report lists it.
+  method ran its own calibration, at the same budget when it chooses its count (its miss is
+  the machine's: a slow-down that passed), at a count corrected by the miss when it shares
+  another method's calibration (its miss is its own cost: :func:`redo_spp`); if it misses
+  again it is kept with ``missed_budget: true`` and the report lists it.
 
 :func:`run_cell` returns plain data (the cell record and the first replicate's images), written
 into ``results.json`` by the driver (:func:`apply_cell`) in one atomic write, so a worker that
@@ -37,6 +38,7 @@ dies mid-cell leaves nothing half-written and the cell is run again.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import platform
 import time
@@ -45,14 +47,14 @@ from typing import Any
 
 import torch
 
-from gdpt.cost_model import TimeModel
 from gdpt.interrupt import caused_by_interrupt
 from gdpt.pipeline import release_scene
 from gdpt.study.calibration import (
-    calibrate,
     calibration_runner,
     charged_seconds,
     configuration_key,
+    configuration_model,
+    fills_seconds,
     run_at_budget,
     timed_run,
 )
@@ -65,7 +67,6 @@ from gdpt.study.scoring import interval_too_wide, score, summarise
 __all__ = [
     "MISS_TOLERANCE",
     "apply_cell",
-    "forget_cost_models",
     "method_order",
     "pending_cells",
     "redo_spp",
@@ -74,18 +75,6 @@ __all__ = [
     "thread_counts",
     "worker_scene",
 ]
-
-#: The cost model of each ``(scene name, resolution, configuration key)`` in this process
-#: (:class:`gdpt.cost_model.TimeModel`): fitted by the configuration's first cell
-#: (:func:`~gdpt.study.calibration.calibrate`), refined by every timed run after it; a run that
-#: misses is redone at the refitted count (:func:`~gdpt.study.calibration.run_at_budget`).
-_MODELS: dict[tuple[str, str, str], TimeModel] = {}
-
-
-def forget_cost_models() -> None:
-    """Start the next study's cells without models (each study fits its own)."""
-    _MODELS.clear()
-
 
 #: A replicate whose charged seconds differ from the budget by more than this share is
 #: rendered once more, then flagged (``missed_budget``). The calibration inside a cell aims at
@@ -155,10 +144,10 @@ def _measured(method: EvalMethod) -> tuple[EvalMethod, dict[int, dict[str, Any]]
     and its CPU and wall seconds (``time.process_time``: every thread of this process)."""
     log: dict[int, dict[str, Any]] = {}
 
-    def run(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+    def measured(run: Any, scene: EvalScene, seed: int, **budget: Any) -> MethodResult:
         load = _load_1min()
         cpu, wall = time.process_time(), time.perf_counter()
-        result = method.run(scene, spp=spp, seed=seed)
+        result = run(scene, seed=seed, **budget)
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         log[seed] = {
             "loadavg_1min": load,
@@ -168,7 +157,15 @@ def _measured(method: EvalMethod) -> tuple[EvalMethod, dict[int, dict[str, Any]]
         }
         return result
 
-    return dataclasses.replace(method, run=run), log
+    def run(scene: EvalScene, *, spp: int, seed: int) -> MethodResult:
+        return measured(method.run, scene, seed, spp=spp)
+
+    def run_for(scene: EvalScene, *, seconds: float, seed: int) -> MethodResult:
+        return measured(method.run_for, scene, seed, seconds=seconds)
+
+    return dataclasses.replace(
+        method, run=run, run_for=None if method.run_for is None else run_for
+    ), log
 
 
 #: What a replicate keeps of its first run when it was redone (under ``redone``).
@@ -184,19 +181,22 @@ _REDONE_KEYS = (
 
 def redo_spp(spp: int, charged: float, budget: float, per_spp: float) -> int:
     """The sample count of a redo of a method that ran at a count calibrated for another
-    (``auto`` at ``pt+oidn-tuned``'s): ``spp`` less the seconds it missed ``budget`` by
-    (``charged - budget``, negative when under) at the calibration's ``per_spp`` seconds per
-    sample, at least 1. Its own fixed costs stay in the redo, so they are what it is charged
-    beyond the other method's."""
+    (``auto`` at ``pt+oidn-tuned``'s under ``render-time``): ``spp`` less the seconds it missed
+    ``budget`` by (``charged - budget``, negative when under) at the calibration's ``per_spp``
+    seconds per sample, kept within half and twice ``spp`` (a miss that large is a slow-down
+    of the machine, not the method's own cost: a count near nothing would be charged for it).
+    Its own fixed costs stay in the redo, so they are what it is charged beyond the other
+    method's."""
     if per_spp <= 0.0:
         return spp
-    return max(1, spp - round((charged - budget) / per_spp))
+    corrected = spp - round((charged - budget) / per_spp)
+    return min(2 * spp, max(math.ceil(spp / 2), corrected))
 
 
 def _timed_replicate(
     method: EvalMethod,
     scene: EvalScene,
-    spp: int,
+    spp: int | None,
     seed: int,
     budget: float,
     protocol: str,
@@ -206,12 +206,20 @@ def _timed_replicate(
     """One replicate's timed run (``done``: the calibration's run of this seed, reused), redone
     once if it misses ``budget`` by more than :data:`MISS_TOLERANCE`: at the same ``spp``, or,
     for a method that shares another method's calibration (``shared_per_spp``: that
-    calibration's seconds per sample), at :func:`redo_spp`."""
+    calibration's seconds per sample), at :func:`redo_spp`; with ``spp`` ``None``, the
+    method's :attr:`~gdpt.study.methods.EvalMethod.run_for` at ``budget``, again at ``budget``
+    (its own model refined by the miss)."""
+    own_count = False
     attempts: list[dict[str, Any]] = []
     run = None
     for attempt in range(2):
         if attempt == 0 and done is not None:
             run, measured = done
+        elif spp is None or own_count:  # the budget in seconds (redone at the same budget)
+            own_count = True
+            wrapped, log = _measured(method)
+            run = timed_run(wrapped, scene, None, seed, seconds=budget)
+            spp, measured = run.spp, log[seed]
         else:
             if attempt == 1 and shared_per_spp is not None:
                 spp = redo_spp(spp, attempts[0]["charged_seconds"], budget, shared_per_spp)
@@ -242,6 +250,35 @@ def _timed_replicate(
         record["redone"] = {k: attempts[0][k] for k in _REDONE_KEYS}
     record["missed_budget"] = abs(record["relative_error"]) > MISS_TOLERANCE
     return record, run
+
+
+def _seconds_replicate(
+    method: EvalMethod,
+    scene: EvalScene,
+    seed: int,
+    budget: float,
+    protocol: str,
+    record: dict[str, Any],
+) -> tuple[str, dict[str, Any], MethodResult]:
+    """The replicate of a method given its budget in seconds
+    (:func:`~gdpt.study.calibration.fills_seconds`): :func:`_timed_replicate` at ``budget``,
+    its count its own, recorded in the cell's ``record["calibrations"]`` under
+    ``"method NAME (seconds)"`` (no model of the study's: the method keeps its own). Returns
+    that key, the replicate record and the run."""
+    key = f"method {method.name} (seconds)"
+    replicate_record, run = _timed_replicate(method, scene, None, seed, budget, protocol, None)
+    record["calibrations"][key] = {
+        **{k: replicate_record[k] for k in ("spp", "seed", "seconds", "charged_seconds")},
+        "relative_error": replicate_record["relative_error"],
+        "within_tolerance": not replicate_record["missed_budget"],
+        "protocol": protocol,
+        "runner": method.name,
+        "configuration": None,
+        "model": None,
+        "model_source": "its own (render_and_denoise(seconds=...))",
+        "methods": [method.name],
+    }
+    return key, replicate_record, run
 
 
 def _error_text(err: BaseException) -> str:
@@ -300,63 +337,63 @@ def run_cell(
     for name in order:
         method, stage = methods[name], "calibration"
         try:
-            config_key = configuration_key(method, cfg.protocol)
-            if config_key not in calibrations:
-                runner = calibration_runner(method, cfg.protocol)
-                wrapped, log = _measured(runner)
-                model_key = (scene.name, str(scene.resolution), config_key)
-                model, source = _MODELS.get(model_key), "model"
-                if model is None:  # the configuration's first cell in this process probes
-                    calibration_seed = cell_seed(
-                        cfg.seed, scene.name, runner.name, key, str(replicate)
-                    )
-                    model = _MODELS[model_key] = calibrate(
+            if fills_seconds(method, cfg.protocol):  # given the seconds, as a user gives them
+                stage, runner = "run", method
+                config_key, replicate_record, run = _seconds_replicate(
+                    method, scene, seed, budget, cfg.protocol, record
+                )
+            else:
+                config_key = configuration_key(method, cfg.protocol)
+                if config_key not in calibrations:
+                    runner = calibration_runner(method, cfg.protocol)
+                    wrapped, log = _measured(runner)
+                    model, source = configuration_model(  # probed in its first cell here
                         wrapped,
                         scene,
+                        config_key,
                         budget=budget,
-                        seed=calibration_seed,
+                        seed=cell_seed(cfg.seed, scene.name, runner.name, key, str(replicate)),
                         probe_fraction=cfg.probe_fraction,
                         protocol=cfg.protocol,
                     )
-                    source = "calibrated"
-                stage = "run"  # the method runs; a failure from here on is one of this cell
-                result, at_budget = run_at_budget(
-                    wrapped,
+                    stage = "run"  # the method runs; a failure from here on is one of this cell
+                    result, at_budget = run_at_budget(
+                        wrapped,
+                        scene,
+                        model,
+                        budget=budget,
+                        seed=seed,
+                        tolerance=min(cfg.tolerance, MISS_TOLERANCE),
+                        max_rounds=cfg.max_rounds,
+                        protocol=cfg.protocol,
+                    )
+                    if at_budget["within_tolerance"]:  # a miss was added by run_at_budget
+                        model.update(at_budget["spp"], at_budget["charged_seconds"])
+                    calibrations[config_key] = (runner, result, at_budget, log)
+                    configuration = runner.configuration() if runner.configuration else None
+                    record["calibrations"][config_key] = {
+                        **at_budget,
+                        "runner": runner.name,
+                        "configuration": configuration,
+                        "model": dataclasses.asdict(model),
+                        "model_source": source,
+                        "methods": [],
+                    }
+                runner, result, at_budget, log = calibrations[config_key]
+                record["calibrations"][config_key]["methods"].append(name)
+                stage = "run"
+                reuse = runner.name == name and at_budget["seed"] == seed
+                shared = runner.name != name
+                replicate_record, run = _timed_replicate(
+                    method,
                     scene,
-                    model,
-                    budget=budget,
-                    seed=seed,
-                    tolerance=min(cfg.tolerance, MISS_TOLERANCE),
-                    max_rounds=cfg.max_rounds,
-                    protocol=cfg.protocol,
+                    at_budget["spp"],
+                    seed,
+                    budget,
+                    cfg.protocol,
+                    (result, log[seed]) if reuse else None,
+                    record["calibrations"][config_key]["model"]["per_spp"] if shared else None,
                 )
-                if at_budget["within_tolerance"]:  # a miss was added by run_at_budget
-                    model.update(at_budget["spp"], at_budget["charged_seconds"])
-                calibrations[config_key] = (runner, result, at_budget, log)
-                configuration = runner.configuration() if runner.configuration else None
-                record["calibrations"][config_key] = {
-                    **at_budget,
-                    "runner": runner.name,
-                    "configuration": configuration,
-                    "model": dataclasses.asdict(model),
-                    "model_source": source,
-                    "methods": [],
-                }
-            runner, result, at_budget, log = calibrations[config_key]
-            record["calibrations"][config_key]["methods"].append(name)
-            stage = "run"
-            reuse = runner.name == name and at_budget["seed"] == seed
-            shared = runner.name != name
-            replicate_record, run = _timed_replicate(
-                method,
-                scene,
-                at_budget["spp"],
-                seed,
-                budget,
-                cfg.protocol,
-                (result, log[seed]) if reuse else None,
-                record["calibrations"][config_key]["model"]["per_spp"] if shared else None,
-            )
         except MethodUnavailable as err:
             record["skipped"][name] = str(err)
             continue

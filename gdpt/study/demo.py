@@ -12,8 +12,8 @@ The demo is two small runs of the equal-time study (:func:`gdpt.study.evaluate.e
    gain (about 130 gradient samples per pixel at 128 px) and ``auto`` takes the gradient route.
 
 Each method's sample count is calibrated by timing so that sampling + reconstruction takes the
-budget on this machine (kernel compilation and frozen-pass recording excluded: each timed render
-follows an untimed one at the same spp); errors are measured against a cached high-spp
+budget on this machine (kernel compilation and frozen-pass recording excluded: a run that
+recorded passes is run again); errors are measured against a cached high-spp
 path-traced reference. Each run writes the study's report (``results.json``, ``results.md``,
 ``index.html``, crops), an EXR and a PNG per method, and a labelled montage ``side_by_side.png``;
 the second run in the subfolder :data:`GRADIENT_ROUTE_FOLDER`.

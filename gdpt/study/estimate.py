@@ -45,6 +45,20 @@ MIN_PLAIN_SPP = 4
 FOLD_SEED_SALT = 0x5BD1E995
 
 
+def few_pass_sizes(spp: int, bits: int = 3) -> int:
+    """``spp`` rounded down to its ``bits`` highest set bits (at most a quarter fewer samples):
+    a render splits its count into passes whose sizes are powers of two below a full pass
+    (:func:`gdpt.integrators.common.plan_passes`), each size traced once per integrator, so
+    ``P`` (an integrator of its own) traces at most ``bits`` of them (about 1 s each on a
+    room at 128 px)."""
+    kept = 0
+    for _ in range(bits):
+        if spp <= kept:
+            break
+        kept |= 1 << ((spp - kept).bit_length() - 1)
+    return max(1, kept)
+
+
 def plain_render(scene: EvalScene, spp: int, seed: int) -> dict[str, Any]:
     """``P``: plain path tracing (``gdpt``, no gradients, no features) at ``spp`` in two
     independent folds (seeds ``seed`` and ``seed ^ FOLD_SEED_SALT``) of two halves each

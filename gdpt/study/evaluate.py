@@ -22,15 +22,17 @@ Protocol, per scene:
 3. Cells (:mod:`gdpt.study.cells`): per budget and replicate seed, every method is calibrated
    and run back to back in one cell, the order reversed on odd replicates; each render
    configuration (:func:`~gdpt.study.calibration.configuration_key`: methods that render the
-   same thing, such as ``auto`` on its plain route and ``pt+oidn-tuned``, share it; recorded
-   per scene in ``calibrations``) is calibrated inside the cell by its
-   :func:`~gdpt.study.calibration.calibration_runner`: warm up (1 and 2 spp, untimed, compiles
-   the kernels), fit ``t(spp) = a + b * spp`` from a median of 1-spp runs and geometrically
-   growing probe runs (:func:`~gdpt.study.calibration.calibrate`), render at the budget and
-   correct (:func:`~gdpt.study.calibration.run_at_budget`). Every timed render follows an
-   untimed render of the same method at the same spp: the integrators record a frozen pass per
-   spp per pass and replay it afterwards, so the timed render pays neither kernel compilation
-   nor the Python tracing of the path loop. A replicate that misses its budget by more than
+   same thing share it; recorded per scene in ``calibrations``; ``auto`` under ``total`` is
+   given the budget in seconds instead, :func:`~gdpt.study.calibration.fills_seconds`) is
+   calibrated inside the cell by its
+   :func:`~gdpt.study.calibration.calibration_runner`: fit ``t(spp) = a + b * spp`` from a
+   median of 1-spp runs and geometrically growing probe runs
+   (:func:`~gdpt.study.calibration.calibrate`), render at the budget and correct
+   (:func:`~gdpt.study.calibration.run_at_budget`). No timed render pays kernel compilation
+   (subtracted) or the Python tracing of a frozen pass (the integrators record one per pass
+   size and replay it afterwards): a run that recorded passes was the warm-up and runs again
+   (:func:`~gdpt.study.calibration.timed_run`; ``auto`` and methods that cannot be split warm
+   up before every timed render). A replicate that misses its budget by more than
    :data:`~gdpt.study.cells.MISS_TOLERANCE` is redone once, then flagged.
 4. Metrics of every replicate; ``results.json`` is rewritten (atomically) after each cell, so
    an interrupted run resumes without recomputing finished cells. With ``workers`` or
@@ -62,9 +64,9 @@ import torch
 
 from gdpt.interrupt import caused_by_interrupt
 from gdpt.pipeline import release_scene
+from gdpt.study.calibration import forget_cost_models
 from gdpt.study.cells import (
     MISS_TOLERANCE,
-    forget_cost_models,
     pending_cells,
     run_cell,
     set_threads,
@@ -256,12 +258,12 @@ def _evaluate(
             "to back on one worker (order reversed on odd replicates; timings compare only "
             "within a cell); each render configuration's spp is calibrated by timing inside "
             "the cell and shared by every method that renders it ('calibrations' per scene; "
+            "auto is given the budget in seconds under total; "
             "t = a + b*spp fitted to 1-spp medians and growing probes, then verified and "
             f"re-rendered if off by more than {min(cfg.tolerance, MISS_TOLERANCE):.0%}); a "
             f"replicate that misses its budget by more than {MISS_TOLERANCE:.0%} is redone "
-            "once, then flagged (missed_budget); every timed "
-            "render follows an untimed one at the same spp (kernel compilation and frozen-pass "
-            "recording are paid once per configuration, not timed); reference: "
+            "once, then flagged (missed_budget); no timed render pays kernel compilation or "
+            "frozen-pass recording (a run that recorded passes is run again); reference: "
             f"path tracing at {cfg.reference_spp} spp on the same box-filtered film"
         ),
     )

@@ -26,8 +26,11 @@ Registered methods:
   its own cost calibration). Measured at equal time and not kept as a route
   (``docs/gradients.md``); :func:`masked_fuse` makes the method of another design.
 * ``auto``: ``render_and_denoise``'s default (:mod:`gdpt.auto_route`: a pilot render's choice
-  between plain path tracing + the primal-only denoiser and ``gdpt+fuse``); all of it timed, on
-  the cost calibration of its plain route (``pt+`` that denoiser).
+  between plain path tracing + the primal-only denoiser and ``gdpt+fuse``); all of it timed.
+  Under the ``total`` protocol it is given the budget in seconds, as a user gives it
+  (``render_and_denoise(seconds=...)``: its own cost model, the gradient route filling what its
+  pilot left); under ``render-time``, the count of its plain route's calibration (``pt+`` that
+  denoiser).
 
 A method that cannot run here (package not installed, no shipped model) says so through its
 ``check`` function and is skipped with that note. A reconstruction registered in
@@ -94,6 +97,10 @@ class MethodResult:
         compile_seconds: Dr.Jit kernel compilation observed during the call (not in
             ``seconds``).
         route: for ``auto``, the route it chose (:class:`gdpt.auto_route.RouteChoice` as a dict).
+        spp: the sample count a run in seconds (:attr:`EvalMethod.run_for`) chose; ``None``
+            for a run at a given count.
+        recorded: the run recorded frozen passes (``metadata["recorded_passes"]`` of its
+            render: the Python tracing of a pass new to the integrator is in its seconds).
     """
 
     image: torch.Tensor
@@ -102,6 +109,8 @@ class MethodResult:
     reconstruct_seconds: float = 0.0
     compile_seconds: float = 0.0
     route: dict[str, Any] | None = None
+    spp: int | None = None
+    recorded: bool = False
 
 
 #: ``f(scene, *, spp, seed) -> MethodResult``.
@@ -125,6 +134,11 @@ class EvalMethod:
             equal configurations share one cost calibration in the study
             (:func:`gdpt.study.calibration.configuration_key`); ``None``: the method's cost is
             its own.
+        run_for: ``f(scene, *, seconds: float, seed: int) -> MethodResult``: the method
+            filling a budget of ``seconds`` (sampling + reconstruction) itself, the count its
+            own choice (:attr:`MethodResult.spp`); the study gives it its budget instead of a
+            calibrated count (:func:`gdpt.study.calibration.fills_seconds`). ``None``: it
+            renders the counts it is given.
     """
 
     name: str
@@ -133,6 +147,7 @@ class EvalMethod:
     check: Callable[[], str | None] = field(default=lambda: None)
     render: RunFunction | None = None
     configuration: Callable[[], dict[str, Any]] | None = None
+    run_for: RunFunction | None = None
 
 
 class MethodRegistry(Registry[EvalMethod]):
@@ -218,6 +233,7 @@ def with_properties(base: EvalMethod, name: str, properties: dict[str, Any]) -> 
         base.check,
         None if base.render is None else partial(base.render, **properties),
         None if base.configuration is None else lambda: {**base.configuration(), **properties},  # type: ignore[misc]
+        None if base.run_for is None else partial(base.run_for, **properties),
     )
 
 
@@ -252,6 +268,7 @@ def _timed_run(
         render_seconds=render_seconds,
         reconstruct_seconds=end - middle,
         compile_seconds=compile_seconds,
+        recorded=bool(buffers.metadata.get("recorded_passes", 0)),
         **(
             {"route": {"pilot_mask": buffers.metadata["pilot_mask"]}}
             if "pilot_mask" in buffers.metadata
@@ -343,6 +360,21 @@ def auto_route(scene: EvalScene, *, spp: int, seed: int, **properties: Any) -> M
     reconstruction, all timed (kernel compilation excluded as for every method); ``spp`` are
     plain samples (the pilot's included), the gradient route renders gradient samples of the
     same cost."""
+    return _auto(scene, seed, properties, spp=spp)
+
+
+def auto_route_for(
+    scene: EvalScene, *, seconds: float, seed: int, **properties: Any
+) -> MethodResult:
+    """``render_and_denoise(method="auto", seconds=seconds)``: the count from its own cost
+    model of the scene (the first call per scene object probes, untimed), the gradient route's
+    plain samples filling what is left of ``seconds`` after its pilot and before ``fuse``; the
+    seconds are its ``timings["total"]`` (pilot, render, reconstruction, each without kernel
+    compilation) and the copy of the image to the host; its setup is not timed."""
+    return _auto(scene, seed, properties, seconds=seconds)
+
+
+def _auto(scene: EvalScene, seed: int, properties: dict[str, Any], **budget: Any) -> MethodResult:
     from gdpt.pipeline import render_and_denoise
 
     if reason := DENOISERS["oidn"].check() and DENOISERS["oidn-tuned"].check():
@@ -350,18 +382,24 @@ def auto_route(scene: EvalScene, *, spp: int, seed: int, **properties: Any) -> M
     drain_compile_seconds()
     start = time.perf_counter()
     props = {"max_depth": scene.max_depth, **properties}
-    result = render_and_denoise(scene.scene, spp=spp, seed=seed, **props)
+    result = render_and_denoise(scene.scene, seed=seed, **budget, **props)
+    copy = time.perf_counter()
     image = result.image.detach().to("cpu", torch.float32).contiguous()
-    seconds = time.perf_counter() - start
+    end = time.perf_counter()
     compile_seconds = result.timings["compile"] + drain_compile_seconds()  # it drains its own
     reconstruct_seconds = result.timings["reconstruct"]
+    if "seconds" in budget:  # its setup (probes, warm-ups) untimed
+        seconds = result.timings["total"] + (end - copy)
+    else:
+        seconds = max(0.0, end - start - compile_seconds)
     return MethodResult(
         image=image,
-        seconds=max(0.0, seconds - compile_seconds),
-        render_seconds=max(0.0, seconds - compile_seconds - reconstruct_seconds),
+        seconds=seconds,
+        render_seconds=max(0.0, seconds - reconstruct_seconds),
         reconstruct_seconds=reconstruct_seconds,
         compile_seconds=compile_seconds,
         route=result.route.to_json(),
+        spp=result.spp if "seconds" in budget else None,
     )
 
 
@@ -383,6 +421,7 @@ EVAL_METHODS.register(
         auto_route,
         lambda: DENOISERS["oidn"].check() and DENOISERS["oidn-tuned"].check(),
         configuration=plain_route_configuration,
+        run_for=auto_route_for,
     ),
 )
 

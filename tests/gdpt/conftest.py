@@ -166,11 +166,12 @@ def tiny_run_config() -> Callable[..., TrainConfig]:
 
 @pytest.fixture(autouse=True)
 def fresh_study_cost_models(monkeypatch):
-    """Every test starts the study's cells without cost models (:data:`gdpt.study.cells._MODELS`
-    is per process: a model of another test's clock would set this test's counts)."""
-    from gdpt.study import cells
+    """Every test starts the study's cells and ``advise`` without cost models
+    (:data:`gdpt.study.calibration._MODELS` is per process: a model of another test's clock
+    would set this test's counts)."""
+    from gdpt.study import calibration
 
-    monkeypatch.setattr(cells, "_MODELS", {})
+    monkeypatch.setattr(calibration, "_MODELS", {})
 
 
 @pytest.fixture

@@ -109,15 +109,14 @@ def test_feature_calibration_plan_shares_the_render_of_equal_samples():
 
 
 def test_feature_shared_model_shifts_the_fixed_seconds():
-    from gdpt.advice import _shared_model
     from gdpt.study.calibration import TimeModel
 
     model = TimeModel.fit([(1, 0.11), (10, 0.2), (100, 1.1)])
-    slower = _shared_model(model, 0.5)
+    slower = model.shifted(0.5)
     assert slower.per_spp == model.per_spp
     assert slower.fixed == pytest.approx(model.fixed + 0.5)
     assert slower.spp_for(2.0) == model.spp_for(1.5)
-    assert _shared_model(model, -10.0).fixed == 0.0
+    assert model.shifted(-10.0).fixed == 0.0
 
 
 def test_feature_budget_calibrates_each_render_once(monkeypatch):
@@ -257,3 +256,47 @@ def test_the_recommended_command_is_in_seconds_at_a_budget():
     counted = _render_command("gdpt+fuse", 40, "builtin:cbox-demo", options, "cbox", None)
     assert "--method fuse --spp 40" in counted and "--time" not in counted
     assert "--spp 40" in _render_command("pt", 40, "x.xml", options, "x", 4.0)  # gdpt render
+
+
+def test_feature_a_second_advice_takes_its_counts_from_the_kept_models(
+    cost_clock, monkeypatch, capsys
+):
+    """The candidates' cost models are the study's, kept per scene, resolution and
+    configuration in the process: a second ``advise`` probes nothing and takes the same
+    counts (the clocks are exact lines). Its progress is one bar in seconds per stage and its
+    ``time:`` line says where the seconds went."""
+    import gdpt.study.calibration
+
+    cost_clock("pt", 0.004, 0.004)
+    cost_clock("pt+oidn-tuned", 0.04, 0.004)
+    timed = []
+    calibrate = gdpt.study.calibration.calibrate
+
+    def spy(method, *args, **kwargs):
+        timed.append(method.name)
+        return calibrate(method, *args, **kwargs)
+
+    monkeypatch.setattr(gdpt.study.calibration, "calibrate", spy)
+    options = {"budget": 0.2, "methods": METHODS[:2], "plain_spp": 64, "long_side": 32}
+    first = gdpt.advise("builtin:cbox-demo", progress=True, **options)
+    assert timed == ["pt+oidn-tuned", "pt"] and first.calibrations["pt"] == "calibrated"
+    err = capsys.readouterr().err
+    assert "calibration (pt+oidn-tuned)" in err and "/0.2 s budget" in err
+    timed.clear()
+    second = gdpt.advise("builtin:cbox-demo", seed=1, progress=False, **options)
+    assert timed == [] and second.calibrations["pt+oidn-tuned"] == "model"
+    assert [m.spp for m in second.methods] == [m.spp for m in first.methods] == [40, 49]
+    time_line = next(line for line in second.lines if line.startswith("time: "))
+    assert re.search(r"calibration [0-9.]+ s, 1 x 2 renders [0-9.]+ s, 1 plain", time_line)
+    assert second.stage_seconds["calibration"] < first.stage_seconds["calibration"]
+
+
+def test_feature_plain_count_keeps_three_pass_sizes():
+    """``P``'s count from a budget keeps its three highest bits (its passes: three sizes to
+    trace at most), losing under a quarter of the samples."""
+    from gdpt.study.estimate import few_pass_sizes
+
+    for spp in range(1, 2000):
+        kept = few_pass_sizes(spp)
+        assert bin(kept).count("1") <= 3 and 0.75 * spp < kept <= spp
+    assert few_pass_sizes(109) == 104 and few_pass_sizes(7) == 7

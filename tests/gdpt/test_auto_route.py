@@ -380,3 +380,36 @@ def test_a_learned_ratio_moves_only_past_the_relearn_share():
     route.learn_cost_ratio(scene, props, 2.0 * (1 + 1.1 * route.RELEARN))
     assert route.learned_cost_ratio(scene, props) == pytest.approx(2.0 * (1 + 1.1 * route.RELEARN))
     assert route.learned_cost_ratio(object(), props) is None
+
+
+def test_a_deadline_sizes_the_gradient_routes_plain_samples_from_the_time_left(monkeypatch):
+    """With a deadline (``render_and_denoise(seconds=...)``), the gradient route's pooled plain
+    samples fill what is left of the budget after the renders so far and before ``fuse``'s
+    last measured reconstruction, at the pilot's seconds per plain sample; without one (or
+    before a reconstruction was measured), the count left of ``spp``."""
+    counts: list[int] = []
+
+    class Fake:
+        metadata = {"render_seconds": 0.5, "recorded_passes": 1}
+
+    def fake_render(scene, *, spp, seed, **kwargs):
+        counts.append(spp)
+        return Fake()
+
+    monkeypatch.setattr(route.rendering, "render", fake_render)
+    monkeypatch.setattr(route, "merge_renders", lambda parts: parts[-1])
+    monkeypatch.setattr(route, "pool_primal", lambda gradient, plain: plain)
+    info = {"cost_spp": 20.0, "gradient_spp": 8, "share": 0.2, "seconds_per_spp": 0.01}
+    choice = route.RouteChoice("gradient", "fuse", "test", pilot=info)
+    pilot = route.Pilot(Fake(), torch.zeros(4, 4, dtype=torch.bool))
+    scene = object()
+    by_count = round(100 - 20 - 0.5 / 0.01)  # spp less the pilot and the gradient pass: 30
+    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 9)
+    assert counts[-1] == by_count  # no reconstruction measured yet: by the count
+    route.learn_reconstruct_seconds(scene, {}, 0.3)
+    route.render_route(scene, choice, pilot, spp=100, seed=0)
+    assert counts[-1] == by_count  # no deadline: by the count
+    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.3)
+    assert 95 <= counts[-1] <= 100  # 1.3 s less fuse's 0.3 s at 0.01 s per sample
+    route.forget_cost_ratios(scene)
+    assert route.learned_reconstruct_seconds(scene, {}) is None

@@ -505,7 +505,13 @@ def test_methods_of_one_render_configuration_share_one_calibration_fake_clock(
 
 def test_auto_shares_the_calibration_of_its_plain_route():
     """``auto``'s ``spp`` are its plain route's samples: its render configuration is that of
-    ``pt+`` the primal-only denoiser, which is timed for both."""
+    ``pt+`` the primal-only denoiser, which is timed for both where ``auto`` takes a count
+    (``render-time``; under ``total`` it is given the seconds)."""
+    from gdpt.study.calibration import fills_seconds
+
+    assert fills_seconds(EVAL_METHODS["auto"], "total")
+    assert not fills_seconds(EVAL_METHODS["auto"], "render-time")
+    assert not fills_seconds(EVAL_METHODS["pt+oidn-tuned"], "total")
     from gdpt.adapters import plain_denoiser
     from gdpt.study.calibration import calibration_runner, configuration_key
 

@@ -64,34 +64,48 @@ def test_an_unknown_protocol_is_refused_by_name():
 
 
 def test_render_time_calibration_skips_the_reconstruction_where_the_method_splits():
-    calls = []
+    """Under ``render-time`` the probes only sample; a run at a count new on the scene is the
+    timing unless it recorded frozen passes (then it is the warm-up and runs again), and a
+    count already run there is not warmed up again. The fake records at a count never
+    rendered before (by either function)."""
+    calls, rendered = [], set()
+
+    def recorded(spp: int) -> bool:
+        new = spp not in rendered
+        rendered.add(spp)
+        return new
 
     def run(scene, *, spp: int, seed: int) -> MethodResult:
-        calls.append("run")
+        calls.append(("run", spp))
         return MethodResult(
             torch.zeros(3, 4, 3),
             seconds=PER_SPP * spp + 9.0,
             render_seconds=PER_SPP * spp,
             reconstruct_seconds=9.0,
+            recorded=recorded(spp),
         )
 
     def render(scene, *, spp: int, seed: int) -> MethodResult:
-        calls.append("render")
+        calls.append(("render", spp))
         return MethodResult(
-            torch.zeros(3, 4, 3), seconds=PER_SPP * spp, render_seconds=PER_SPP * spp
+            torch.zeros(3, 4, 3),
+            seconds=PER_SPP * spp,
+            render_seconds=PER_SPP * spp,
+            recorded=recorded(spp),
         )
 
     method = EvalMethod("split", "fake split method", run, render=render)
     scene = types.SimpleNamespace(name="fake", resolution=(4, 3), warm=set())
     model = calibrate(method, scene, budget=1.0, seed=1, protocol="render-time")
-    assert set(calls) == {"render"} and model.per_spp == pytest.approx(PER_SPP)
+    assert {kind for kind, _ in calls} == {"render"} and model.per_spp == pytest.approx(PER_SPP)
+    probe = calls[4][1]
+    assert calls[:6] == [("render", 1)] * 4 + [("render", probe)] * 2  # each recorded once
     calls.clear()
     _, record = run_at_budget(method, scene, model, budget=1.0, seed=2, protocol="render-time")
-    assert calls == ["render", "run"] and record["reconstruct_seconds"] == 9.0  # warm-up, cell
+    spp = record["spp"]
+    assert calls == [("run", spp)] * 2 and record["reconstruct_seconds"] == 9.0  # recorded
     calls.clear()
     calibrate(method, scene, budget=20.0, seed=1, protocol="total")
-    # every warm-up only samples, every timed run is charged in full, and a count rendered on
-    # the scene already is not warmed up again (the three 1-spp timings after the warm-ups)
-    assert calls[:7] == ["render", "run", "render", "run", "run", "run", "run"]
-    pairs = zip(calls, calls[1:], strict=False)
-    assert all(after == "run" for before, after in pairs if before == "render")
+    # every timed run is charged in full; 1 spp was recorded by the render-time probes: timed
+    # at once (no warm-up); 2 spp (its first probe here) never was: run twice
+    assert probe != 2 and calls[:5] == [("run", 1)] * 3 + [("run", 2)] * 2

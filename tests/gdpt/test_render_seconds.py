@@ -23,7 +23,7 @@ def fake_runs(monkeypatch):
     ``FIXED + PER_SPP * spp`` seconds; returns the ``(spp, seed)`` of every run, in order."""
     calls: list[tuple[int, int]] = []
 
-    def run(scene, spp, method, seed, alpha, bar, props):
+    def run(scene, spp, method, seed, alpha, bar, props, budget=None):
         calls.append((spp, seed))
         total = FIXED + PER_SPP * spp
         timings = {"render": total - FIXED, "reconstruct": FIXED, "total": total, "compile": 0.0}
@@ -151,7 +151,7 @@ def test_auto_without_room_for_its_pilot_takes_the_count_below_it(scene, monkeyp
     does not fit gets the largest count below the threshold, from a model of those counts."""
     threshold, calls = pipeline.auto_route.pilot_threshold(), []
 
-    def run(scene, spp, method, seed, alpha, bar, props):
+    def run(scene, spp, method, seed, alpha, bar, props, budget=None):
         calls.append(spp)
         total = (1.5 if spp >= threshold else 0.3) + PER_SPP * spp
         return pipeline.RenderResult(torch.zeros(2, 2, 3), None, spp=spp, timings={"total": total})
@@ -197,7 +197,7 @@ def test_a_warm_up_short_of_the_budget_corrects_a_slow_probe(scene, monkeypatch)
     again (warmed up, then timed)."""
     calls = []
 
-    def run(scene, spp, method, seed, alpha, bar, props):
+    def run(scene, spp, method, seed, alpha, bar, props, budget=None):
         calls.append(spp)
         slow = 3.0 if len(calls) <= 8 else 1.0  # the probes and their warm-ups
         total = slow * (FIXED + PER_SPP * spp)
@@ -207,3 +207,52 @@ def test_a_warm_up_short_of_the_budget_corrects_a_slow_probe(scene, monkeypatch)
     result = pipeline.render_and_denoise(scene, seconds=3.0, method="l2")
     assert abs(result.timings["total"] - 3.0) <= 0.15 * 3.0, (calls, result.spp)
     assert calls[-1] == calls[-2] == result.spp  # the new count warmed up, then timed
+
+
+def test_auto_timed_render_gets_its_deadline_and_its_gradient_route_learns_fuse(scene, monkeypatch):
+    """The timed render of ``seconds=`` hands ``auto``'s route the end of the budget (from the
+    start of its pilot), and a gradient route's reconstruction time is learned for the next
+    deadline (the untimed renders of the setup have none)."""
+    import time
+    import types
+
+    from gdpt.auto_route import RouteChoice, learned_reconstruct_seconds
+    from gdpt.seconds_bar import SecondsBar
+
+    deadlines = []
+
+    def render_route(scene, choice, pilot, *, spp, seed, deadline=None, **props):
+        deadlines.append(deadline)
+        return types.SimpleNamespace(metadata={})
+
+    def reconstruct(buffers, method, alpha):
+        time.sleep(0.05)
+        return torch.zeros(2, 2, 3)
+
+    route = RouteChoice("gradient", "fuse", "test")
+    monkeypatch.setattr(pipeline.auto_route, "run_pilot", lambda scene, **kw: (route, None))
+    monkeypatch.setattr(pipeline.auto_route, "render_route", render_route)
+    monkeypatch.setattr(pipeline, "reconstruct_image", reconstruct)
+    quiet = SecondsBar(None, disable=True)
+    start = time.perf_counter()
+    pipeline._render_at(scene, 8, "auto", 0, 0.2, quiet, {"max_depth": 4}, 2.0)
+    assert start + 2.0 <= deadlines[-1] <= time.perf_counter() + 2.0
+    assert learned_reconstruct_seconds(scene, {"max_depth": 4}) >= 0.05
+    pipeline._render_at(scene, 8, "auto", 0, 0.2, quiet, {"max_depth": 4})
+    assert deadlines[-1] is None
+    pipeline.release_scene(scene)
+    assert learned_reconstruct_seconds(scene, {"max_depth": 4}) is None
+
+
+def test_probing_aims_with_the_line_past_a_large_fixed_cost():
+    """A reconstruction's fixed seconds dominate the first probes: aiming with the line (not
+    the time ratio, which would take 1, 5, 20, 40 spp) past the target (2 s) reaches it in
+    three."""
+    seen = []
+
+    def timed(spp, offset):
+        seen.append(spp)
+        return 0.5 + 0.05 * spp
+
+    model = fit_by_probing(timed, budget=4.0, repeats=1, probe_fraction=0.5)
+    assert seen == [1, 5, 40] and model.spp_for(4.0) == 70

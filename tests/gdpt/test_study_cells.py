@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -14,7 +15,13 @@ import pytest
 import torch
 
 from gdpt.cli import main
-from gdpt.study.cells import MISS_TOLERANCE, TORCH_THREADS, _timed_replicate, method_order
+from gdpt.study.cells import (
+    MISS_TOLERANCE,
+    TORCH_THREADS,
+    _timed_replicate,
+    method_order,
+    redo_spp,
+)
 from gdpt.study.config import EvaluateConfig
 from gdpt.study.evaluate import evaluate
 from gdpt.study.methods import EVAL_METHODS, EvalMethod, MethodResult
@@ -163,19 +170,66 @@ def test_replicate_over_budget_is_redone_then_flagged_fake_clock(tmp_path, monke
     clock = Clock()
     monkeypatch.setitem(EVAL_METHODS, "fake-a", clock.method("fake-a", SAME))
     monkeypatch.setitem(EVAL_METHODS, "fake-b", clock.method("fake-b", SAME))
-    clock.scale["fake-b"] = 1.5  # its fixed cost 50% over too: the corrected count is under
+    clock.scale["fake-b"] = 3.0  # 3x over: the redo at half the count (the bound) still over
     cfg = _cfg(methods=("fake-a", "fake-b"), budgets=(0.2,), seeds=2)
     out = tmp_path / "report"
     results = evaluate(["random:3"], out, cfg, progress=False)
     flagged = results["scenes"]["random-3"]["methods"]["fake-b"]["cells"]["0.2"]
     assert flagged["missed_budget"] == [0, 1]
     for replicate in flagged["replicates"]:
-        assert replicate["missed_budget"] and replicate["relative_error"] < -MISS_TOLERANCE
-        assert replicate["redone"]["relative_error"] > MISS_TOLERANCE
+        assert replicate["missed_budget"] and replicate["relative_error"] > MISS_TOLERANCE
+        assert replicate["redone"]["relative_error"] > replicate["relative_error"]
+        assert replicate["spp"] == math.ceil(replicate["redone"]["spp"] / 2)
     calls_b = [c for c in clock.calls if c[0] == "fake-b"]
     assert len(calls_b) == 8  # two replicates, each warmed up and timed twice (no third try)
     report = (out / "results.md").read_text()
     assert "missed the budget" in report and "fake-b at 0.2 s, replicate 0" in report
+
+
+def test_a_method_that_fills_seconds_is_given_the_budget_not_a_count_fake_clock(tmp_path):
+    """``auto`` under ``total`` (a method with ``run_for``): each replicate is given the
+    budget in seconds, warmed up and timed at its seed, never a calibrated count; its count is
+    its own choice, recorded; a miss is redone at the same budget. Under ``render-time`` it
+    takes its configuration's calibrated count as before."""
+    clock, given = Clock(), []
+
+    def run_for(scene, *, seconds: float, seed: int) -> MethodResult:
+        given.append((seconds, seed))
+        width, height = scene.resolution
+        slow = 1.3 if len(given) == 2 else 1.0  # the first timed run 30% over: redone
+        return MethodResult(torch.zeros(height, width, 3), seconds * slow, spp=int(seconds * 100))
+
+    fills = dataclasses.replace(clock.method("fake-s", SAME), run_for=run_for)
+    cfg = _cfg(methods=("fake-a", "fake-s"), budgets=(0.2,), seeds=1)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setitem(EVAL_METHODS, "fake-a", clock.method("fake-a", SAME))
+        patch.setitem(EVAL_METHODS, "fake-s", fills)
+        results = evaluate(["random:3"], tmp_path / "total", cfg, progress=False, report=False)
+    assert not [c for c in clock.calls if c[0] == "fake-s"]  # no count given, no probes
+    (record,) = results["scenes"]["random-3"]["methods"]["fake-s"]["cells"]["0.2"]["replicates"]
+    seed = record["seed"]
+    assert given == [(0.2, seed)] * 4  # warm-up and timed, twice (the miss redone)
+    assert record["spp"] == 20 and record["charged_seconds"] == pytest.approx(0.2)
+    assert record["redone"]["relative_error"] == pytest.approx(0.3)
+    assert record["calibration"] == "method fake-s (seconds)" and not record["missed_budget"]
+
+    given.clear()
+    cfg = _cfg(methods=("fake-a", "fake-s"), budgets=(0.2,), seeds=1, protocol="render-time")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setitem(EVAL_METHODS, "fake-a", clock.method("fake-a", SAME))
+        patch.setitem(EVAL_METHODS, "fake-s", fills)
+        evaluate(["random:3"], tmp_path / "render-time", cfg, progress=False, report=False)
+    assert given == [] and [c for c in clock.calls if c[0] == "fake-s"]
+
+
+def test_redo_of_a_large_miss_keeps_at_least_half_the_count():
+    """A miss that large is the machine's (a first try of 53.8 s at 436 spp for 8 s): the redo
+    keeps half the count at least, not the 1 spp the miss alone would leave (and at most
+    twice the count for a run far under)."""
+    per_spp = 8.0 / 436
+    assert redo_spp(436, 53.8, 8.0, per_spp) == 218
+    assert redo_spp(436, 1.0, 8.0, per_spp / 2) == 872
+    assert redo_spp(436, 9.6, 8.0, per_spp) == 436 - round(1.6 / per_spp)  # a small miss
 
 
 def test_replicate_of_its_own_calibration_is_redone_at_the_same_count_fake_clock(tmp_path):
