@@ -265,6 +265,7 @@ REQUIRED_NAMES = {
     "scenes-512px",  # how many scenes the 512 px study has
     "cell-interval",  # the noise of one cell's ratio
     "advise-per-candidate",  # what advise costs per candidate, in budgets
+    "advise-cost",  # what advise costs in all, in budgets
     "gradient-sample-cost",  # a gradient sample in plain samples
     "auto-gradient-runs",
     "auto-over-fuse",
