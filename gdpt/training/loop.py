@@ -115,6 +115,23 @@ def _distributed() -> tuple[int, int, int]:
     )
 
 
+def _meet_before_leaving(world: int) -> None:
+    """Return once all ``world`` ranks have called it, meeting on the rendezvous store.
+
+    Destroying a gloo group closes the rank's connections; a peer still completing the last
+    collective then fails (pytorch/gloo#155: a barrier followed by the context's destruction).
+    The store's connection is not the group's, so after this no rank closes its connections
+    while another still communicates. Only after a run every rank finished: a rank that
+    failed never arrives.
+    """
+    import torch.distributed as dist
+
+    store = dist.distributed_c10d._get_default_store()
+    if store.add("gdpt/finished", 1) == world:
+        store.set("gdpt/all_finished", "1")
+    store.wait(["gdpt/all_finished"])
+
+
 def _write_files(run: Path, files: Mapping[str, bytes]) -> None:
     """Write the plan's extra files; an existing one must be identical (a resumed run)."""
     for name, data in files.items():
@@ -214,6 +231,7 @@ def training_loop(
     owns_group = world > 1 and not dist.is_initialized()
     if owns_group:
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    finished = False
     try:
         run = Path(config.out)
         config = prepare_run(config, resume)
@@ -292,7 +310,10 @@ def training_loop(
                         plan.save(run / "model", card)
                 if world > 1 and (saving or validating):
                     dist.barrier()
+        finished = True
         return run / "model.safetensors"
     finally:
         if owns_group:
+            if finished:
+                _meet_before_leaving(world)
             dist.destroy_process_group()

@@ -99,6 +99,24 @@ def test_a_keyboard_interrupt_is_found_in_an_exception_chain():
     assert not caused_by_interrupt(RuntimeError("out of memory"))
 
 
+def test_a_ctrl_c_in_a_plugin_constructor_reported_by_mitsubas_parser_is_recognised(variant):
+    """Mitsuba's parser turns a Python plugin's exception into a ``RuntimeError`` carrying the
+    traceback as text, with no chain: a Ctrl-C while a scene loads reaches the CLI so."""
+    import mitsuba as mi
+
+    class Interrupted(mi.SamplingIntegrator):
+        def __init__(self, props):
+            super().__init__(props)
+            raise KeyboardInterrupt
+
+    mi.register_integrator("gdpt_test_interrupted", Interrupted)
+    with pytest.raises(RuntimeError) as raised:
+        mi.load_dict({"type": "gdpt_test_interrupted"})
+    assert raised.value.__cause__ is None and raised.value.__context__ is None
+    assert caused_by_interrupt(raised.value)
+    assert not caused_by_interrupt(RuntimeError("Traceback (most recent call last):\nValueError"))
+
+
 def test_a_ctrl_c_inside_a_deferred_block_is_raised_at_its_end():
     finished = []
     with pytest.raises(KeyboardInterrupt), interrupts_deferred():
@@ -116,12 +134,12 @@ def test_ctrl_c_inside_a_dataset_render_says_what_was_kept_and_the_same_command_
     args = [*DATASET, "--out", str(out)]
     # The crop's folder is made just before its first render: the signal lands in its kernels.
     status, err = interrupt_when(args, (out / "crops" / "s00000-v000").is_dir)
-    assert status == 130
+    assert status == 130, err
     assert last_line(err) == (
         "gdpt dataset: interrupted after 0 of 3 crops; run the same command to resume"
     )
     status, err = interrupt_when(args, lambda: bool(read_manifest(out)[0]))
-    assert status == 130
+    assert status == 130, err
     assert re.fullmatch(
         r"gdpt dataset: interrupted after [12] of 3 crops; run the same command to resume",
         last_line(err),
@@ -139,7 +157,7 @@ def test_ctrl_c_during_a_study_says_what_was_kept_and_the_same_command_resumes(t
     args = [*STUDY, "--out", str(out)]
     # While the scene loads or its reference renders.
     status, err = interrupt_when(args, (out / "images").is_dir)
-    assert status == 130
+    assert status == 130, err
     results = out / "results.json"
     assert last_line(err) == (
         f"gdpt evaluate: interrupted with 0 cells done in {results}; run the same command to resume"
@@ -152,7 +170,7 @@ def test_ctrl_c_during_a_study_says_what_was_kept_and_the_same_command_resumes(t
             return False
 
     status, err = interrupt_when(args, a_cell_is_done)
-    assert status == 130
+    assert status == 130, err
     done = cells_done(json.loads(results.read_text()))
     assert done in (1, 2)
     assert last_line(err) == (
