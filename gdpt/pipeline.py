@@ -218,9 +218,9 @@ def _render_at(
         torch.cuda.synchronize(image.device)
     compiled += (c := drain_compile_seconds())
     timings["reconstruct"] = max(0.0, time.perf_counter() - start - c)
-    if choice is not None and choice.route == "gradient":
+    if choice is not None:  # what the route's next deadline leaves for its reconstruction
         routed = auto_route.integrator_props(props)
-        auto_route.learn_reconstruct_seconds(scene, routed, timings["reconstruct"])
+        auto_route.learn_reconstruct_seconds(scene, routed, method, timings["reconstruct"])
     timings["total"] = sum(timings.values())
     timings["compile"] = compiled
     return RenderResult(image=image, buffers=buffers, spp=spp, timings=timings, route=choice)
