@@ -32,9 +32,12 @@ merged gradient by gradient (:func:`gdpt.buffers.merge_renders`): every traced g
 render and has no weight in ``fuse``. On the plain route, plain samples for what is left of
 ``N``. Either way the pilot's cost beyond what the route keeps (its gradient samples' extra cost
 on the plain route, the statistics' time on both) is charged in plain samples at the plain
-pass's measured seconds per sample. The gradient route's render (offsets on most pixels)
-measures the scene's cost ratio, which sizes ``G`` of the scene's later renders (kept per scene
-object and integrator properties, replaced only where it moves by more than :data:`RELEARN`:
+pass's measured seconds per sample. With a deadline (a budget in seconds,
+``render_and_denoise(seconds=...)``) either route's last plain samples instead fill the time
+left before it less the route's reconstruction (:func:`render_route`). The gradient route's
+render (offsets on most pixels) measures the scene's cost ratio, which sizes ``G`` of the
+scene's later renders (kept per scene object and integrator properties, replaced only where
+it moves by more than :data:`RELEARN`:
 ``G`` stays put between renders, so they replay each other's frozen passes; the first gradient
 route of a scene is sized at :data:`DEFAULT_COST_RATIO`). Stratified rather than simply random
 tiles: one tile in each of ``n`` equal runs of the tiles in row-major order, so every band of
@@ -96,9 +99,9 @@ DEFAULT_COST_RATIO = 1.8
 #: render replays the frozen passes of an earlier one of the same ``N``.
 RELEARN = 0.2
 
-#: ``(id(scene), properties) -> (scene, {"cost_ratio": ..., "reconstruct_seconds": ...})``,
-#: what the scene's gradient routes measured, least recently used first (the scene is kept so
-#: that its id stays unique).
+#: ``(id(scene), properties) -> (scene, {"cost_ratio": ..., "reconstruct_seconds METHOD": ...,
+#: "plain_seconds_per_spp": ...})``, what the scene's routes measured, least recently used
+#: first (the scene is kept so that its id stays unique).
 _LEARNED: OrderedDict[tuple, tuple[Any, dict[str, float]]] = OrderedDict()
 _LEARNED_SIZE = 8
 
@@ -373,8 +376,8 @@ def learned_cost_ratio(scene: Any, props: dict[str, Any]) -> float | None:
 
 
 def forget_cost_ratios(scene: Any) -> None:
-    """Drop the cost ratios and reconstruction seconds learned on ``scene`` (and the reference
-    to it)."""
+    """Drop the cost ratios, reconstruction seconds and plain seconds per sample learned on
+    ``scene`` (and the reference to it)."""
     for key in [k for k, (kept, _) in _LEARNED.items() if kept is scene]:
         del _LEARNED[key]
 
@@ -387,17 +390,34 @@ def learn_cost_ratio(scene: Any, props: dict[str, Any], ratio: float) -> None:
         _learn(scene, props, "cost_ratio", ratio)
 
 
-def learned_reconstruct_seconds(scene: Any, props: dict[str, Any]) -> float | None:
-    """The seconds of ``fuse``'s reconstruction after the last gradient route on ``scene`` with
-    integrator ``props`` (:func:`learn_reconstruct_seconds`), ``None`` before."""
-    return _learned(scene, props).get("reconstruct_seconds")
+def learned_reconstruct_seconds(scene: Any, props: dict[str, Any], method: str) -> float | None:
+    """The seconds of reconstruction ``method`` (``"fuse"`` or the plain route's denoiser)
+    after the last route that used it on ``scene`` with integrator ``props``
+    (:func:`learn_reconstruct_seconds`), ``None`` before."""
+    return _learned(scene, props).get(f"reconstruct_seconds {method}")
 
 
-def learn_reconstruct_seconds(scene: Any, props: dict[str, Any], seconds: float) -> None:
-    """Remember the seconds a gradient route's reconstruction took on ``scene`` with ``props``
+def learn_reconstruct_seconds(
+    scene: Any, props: dict[str, Any], method: str, seconds: float
+) -> None:
+    """Remember the seconds a route's reconstruction ``method`` took on ``scene`` with ``props``
     (the latest replaces the one before): what :func:`render_route` leaves for it before a
     deadline."""
-    _learn(scene, props, "reconstruct_seconds", float(seconds))
+    _learn(scene, props, f"reconstruct_seconds {method}", float(seconds))
+
+
+def learned_plain_seconds_per_spp(scene: Any, props: dict[str, Any]) -> float | None:
+    """Seconds per plain sample per pixel of the last plain route's render on ``scene`` with
+    integrator ``props`` that replayed its passes (:func:`render_route`), ``None`` before."""
+    return _learned(scene, props).get("plain_seconds_per_spp")
+
+
+def samples_before(deadline: float, finish: float, seconds_per_spp: float) -> int:
+    """Samples per pixel at ``seconds_per_spp`` that fill the time from now to ``deadline`` (a
+    :func:`time.perf_counter` instant) less ``finish`` seconds (the reconstruction after
+    them), at least 1."""
+    left = deadline - time.perf_counter() - finish
+    return max(1, round(left / max(seconds_per_spp, 1e-9)))
 
 
 def _tile_terms(
@@ -448,23 +468,35 @@ def render_route(
     that render's measured time (at least 1, which brings the features), pooled into it
     (:func:`gdpt.buffers.pool_primal`); the cost ratio that render measured (offsets on most
     pixels; not where it recorded frozen passes, whose tracing and compilation it timed too)
-    sizes ``G`` of the scene's next renders (:func:`learn_cost_ratio`). With a ``deadline``
-    (a :func:`time.perf_counter` instant: the end of a budget in seconds) the gradient route's
-    plain samples fill the time left before it, less the seconds of the scene's last ``fuse``
-    reconstruction (:func:`learned_reconstruct_seconds`; where none was measured, the count
-    above), at the pilot's measured seconds per plain sample: the samples, the pilot's
-    statistics and ``fuse`` all within the budget. ``props`` as for :func:`gdpt.render` (they
-    override the route's sampling).
+    sizes ``G`` of the scene's next renders (:func:`learn_cost_ratio`).
+
+    With a ``deadline`` (a :func:`time.perf_counter` instant: the end of a budget in seconds),
+    either route's last plain samples fill the time left before it (:func:`samples_before`),
+    less the seconds of the route's reconstruction the last time it ran on the scene
+    (:func:`learned_reconstruct_seconds`; where none was measured, the counts above): the
+    pilot, its statistics, the samples and the reconstruction all within the budget. The
+    gradient route's plain samples are timed at the pilot's measured seconds per plain sample
+    (the same sampling); the plain route's at those of the scene's last plain route render
+    that replayed its passes (:func:`learned_plain_seconds_per_spp`: its sampling, at a count
+    near this one), else the pilot's. ``props`` as for :func:`gdpt.render` (they override the
+    route's sampling).
     """
     if pilot is None:
         return rendering.render(scene, seed=seed, **{**route_sampling(choice, spp), **props})
     info = choice.pilot
     left = spp - info["cost_spp"]
     fuse = methods.METHODS["fuse"]
+    routed = integrator_props(props)
+    finish = None if deadline is None else learned_reconstruct_seconds(scene, routed, choice.method)
     if choice.route == "plain":
         rest = max(1, round(left))
+        if finish is not None:
+            per_spp = learned_plain_seconds_per_spp(scene, routed) or info["seconds_per_spp"]
+            rest = samples_before(deadline, finish, per_spp)
         sampling = {"spp": rest, **methods.METHODS[choice.method].sampling(rest), **props}
         main = rendering.render(scene, seed=seed, **sampling)
+        if not main.metadata["recorded_passes"]:  # a recording's time is not the samples'
+            _learn(scene, routed, "plain_seconds_per_spp", main.metadata["render_seconds"] / rest)
         first = pilot.render.replace(dx=None, dy=None, var_dx=None, var_dy=None)
         keep = set(main.present())
         first = first.replace(**{n: None for n in first.present() if n not in keep})
@@ -475,12 +507,10 @@ def render_route(
     seconds = gradient.metadata["render_seconds"]
     if not gradient.metadata["recorded_passes"]:  # a recording's time is not the samples'
         ratio = measured_cost_ratio(seconds, g, 1.0 - info["share"], info["seconds_per_spp"])
-        learn_cost_ratio(scene, integrator_props(props), ratio)
+        learn_cost_ratio(scene, routed, ratio)
     rest = max(1, round(left - seconds / info["seconds_per_spp"]))
-    finish = learned_reconstruct_seconds(scene, integrator_props(props))
-    if deadline is not None and finish is not None:
-        left_seconds = deadline - time.perf_counter() - finish
-        rest = max(1, round(left_seconds / info["seconds_per_spp"]))
+    if finish is not None:
+        rest = samples_before(deadline, finish, info["seconds_per_spp"])
     plain_sampling = {**fuse.sampling(rest), "gradients": False, "primal_spp": 0, **props}
     plain_seed = (int(seed) ^ rendering.PRIMAL_SEED_SALT) & 0xFFFFFFFF
     plain = rendering.render(scene, spp=rest, seed=plain_seed, **plain_sampling)

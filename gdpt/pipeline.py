@@ -107,9 +107,11 @@ def render_and_denoise(
             (``auto``'s pilot and statistics included) to fill: the sample count comes from a
             cost model of ``scene`` and this configuration (:class:`gdpt.cost_model.TimeModel`,
             kept per scene object in :data:`gdpt.cost_model.MODELS` and refined by every
-            render). The first such render of a scene and configuration in a process first
-            compiles the kernels, records the frozen passes and times probe renders (all of it
-            untimed, ``timings["setup"]``); later ones reuse the model.
+            render; ``auto``'s route then fills what its pilot left of the seconds, before
+            its reconstruction: :func:`gdpt.auto_route.render_route`). The first such render
+            of a scene and configuration in a process first compiles the kernels, records
+            the frozen passes and times probe renders (all of it untimed,
+            ``timings["setup"]``); later ones reuse the model.
         method (str): ``"auto"`` (from :func:`gdpt.auto_route.pilot_threshold` spp on, a pilot
             of a share of the film's tiles at the main render's gradient count, whose samples
             go into the image, chooses between the primal-only denoiser on plain samples and
@@ -184,8 +186,10 @@ def _render_at(
 ) -> RenderResult:
     """:func:`render_and_denoise` at ``spp``: each stage's wall seconds without the kernel
     compilation seen during it (``timings["compile"]``), ``total`` their sum. With ``budget``
-    (seconds), ``auto``'s gradient route fills what is left of it after its pilot
-    (:func:`gdpt.auto_route.render_route`'s ``deadline``)."""
+    (seconds), ``auto``'s route fills what is left of it after its pilot and before the
+    route's reconstruction (:func:`gdpt.auto_route.render_route`'s ``deadline``), whose
+    seconds every ``auto`` render here teaches the next
+    (:func:`gdpt.auto_route.learn_reconstruct_seconds`)."""
     choice, timings, compiled = None, {}, 0.0
     drain_compile_seconds()
     start = time.perf_counter()
@@ -218,9 +222,9 @@ def _render_at(
         torch.cuda.synchronize(image.device)
     compiled += (c := drain_compile_seconds())
     timings["reconstruct"] = max(0.0, time.perf_counter() - start - c)
-    if choice is not None and choice.route == "gradient":
+    if choice is not None:  # what the route's next deadline leaves for its reconstruction
         routed = auto_route.integrator_props(props)
-        auto_route.learn_reconstruct_seconds(scene, routed, timings["reconstruct"])
+        auto_route.learn_reconstruct_seconds(scene, routed, method, timings["reconstruct"])
     timings["total"] = sum(timings.values())
     timings["compile"] = compiled
     return RenderResult(image=image, buffers=buffers, spp=spp, timings=timings, route=choice)

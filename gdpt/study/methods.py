@@ -28,9 +28,9 @@ Registered methods:
 * ``auto``: ``render_and_denoise``'s default (:mod:`gdpt.auto_route`: a pilot render's choice
   between plain path tracing + the primal-only denoiser and ``gdpt+fuse``); all of it timed.
   Under the ``total`` protocol it is given the budget in seconds, as a user gives it
-  (``render_and_denoise(seconds=...)``: its own cost model, the gradient route filling what its
-  pilot left); under ``render-time``, the count of its plain route's calibration (``pt+`` that
-  denoiser).
+  (``render_and_denoise(seconds=...)``: its own cost model, either route's last samples filling
+  what its pilot left before the route's reconstruction); under ``render-time``, the count of
+  its plain route's calibration (``pt+`` that denoiser).
 
 A method that cannot run here (package not installed, no shipped model) says so through its
 ``check`` function and is skipped with that note. A reconstruction registered in
@@ -367,8 +367,9 @@ def auto_route_for(
     scene: EvalScene, *, seconds: float, seed: int, **properties: Any
 ) -> MethodResult:
     """``render_and_denoise(method="auto", seconds=seconds)``: the count from its own cost
-    model of the scene (the first call per scene object probes, untimed), the gradient route's
-    plain samples filling what is left of ``seconds`` after its pilot and before ``fuse``; the
+    model of the scene (the first call per scene object probes, untimed), the route's last
+    plain samples filling what is left of ``seconds`` after its pilot and before its
+    reconstruction (``fuse`` or the denoiser: :func:`gdpt.auto_route.render_route`); the
     seconds are its ``timings["total"]`` (pilot, render, reconstruction, each without kernel
     compilation) and the copy of the image to the host; its setup is not timed."""
     return _auto(scene, seed, properties, seconds=seconds)

@@ -406,10 +406,61 @@ def test_a_deadline_sizes_the_gradient_routes_plain_samples_from_the_time_left(m
     by_count = round(100 - 20 - 0.5 / 0.01)  # spp less the pilot and the gradient pass: 30
     route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 9)
     assert counts[-1] == by_count  # no reconstruction measured yet: by the count
-    route.learn_reconstruct_seconds(scene, {}, 0.3)
+    route.learn_reconstruct_seconds(scene, {}, "fuse", 0.3)
     route.render_route(scene, choice, pilot, spp=100, seed=0)
     assert counts[-1] == by_count  # no deadline: by the count
     route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.3)
     assert 95 <= counts[-1] <= 100  # 1.3 s less fuse's 0.3 s at 0.01 s per sample
     route.forget_cost_ratios(scene)
-    assert route.learned_reconstruct_seconds(scene, {}) is None
+    assert route.learned_reconstruct_seconds(scene, {}, "fuse") is None
+
+
+def test_a_deadline_sizes_the_plain_routes_samples_from_the_time_left(monkeypatch):
+    """With a deadline, the plain route's samples fill what is left of the budget after the
+    pilot and before its denoiser's last measured seconds (a slow denoiser: fewer samples than
+    the count left of ``spp``, which would end past the deadline), at the seconds per sample of
+    its last render that replayed its passes (not one that recorded them), else the pilot's;
+    without a deadline, or before the denoiser was measured, the count left of ``spp``."""
+    counts: list[int] = []
+    recorded = [1]
+
+    class Fake:
+        def __init__(self, spp=0):
+            self.metadata = {"render_seconds": 0.005 * spp + 0.5 * recorded[0]}
+            self.metadata["recorded_passes"] = recorded[0]
+
+        def replace(self, **kwargs):
+            return self
+
+        def present(self):
+            return ()
+
+    def fake_render(scene, *, spp, seed, **kwargs):
+        counts.append(spp)
+        return Fake(spp)
+
+    monkeypatch.setattr(route.rendering, "render", fake_render)
+    monkeypatch.setattr(route, "merge_renders", lambda parts: parts[-1])
+    denoiser = methods.primal_only()[0]
+    info = {"cost_spp": 20.0, "gradient_spp": 8, "share": 0.2, "seconds_per_spp": 0.01}
+    choice = route.RouteChoice("plain", denoiser, "test", pilot=info)
+    pilot = route.Pilot(Fake(), torch.zeros(4, 4, dtype=torch.bool))
+    scene = object()
+    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 9)
+    assert counts[-1] == 80  # no denoiser measured yet: spp less the pilot's 20
+    assert route.learned_plain_seconds_per_spp(scene, {}) is None  # it recorded its passes
+    route.learn_reconstruct_seconds(scene, {}, "fuse", 0.0)  # another route's reconstruction
+    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 9)
+    assert counts[-1] == 80
+    route.learn_reconstruct_seconds(scene, {}, denoiser, 0.6)
+    route.render_route(scene, choice, pilot, spp=100, seed=0)
+    assert counts[-1] == 80  # no deadline: by the count
+    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.2)
+    assert 55 <= counts[-1] <= 60  # 1.2 s less the denoiser's 0.6 s at the pilot's 0.01 s
+    recorded[0] = 0  # replays: 0.005 s per sample, learned
+    route.render_route(scene, choice, pilot, spp=100, seed=0)
+    assert route.learned_plain_seconds_per_spp(scene, {}) == pytest.approx(0.005)
+    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 0.9)
+    assert 55 <= counts[-1] <= 60  # 0.9 s less 0.6 s at 0.005 s (80 spp: 1.0 s, past it)
+    route.forget_cost_ratios(scene)
+    assert route.learned_plain_seconds_per_spp(scene, {}) is None

@@ -209,13 +209,17 @@ def test_a_warm_up_short_of_the_budget_corrects_a_slow_probe(scene, monkeypatch)
     assert calls[-1] == calls[-2] == result.spp  # the new count warmed up, then timed
 
 
-def test_auto_timed_render_gets_its_deadline_and_its_gradient_route_learns_fuse(scene, monkeypatch):
+def test_auto_timed_render_gets_its_deadline_and_its_route_learns_its_reconstruction(
+    scene, monkeypatch
+):
     """The timed render of ``seconds=`` hands ``auto``'s route the end of the budget (from the
-    start of its pilot), and a gradient route's reconstruction time is learned for the next
-    deadline (the untimed renders of the setup have none)."""
+    start of its pilot), and each route's reconstruction time (``fuse``, the plain route's
+    denoiser) is learned under its method for the next deadline (the untimed renders of the
+    setup have none)."""
     import time
     import types
 
+    from gdpt.adapters import plain_denoiser
     from gdpt.auto_route import RouteChoice, learned_reconstruct_seconds
     from gdpt.seconds_bar import SecondsBar
 
@@ -237,11 +241,16 @@ def test_auto_timed_render_gets_its_deadline_and_its_gradient_route_learns_fuse(
     start = time.perf_counter()
     pipeline._render_at(scene, 8, "auto", 0, 0.2, quiet, {"max_depth": 4}, 2.0)
     assert start + 2.0 <= deadlines[-1] <= time.perf_counter() + 2.0
-    assert learned_reconstruct_seconds(scene, {"max_depth": 4}) >= 0.05
+    assert learned_reconstruct_seconds(scene, {"max_depth": 4}, "fuse") >= 0.05
     pipeline._render_at(scene, 8, "auto", 0, 0.2, quiet, {"max_depth": 4})
     assert deadlines[-1] is None
+    denoiser = plain_denoiser()
+    assert learned_reconstruct_seconds(scene, {"max_depth": 4}, denoiser) is None
+    route = RouteChoice("plain", denoiser, "test")
+    pipeline._render_at(scene, 8, "auto", 0, 0.2, quiet, {"max_depth": 4})
+    assert learned_reconstruct_seconds(scene, {"max_depth": 4}, denoiser) >= 0.05
     pipeline.release_scene(scene)
-    assert learned_reconstruct_seconds(scene, {"max_depth": 4}) is None
+    assert learned_reconstruct_seconds(scene, {"max_depth": 4}, "fuse") is None
 
 
 def test_probing_aims_with_the_line_past_a_large_fixed_cost():
