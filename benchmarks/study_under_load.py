@@ -17,7 +17,16 @@ versions and machine):
 * per method, the geometric mean over cells of the ratio, idle and loaded, and their agreement
   ``loaded / idle`` (bar: within 10%, i.e. 0.909-1.1);
 * every replicate flagged for missing its budget (``missed_budget``, after one redo), per run,
-  with its charged seconds, the 1-minute load average and CPU / wall time of its timed run.
+  with its charged seconds, the 1-minute load average and CPU / wall time of its timed run;
+* per cell the sample-count proportion of each method to ``pt+oidn-tuned`` (``spp`` over the
+  baseline's ``spp``), idle and loaded, and loaded / idle (the idle/busy bar: within 10%);
+* the machine's own answer, measured in the same run after the studies (``--anchor-reps``, 0:
+  skipped): each method that renders the count it is given (not ``auto``) run at the idle
+  study's median count of the first budget, per scene, timed as the study times it
+  (``EvalMethod.run``: sampling + reconstruction, kernel compilation excluded, two untimed
+  warm-ups first), idle and beside the same busy loop, alternating; ``(t_base loaded / t_base
+  idle) / (t_m loaded / t_m idle)`` is the proportion change that equal time itself asks for
+  when a method's cost grows more under load than the baseline's.
 
 The timing bar of the study (``gdpt.study.cells.MISS_TOLERANCE``) is the tolerance; this script
 only reads what the study recorded. Run it on an otherwise idle machine (the second run adds
@@ -77,6 +86,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="also run the study idle with --workers N and compare it with the sequential run",
     )
     parser.add_argument("--force", action="store_true", help="run again even if complete")
+    parser.add_argument(
+        "--anchor-reps",
+        type=int,
+        default=3,
+        help="fixed-count cost anchors: idle/loaded pairs per scene (0: none; default 3)",
+    )
     parser.add_argument("--summary-only", action="store_true", help="only read existing runs")
     return parser.parse_args(argv)
 
@@ -150,6 +165,122 @@ def cell_ratios(results: dict) -> dict[tuple[str, str, int], dict[str, float]]:
                 if m != BASELINE and r.get("metrics", {}).get("relmse") is not None
             }
     return out
+
+
+def cell_counts(results: dict) -> dict[tuple[str, str, int], dict[str, float]]:
+    """``(scene, budget, replicate) -> {method: spp / spp of pt+oidn-tuned}`` from the cells."""
+    out = {}
+    for scene, entry in results["scenes"].items():
+        for unit, run in entry.get("cell_runs", {}).items():
+            budget, replicate = unit.split("/")
+            reps = run["replicates"]
+            base = reps.get(BASELINE, {}).get("spp")
+            if base:
+                out[(scene, budget, int(replicate))] = {
+                    m: r["spp"] / base for m, r in reps.items() if m != BASELINE and r.get("spp")
+                }
+    return out
+
+
+def count_table(idle: dict, loaded: dict) -> tuple[str, dict]:
+    """Per cell and method the sample-count proportion to the baseline, idle and loaded."""
+    counts = {"idle": cell_counts(idle), "loaded": cell_counts(loaded)}
+    cells = sorted(set(counts["idle"]) & set(counts["loaded"]))
+    methods = sorted({m for r in counts["idle"].values() for m in r})
+    lines = [f"Per cell: spp / spp of `{BASELINE}` in the same cell (the idle/busy bar).", ""]
+    lines += ["| scene | budget s | seed | method | idle | loaded | loaded/idle | within 10% |"]
+    lines += ["|---|---:|---:|---|---:|---:|---:|---|"]
+    numbers: dict = {}
+    for cell in cells:
+        for m in methods:
+            a, b = counts["idle"][cell].get(m), counts["loaded"][cell].get(m)
+            if not (a and b):
+                continue
+            ok = 1 / (1 + AGREEMENT) <= b / a <= 1 + AGREEMENT
+            numbers.setdefault(m, []).append({"cell": list(cell), "change": b / a, "ok": ok})
+            lines.append(
+                f"| {cell[0]} | {cell[1]} | {cell[2]} | {m} | {a:.3f} | {b:.3f} | {b / a:.3f} "
+                f"| {'yes' if ok else 'NO'} |"
+            )
+    return "\n".join(lines) + "\n", numbers
+
+
+def median(values: list[float]) -> float:
+    ordered = sorted(values)
+    n = len(ordered)
+    return (ordered[n // 2] + ordered[(n - 1) // 2]) / 2
+
+
+def measure_anchors(args: argparse.Namespace, idle: dict) -> dict:
+    """Fixed-count seconds of each method (not ``auto``) idle and loaded, alternating; see the
+    module docstring. ``{scene: {method: {"spp", "idle", "loaded"}}}`` (median seconds)."""
+    from gdpt.study.methods import EVAL_METHODS
+    from gdpt.study.scenes import load_eval_scene, resolve_scenes
+
+    budget = f"{args.budgets[0]:g}"
+    found: dict = {}
+    for spec in resolve_scenes(args.scenes):
+        entry = idle["scenes"].get(spec.name, {})
+        spp: dict[str, list[int]] = {}
+        for unit, run in entry.get("cell_runs", {}).items():
+            if unit.split("/")[0] in (budget, f"{float(budget):g}"):
+                for m, r in run["replicates"].items():
+                    if m != "auto" and r.get("spp"):
+                        spp.setdefault(m, []).append(int(r["spp"]))
+        if BASELINE not in spp:
+            continue
+        counts = {m: int(median(v)) for m, v in spp.items()}
+        scene = load_eval_scene(spec, resolution=args.resolution)
+        seconds: dict = {m: {"idle": [], "loaded": []} for m in counts}
+        for m, n in counts.items():  # warm-ups: compilation and pass recording, untimed
+            for k in range(2):
+                EVAL_METHODS[m].run(scene, spp=n, seed=9000 + k)
+        for rep in range(args.anchor_reps):
+            for condition in ("idle", "loaded"):
+                burner = None
+                if condition == "loaded":
+                    burner = subprocess.Popen([sys.executable, "-c", BURNER])
+                    time.sleep(0.5)
+                try:
+                    for m, n in counts.items():
+                        result = EVAL_METHODS[m].run(scene, spp=n, seed=rep)
+                        seconds[m][condition].append(result.seconds)
+                finally:
+                    if burner is not None:
+                        burner.terminate()
+                        burner.wait()
+        found[spec.name] = {
+            m: {"spp": counts[m], **{c: median(seconds[m][c]) for c in ("idle", "loaded")}}
+            for m in counts
+        }
+        print(f"anchors {spec.name}: {found[spec.name]}", flush=True)
+    return found
+
+
+def anchor_table(anchors: dict, counts: dict) -> str:
+    """The anchors against the study's count proportions (geometric mean over the cells)."""
+    lines = [
+        "Fixed-count anchors (same run, after the studies): seconds at the idle study's median "
+        "count, idle and beside the busy loop; the proportion change equal time asks for, "
+        f"(t_{BASELINE} loaded / idle) / (t_method loaded / idle), against the study's.",
+        "",
+        "| scene | method | spp | seconds idle | seconds loaded | loaded/idle | "
+        "proportion change asked | study's (geomean) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for scene, methods in anchors.items():
+        base = methods[BASELINE]
+        slow_base = base["loaded"] / base["idle"]
+        for m, a in methods.items():
+            slow = a["loaded"] / a["idle"]
+            asked = slow_base / slow
+            study = [c["change"] for c in counts.get(m, []) if c["cell"][0] == scene]
+            shown = f"{geomean(study):.3f}" if study else "n/a"
+            lines.append(
+                f"| {scene} | {m} | {a['spp']} | {a['idle']:.3f} | {a['loaded']:.3f} | "
+                f"{slow:.3f} | {asked:.3f} | {shown} |"
+            )
+    return "\n".join(lines) + "\n"
 
 
 def geomean(values: list[float]) -> float:
@@ -298,6 +429,14 @@ def main(argv: list[str] | None = None) -> int:
             timing[name] = run_study(args, out, False, args.compare_workers)
     runs = {n: json.loads((args.out / n / "results.json").read_text()) for n in ("idle", "loaded")}
     text, numbers = summarise(runs["idle"], runs["loaded"])
+    table, numbers["counts"] = count_table(runs["idle"], runs["loaded"])
+    text += "\n" + table
+    anchors_path = args.out / "anchors.json"
+    if args.anchor_reps and not args.summary_only:
+        anchors_path.write_text(json.dumps(measure_anchors(args, runs["idle"]), indent=1))
+    if anchors_path.is_file():
+        numbers["anchors"] = json.loads(anchors_path.read_text())
+        text += "\n" + anchor_table(numbers["anchors"], numbers["counts"])
     if args.compare_workers:
         workers = args.out / f"workers-{args.compare_workers}"
         parallel = json.loads((workers / "results.json").read_text())
