@@ -5,9 +5,9 @@ Per scene and budget, runs :func:`gdpt.advise` (default candidates ``pt+oidn-tun
 replicate, one plain render ``P`` per replicate) and compares every ratio it prints (each
 candidate / the baseline ``pt+oidn-tuned``: one case each) with the ratio of the *same
 renders* against a reference (:func:`gdpt.metrics.relmse`, reference weights; replicates
-pooled), and with the same ratio under the estimator's weights (the mean of ``P``'s two
-folds' :func:`~gdpt.reconstruct.reference_free.plain_weights`), which separates the weights'
-assumption from the estimator's noise. Timed: run it on an idle machine.
+pooled), and with the same ratio under the estimator's weights (the mean of the weights of
+``P``'s six pairs of quarters, :func:`~gdpt.reconstruct.reference_free.plain_pairs`), which
+separates the weights' assumption from the estimator's noise. Timed: run it on an idle machine.
 
 Scenes: ``../shared/scenes/NAME`` (box filter, 128 px long side) or ``random:SEED`` (128 px);
 ``random:193`` is a room lit by a sun and sky through a window (a procedural sky with a sun
@@ -245,7 +245,7 @@ def main() -> None:
             )
             ref_spp = reference_spp(ref_file)
             noise = reference_variance(advice.plains, ref_spp) if advice.plains else None
-            weights = [sum(f["weights"] for f in p["folds"]) / 2 for p in advice.plains]
+            weights = [sum(q.weights for q in p["pairs"]) / len(p["pairs"]) for p in advice.plains]
             per_candidate = seconds / (budget * len(advice.methods))
             baseline = advice.methods[0]
             for method in advice.methods[1:]:

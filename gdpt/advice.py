@@ -8,10 +8,10 @@ budget as ``render_and_denoise(seconds=...)``, refined by each render; shared by
 render the same configuration), each renders once per replicate, and one independent plain
 render ``P`` per replicate (two folds of two halves: its per-pixel variance and weights)
 scores them: the relMSE ratio of each method to the first, with a 95% Fieller interval, from
-the reference-free estimator of :mod:`gdpt.reconstruct.reference_free` (relMSE weights from
-``P``'s two independent folds, each fold's terms weighted by the other's: unbiased
-denominators, alike for every method; standard errors from 8 px block sums, replicates
-pooled)::
+the reference-free estimator of :mod:`gdpt.reconstruct.reference_free` (``P``'s four
+independent quarters scored against in all six pairs, each pair's terms weighted like relMSE by
+the other two quarters: unbiased denominators, alike for every method; standard errors from
+8 px block sums, replicates pooled)::
 
     import gdpt
 

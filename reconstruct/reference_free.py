@@ -7,37 +7,60 @@ greedy error minimization*; the NGPT convention, ``eps = 1e-3``). In dark pixels
 ``sqrt(eps)``) the weight is up to ``1 / eps``, so dark regions dominate it.
 
 **The estimator.** ``P`` is a plain render (unbiased, independent of every method's output)
-rendered as two independent *folds* ``P_1``, ``P_2``, each of two independent halves ``a``,
-``b`` (four quarters). Per pixel and channel, for ``X`` independent of ``P_k``::
+rendered as four independent *quarters* ``Q_0 .. Q_3`` (two folds of two halves: fold 1 is
+``Q_0``, ``Q_1``). For two of them, ``Q_i`` and ``Q_j``, pooled into ``P_ij`` (``n_ij``
+samples), per pixel and channel, for ``X`` independent of both::
 
-    E[(X_c - P_k,c)^2 - v_k,c | X] = (X_c - I_c)^2        (v_k,c = Var(P_k,c))
+    E[(X_c - P_ij,c)^2 - v_ij,c | X] = (X_c - I_c)^2        (v_ij,c = Var(P_ij,c))
 
 (the held-out comparison of :mod:`gdpt.reconstruct.held_out`; Bitterli et al. 2016, NFOR,
-sec. 5), with ``v_k`` from the fold's two halves: ``E[(A_c - B_c)^2] = sigma^2 n / (n_a n_b)``,
-``Var(P_k,c) = sigma^2 / n`` (:func:`half_variance`, unbiased per pixel). The weights of fold
-``k``'s terms come from the *other* fold (:func:`plain_weights`)::
+sec. 5), with ``v_ij`` from the two quarters: ``E[(Q_i - Q_j)^2] = sigma^2 n_ij / (n_i n_j)``,
+``Var(P_ij) = sigma^2 / n_ij`` (:func:`half_variance`, unbiased per pixel; for ``n_i = n_j``
+the term is ``(X - Q_i)(X - Q_j)``, the product of two independent errors). The term of pair
+``ij`` is weighted by the *other two* quarters ``k``, ``l`` (:func:`plain_weights`)::
 
-    w_k = 1 / (eps + max(S(L_a) S(L_b), 0))
+    w_kl = 1 / (eps + max(S(L_k) S(L_l), 0))
 
-``L_a``, ``L_b`` the channel means of the other fold's halves, ``S`` their mean over a square of
-:data:`WEIGHT_RADIUS` (0: the pixel alone, ``S(L) = L``). Because the halves are independent and
-unbiased, ``E[S(L_a) S(L_b)] = S(L_I)^2`` exactly: the denominator is unbiased for ``eps +
-S(L_I)^2`` (the square of a noisy mean, ``S(L)^2``, would be biased by ``Var(S(L))``, large in dark
-noisy pixels), and the weight is bounded by ``1 / eps``, the largest true weight. A larger square
-trades a blur of ``L_I`` at edges for less variance; the blur biases the weights where it counts
-most, next to bright emitters (``benchmarks/advise_weights.py`` measures 1x1, 3x3 and 5x5 px, OIDN's
-denoise of the other fold and the baseline's output against references). Since ``w_k`` is
-independent of ``P_k``, of ``v_k`` and of every method's output, ``t_X = (w_2 (mean_c (X - P_1)^2 -
-v_1) + w_1 (mean_c (X - P_2)^2 - v_2)) / 2`` (:func:`cross_fitted_terms`) has the expectation ``E[w]
-mean_c (X - I)^2`` per pixel: no cross term between the weights and the plain image they score
-against (weights computed from the same ``P`` would add ``-2 (X - I) Cov(w, P)`` per pixel, which
-does not cancel in a difference), and the same ``E[w]`` for every method, so it favours none. Its
-only bias is ``E[w] - w(I)``: the blur at edges, and, ``1 / (eps + u)`` being convex in ``u``, by
-Jensen's inequality ``E[w] >= 1 / (eps + S(L_I)^2)``, by about ``Var(S(L_a) S(L_b)) / (eps +
-S(L_I)^2)^3`` (second order in the halves' noise, capped by the bound); both are the same for every
-method. Assumptions: ``P``'s samples are independent between pixels and unbiased (a box pixel
-filter, an unbiased integrator), radiance is not negative, and the methods' outputs are independent
-of ``P``.
+``L_k``, ``L_l`` their channel means, ``S`` their mean over a square of :data:`WEIGHT_RADIUS`
+(0: the pixel alone, ``S(L) = L``). Because the quarters are independent and unbiased,
+``E[S(L_k) S(L_l)] = S(L_I)^2`` exactly: the denominator is unbiased for ``eps + S(L_I)^2``
+(the square of a noisy mean, ``S(L)^2``, would be biased by ``Var(S(L))``, large in dark noisy
+pixels), and the weight is bounded by ``1 / eps``, the largest true weight. ``1 / (eps + u)``
+being convex in ``u``, by Jensen's inequality ``E[w] >= 1 / (eps + S(L_I)^2)``, by about
+``Var(S(L_k) S(L_l)) / (eps + S(L_I)^2)^3`` (second order in the quarters' noise, capped by the
+bound): where a pixel's radiance comes from rare bright paths (a sunlit room's dark corners,
+the pixels an emitter's edge crosses) a quarter that missed them makes the weight many times
+the true one, a heavy tail that widens the interval. Designs that cut the tail (a larger
+square, floors tied to a luminance quantile, to the mean luminance or to the 3x3 px mean, the
+3x3 median, OIDN's denoise of the other quarters) blur or lower the weights next to bright
+emitters, where the methods' errors concentrate at few samples, and move the estimate off the
+reference-weighted ratio there, or do not cut it (``benchmarks/advise_weights.py``); the
+unbiased denominator stays. All six pairs of quarters (:data:`PAIRS`, :func:`plain_pairs`)
+score ``X``, each weighted by its complement, and the per-pixel estimate is the mean of the six
+terms (:func:`cross_fitted_terms`)::
+
+    t_X = mean_ij w_kl (mean_c (X - P_ij)^2 - v_ij)
+
+Since ``w_kl`` is independent of ``Q_i``, ``Q_j`` and of every method's output, each term has
+the expectation ``E[w_kl] mean_c (X - I)^2`` per pixel: no cross term between the weights and
+the plain image they score against (weights from the same quarters would add
+``-2 (X - I) Cov(w, P)`` per pixel, which does not cancel in a difference), and the same
+``E[w]`` for every method, so it favours none. Its only bias is ``E[w] - w(I)`` (the blur at
+edges with a larger square, and the Jensen term above), the same for every method: the ratio of
+two methods' sums is that of their relMSE under the weights ``E[w]``. The six pairs make ``t_X``
+a U-statistic of the four quarters (Hoeffding 1948, *A class of statistics with asymptotically
+normal distribution*, Ann. Math. Stat. 19): with the error ``d = X - I`` small against ``P``'s
+noise (a denoised method against a plain render of about its sample count), the variance of a
+pair's term is mostly ``P``'s noise squared, ``s^2`` (``s`` a quarter's variance), and the mean
+of six pairs has a third of the ``s^2`` part of the mean of the two folds' pairs alone
+(``s^2 / 6`` against ``s^2 / 2`` per pixel, weights aside), the part linear in ``d`` unchanged.
+Where it matters: in a sunlit room whose denoised baseline's error is far below ``P``'s noise
+(``random:193`` at 128 px, ``P`` and the methods 512 spp), the baseline's estimated error was
+often within 2 standard errors of 0 with the folds' pairs alone (an unbounded interval), even
+with the reference's own weights in place of ``P``'s, which no weight design can beat
+(``benchmarks/advise_weights.py``). Assumptions: ``P``'s samples are independent between pixels
+and unbiased (a box pixel filter, an unbiased integrator), radiance is not negative, and the
+methods' outputs are independent of ``P``.
 
 Weights taken from a method's own output ``X_A`` (``w(X_A)``, the denominator of the metric
 with the output in place of the reference) are not independent of its error: where ``X_A`` is
@@ -59,7 +82,8 @@ estimate is not :attr:`~RatioEstimate.separated`.
 
 How many samples ``P`` needs: the part of a difference's variance that ``P`` adds is about
 ``4 w^2 (e_B - e_A)^2 Var(P)`` per pixel (``e`` the methods' errors), which falls as
-``1 / n``; :func:`plain_share` estimates that part from the two folds, so a caller can say
+``1 / n``; :func:`plain_share` estimates that part from the two folds' pairs (fold 1's terms
+against fold 2's: ``P``'s noise alone), so a caller can say
 whether more samples in ``P`` or more replicates of the methods would tighten the interval.
 
 Layout: images ``(H, W, C)`` float tensors on one device; per-pixel maps ``(H, W, 1)``; sums in
@@ -78,6 +102,7 @@ from .held_out import BLOCK, EPS, region_sums
 
 __all__ = [
     "MIN_LIT_BLOCKS",
+    "PAIRS",
     "WEIGHT_RADIUS",
     "Z95",
     "RatioEstimate",
@@ -86,6 +111,8 @@ __all__ = [
     "error_terms",
     "half_variance",
     "lit_blocks",
+    "PlainPair",
+    "plain_pairs",
     "plain_share",
     "plain_weights",
     "ratio_interval",
@@ -105,6 +132,11 @@ WEIGHT_RADIUS = 0
 #: blocks, 64 px 64): fewer means a handful of pixels carry the difference (an image black but
 #: for a few lit pixels) and the normal quantile of the block sums is not justified.
 MIN_LIT_BLOCKS = 16
+
+#: The six pairs of ``P``'s four quarters (fold 1: quarters 0 and 1, fold 2: 2 and 3), as three
+#: matchings of two pairs each: each pair's complement (the quarters that weight its terms) is
+#: its neighbour, and the first matching is the two folds.
+PAIRS = ((0, 1), (2, 3), (0, 2), (1, 3), (0, 3), (1, 2))
 
 
 @dataclass(frozen=True)
@@ -144,6 +176,22 @@ class RatioEstimate:
         """Whether the interval excludes 1 (the difference is separated from 0) and is not
         :attr:`concentrated`."""
         return self.bounded and not self.concentrated and not self.low <= 1.0 <= self.high
+
+
+@dataclass(frozen=True)
+class PlainPair:
+    """Two of ``P``'s quarters pooled, and the weights of the other two (:func:`plain_pairs`).
+
+    Attributes:
+        image: ``(H, W, C)`` the two quarters' pooled mean.
+        variance: ``(H, W, 1)`` its :func:`half_variance`.
+        weights: ``(H, W, 1)`` :func:`plain_weights` of the other two quarters (independent of
+            ``image``).
+    """
+
+    image: torch.Tensor
+    variance: torch.Tensor
+    weights: torch.Tensor
 
 
 def relmse_weights(image: torch.Tensor, *, eps: float = EPS) -> torch.Tensor:
@@ -209,6 +257,45 @@ def half_variance(
     return (plain_a - plain_b).square().mean(-1, keepdim=True) * scale
 
 
+def plain_pairs(
+    quarters: tuple[torch.Tensor, ...] | list[torch.Tensor],
+    counts: tuple[int, ...] | list[int],
+    *,
+    radius: int = WEIGHT_RADIUS,
+    eps: float = EPS,
+) -> tuple[PlainPair, ...]:
+    """Every pair of :data:`PAIRS` of ``P``'s four independent quarters, pooled, with its
+    variance and the weights of its complement (module docstring).
+
+    Args:
+        quarters: four ``(H, W, C)`` independent unbiased renders' means (fold 1's halves,
+            then fold 2's), any float dtype, one device.
+        counts: their sample counts (>= 1 each).
+        radius, eps: of :func:`plain_weights`.
+
+    Returns:
+        Six :class:`PlainPair`, in the order of :data:`PAIRS`, dtype and device of the
+        quarters.
+
+    Raises:
+        ValueError: not four quarters, or a quarter without samples.
+    """
+    if len(quarters) != 4 or len(counts) != 4:
+        raise ValueError(f"P needs 4 quarters and 4 counts, got {len(quarters)} and {len(counts)}")
+    pairs = []
+    for first, second in PAIRS:
+        k, m = (q for q in range(4) if q not in (first, second))
+        n_1, n_2 = counts[first], counts[second]
+        pairs.append(
+            PlainPair(
+                image=(n_1 * quarters[first] + n_2 * quarters[second]) / (n_1 + n_2),
+                variance=half_variance(quarters[first], quarters[second], n_1, n_2),
+                weights=plain_weights(quarters[k], quarters[m], radius=radius, eps=eps),
+            )
+        )
+    return tuple(pairs)
+
+
 def error_terms(
     image: torch.Tensor,
     plain: torch.Tensor,
@@ -233,30 +320,21 @@ def error_terms(
 
 
 def cross_fitted_terms(
-    image: torch.Tensor,
-    plains: tuple[torch.Tensor, torch.Tensor],
-    variances: tuple[torch.Tensor, torch.Tensor],
-    weights: tuple[torch.Tensor, torch.Tensor],
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each fold's :func:`error_terms` of ``image``, weighted by the *other* fold's weights
-    (module docstring); their mean is the per-pixel estimate, their difference is ``P``'s
-    noise alone (:func:`plain_share`).
+    image: torch.Tensor, pairs: tuple[PlainPair, ...] | list[PlainPair]
+) -> tuple[torch.Tensor, ...]:
+    """Each pair's :func:`error_terms` of ``image``, weighted by the pair's complement (module
+    docstring): their mean is the per-pixel estimate; the first two terms (fold 1's and fold
+    2's, :data:`PAIRS`) differ by ``P``'s noise alone (:func:`plain_share`).
 
     Args:
-        image: ``(H, W, C)`` a method's output, independent of both folds.
-        plains: the two folds' ``(H, W, C)`` images (independent unbiased plain renders).
-        variances: their ``(H, W, 1)`` :func:`half_variance`.
-        weights: their ``(H, W, 1)`` :func:`plain_weights` (or, with a reference in place of
-            both folds, its :func:`relmse_weights`).
+        image: ``(H, W, C)`` a method's output, independent of ``P``.
+        pairs: :func:`plain_pairs` of ``P`` (or, with a reference in place of every quarter,
+            pairs of the reference, zero variance and its :func:`relmse_weights`).
 
     Returns:
-        ``(t_1, t_2)``: ``(H, W, 1)`` float64 terms against fold 1 (weights of fold 2) and
-        against fold 2 (weights of fold 1).
+        One ``(H, W, 1)`` float64 term per pair, in its order.
     """
-    return (
-        error_terms(image, plains[0], variances[0], weights[1]),
-        error_terms(image, plains[1], variances[1], weights[0]),
-    )
+    return tuple(error_terms(image, p.image, p.variance, p.weights) for p in pairs)
 
 
 def block_sums(terms: torch.Tensor, *, block: int = BLOCK) -> torch.Tensor:
@@ -329,29 +407,36 @@ def lit_blocks(plain: torch.Tensor, *, eps: float = EPS, block: int = BLOCK) -> 
     return block_sums(lit, block=block) > 0
 
 
-def plain_share(statistic_a: torch.Tensor, statistic_b: torch.Tensor) -> float:
+def plain_share(
+    statistic_a: torch.Tensor, statistic_b: torch.Tensor, statistic: torch.Tensor | None = None
+) -> float:
     """Share of the variance of ``T_B - rho T_A`` that comes from the plain render ``P``.
 
-    The statistic per fold (:func:`cross_fitted_terms`: the same methods' images against fold
-    ``k``, weighted by the other fold) differs between the two folds only by ``P``'s noise.
-    For the linear part of that noise (the ``2 w (e_B - rho e_A) (P_k - I)`` term, which
-    dominates), the folds' parts are independent and alike, so the variance of their
-    difference is 4 times the part in their mean (the statistic), and the share is
-    ``sum (d_1 - d_2)^2 / 4`` over the block variance of the statistic (estimated from the
-    folds' mean). More samples in ``P`` shrink this part as ``1 / n``; the rest shrinks only
-    with more renders of the methods.
+    The statistic against one fold (:func:`cross_fitted_terms`' first two terms: the same
+    methods' images against fold ``k``, weighted by the other fold) differs between the two
+    folds only by ``P``'s noise. For the linear part of that noise (the ``2 w (e_B - rho e_A)
+    (P - I)`` term, which dominates where the methods' errors are not small against ``P``'s
+    noise), the folds' parts are independent and alike, so the variance of their difference is
+    4 times the part in their mean, which is also the linear part of the mean over all pairs
+    (each quarter is in half of the pairs); the share is ``sum (d_1 - d_2)^2 / 4`` over the
+    block variance of ``statistic``. More samples in ``P`` shrink this part as ``1 / n``; the
+    rest shrinks only with more renders of the methods.
 
     Args:
         statistic_a: ``(n,)`` block sums (:func:`block_sums`) of ``t_B - rho t_A`` against
             fold 1 of ``P`` (replicates concatenated).
         statistic_b: ``(n,)`` the same against fold 2.
+        statistic: ``(n,)`` the block sums of the statistic itself (the mean over all pairs);
+            ``None``: the folds' mean.
 
     Returns:
         The share in ``[0, 1]`` (``nan`` where the statistic has no variance).
     """
     n = statistic_a.numel()
+    if statistic is None:
+        statistic = 0.5 * (statistic_a + statistic_b)
     plain_part = float((statistic_a - statistic_b).double().square().sum()) / 4.0
-    total = n * float((0.5 * (statistic_a + statistic_b)).double().var()) if n > 1 else 0.0
+    total = n * float(statistic.double().var()) if n > 1 else 0.0
     if not total > 0:
         return math.nan
     return min(1.0, plain_part / total)

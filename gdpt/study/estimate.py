@@ -2,9 +2,9 @@
 independent plain render instead of a reference (:mod:`gdpt.reconstruct.reference_free`).
 
 Shared by :func:`gdpt.advise` and the study: :func:`plain_render` renders the plain image ``P``
-(two independent folds of two halves each: the folds' per-pixel variances and relMSE weights
-that favour no method), :func:`estimate_ratios` scores images of the same scene against it.
-In the study (:func:`estimate_scene`), per scene and budget, one ``P`` with
+(two independent folds of two halves each: four quarters, each of whose six pairs is weighted
+by the other two, weights that favour no method), :func:`estimate_ratios` scores images of the
+same scene against it. In the study (:func:`estimate_scene`), per scene and budget, one ``P`` with
 the ``pt`` cell's sample count (else the baseline's) scores the first replicate of every
 method; with a reference the cell records the estimate beside the true ratio of the same renders
 (the study's ``relmse``), so that every study run checks the estimator; without one
@@ -67,9 +67,10 @@ def plain_render(scene: EvalScene, spp: int, seed: int) -> dict[str, Any]:
     Returns:
         ``{"image": (H, W, 3) the folds pooled, "variance": (H, W, 1) its variance,
         "counts": the folds' sample counts, "folds": two {"image": (H, W, 3), "variance":
-        (H, W, 1) (:func:`~gdpt.reconstruct.reference_free.half_variance`), "weights":
-        (H, W, 1) (:func:`~gdpt.reconstruct.reference_free.plain_weights`), "halves": two
-        (H, W, 3), "counts": two ints}}``, float32 on the CPU.
+        (H, W, 1) (:func:`~gdpt.reconstruct.reference_free.half_variance`), "halves": two
+        (H, W, 3), "counts": two ints}, "pairs": the six
+        :func:`~gdpt.reconstruct.reference_free.plain_pairs` of the four halves}``, float32
+        on the CPU.
 
     Raises:
         ValueError: ``spp <`` :data:`MIN_PLAIN_SPP` (a quarter without samples).
@@ -102,7 +103,7 @@ def plain_render(scene: EvalScene, spp: int, seed: int) -> dict[str, Any]:
 def plain_record(folds: list[tuple[torch.Tensor, torch.Tensor, list[int]]]) -> dict[str, Any]:
     """The record of :func:`plain_render` from two folds' ``(half_a, half_b, counts)``
     (``(H, W, 3)`` half means, their sample counts; float32 on the CPU)."""
-    from gdpt.reconstruct.reference_free import half_variance, plain_weights
+    from gdpt.reconstruct.reference_free import half_variance, plain_pairs
 
     records = []
     for half_a, half_b, counts in folds:
@@ -110,7 +111,6 @@ def plain_record(folds: list[tuple[torch.Tensor, torch.Tensor, list[int]]]) -> d
             {
                 "image": (counts[0] * half_a + counts[1] * half_b) / sum(counts),
                 "variance": half_variance(half_a, half_b, *counts),
-                "weights": plain_weights(half_a, half_b),
                 "halves": (half_a, half_b),
                 "counts": list(counts),
             }
@@ -122,6 +122,9 @@ def plain_record(folds: list[tuple[torch.Tensor, torch.Tensor, list[int]]]) -> d
         "variance": sum(c * c * f["variance"] for c, f in zip(counts, records, strict=True)) / n**2,
         "counts": counts,
         "folds": records,
+        "pairs": plain_pairs(
+            [h for f in records for h in f["halves"]], [c for f in records for c in f["counts"]]
+        ),
     }
 
 
@@ -134,7 +137,7 @@ def estimate_ratios(
         images: ``images[m][r]``: method ``m``'s ``(H, W, 3)`` float image of replicate ``r``
             (CPU); ``images[0]`` is the baseline.
         plains: one :func:`plain_render` per replicate, independent of every image (its
-            folds' weights score every method alike).
+            pairs' weights score every method alike).
 
     Returns:
         For ``images[1:]``, in order: the :class:`~gdpt.reconstruct.reference_free.
@@ -151,30 +154,23 @@ def estimate_ratios(
         ratio_interval,
     )
 
-    def terms(image: torch.Tensor, plain: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
-        folds = plain["folds"]
-        return cross_fitted_terms(
-            image, *(tuple(f[k] for f in folds) for k in ("image", "variance", "weights"))
-        )
-
-    baseline = [terms(image, plain) for image, plain in zip(images[0], plains, strict=True)]
+    baseline = [cross_fitted_terms(x, p["pairs"]) for x, p in zip(images[0], plains, strict=True)]
     lit = torch.cat([lit_blocks(plain["image"]) for plain in plains])
     out = []
     for method in images[1:]:
-        scored = [terms(image, plain) for image, plain in zip(method, plains, strict=True)]
+        scored = [cross_fitted_terms(x, p["pairs"]) for x, p in zip(method, plains, strict=True)]
         full = [
-            torch.cat([block_sums(0.5 * (t[0] + t[1])) for t in group])
-            for group in (baseline, scored)
+            torch.cat([block_sums(sum(t) / len(t)) for t in group]) for group in (baseline, scored)
         ]
         estimate = ratio_interval(full[1], full[0], lit=lit)
         rho = estimate.ratio
-        statistic = [
+        folds = [
             torch.cat(
                 [block_sums(b[k] - rho * a[k]) for a, b in zip(baseline, scored, strict=True)]
             )
-            for k in range(2)
+            for k in range(2)  # the first two pairs: the folds (PAIRS)
         ]
-        out.append((estimate, plain_share(*statistic)))
+        out.append((estimate, plain_share(*folds, full[1] - rho * full[0])))
     return out
 
 

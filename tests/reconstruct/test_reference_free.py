@@ -9,11 +9,14 @@ import math
 import pytest
 import torch
 from gdpt.reconstruct.reference_free import (
+    PAIRS,
     RatioEstimate,
     block_sums,
     error_terms,
     half_variance,
+    plain_pairs,
     plain_share,
+    plain_weights,
     ratio_interval,
     relmse_weights,
 )
@@ -57,6 +60,30 @@ class TestHalfVariance:
         ]
         expected = float(sigma.square().mean()) / sum(counts)
         assert float(torch.stack(draws).mean()) == pytest.approx(expected, rel=0.02)
+
+
+class TestPlainPairs:
+    def test_cardinality(self):
+        """Six pairs of four quarters, each pair's pooled image, variance and the weights of
+        the other two quarters."""
+        g = torch.Generator().manual_seed(6)
+        quarters = [torch.rand(5, 6, 3, generator=g) for _ in range(4)]
+        pairs = plain_pairs(quarters, [3, 1, 2, 2])
+        assert len(pairs) == len(PAIRS) == 6
+        assert len({frozenset(p) for p in PAIRS}) == 6  # every pair once
+        for (i, j), pair in zip(PAIRS, pairs, strict=True):
+            k, m = (q for q in range(4) if q not in (i, j))
+            counts = [3, 1, 2, 2]
+            pooled = (counts[i] * quarters[i] + counts[j] * quarters[j]) / (counts[i] + counts[j])
+            assert torch.allclose(pair.image, pooled)
+            assert pair.variance.shape == pair.weights.shape == (5, 6, 1)
+            assert torch.equal(pair.weights, plain_weights(quarters[k], quarters[m]))
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="4 quarters"):
+            plain_pairs([torch.zeros(2, 2, 3)] * 3, [1, 1, 1])
+        with pytest.raises(ValueError, match="at least 2 samples"):
+            plain_pairs([torch.zeros(2, 2, 3)] * 4, [1, 0, 1, 1])
 
 
 class TestErrorTerms:
