@@ -100,8 +100,8 @@ DEFAULT_COST_RATIO = 1.8
 RELEARN = 0.2
 
 #: ``(id(scene), properties) -> (scene, {"cost_ratio": ..., "reconstruct_seconds METHOD": ...,
-#: "plain_seconds_per_spp": ...})``, what the scene's routes measured, least recently used
-#: first (the scene is kept so that its id stays unique).
+#: "plain_seconds_per_spp ROUTE": ..., "merge_seconds ROUTE": ...})``, what the scene's routes
+#: measured, least recently used first (the scene is kept so that its id stays unique).
 _LEARNED: OrderedDict[tuple, tuple[Any, dict[str, float]]] = OrderedDict()
 _LEARNED_SIZE = 8
 
@@ -406,10 +406,18 @@ def learn_reconstruct_seconds(
     _learn(scene, props, f"reconstruct_seconds {method}", float(seconds))
 
 
-def learned_plain_seconds_per_spp(scene: Any, props: dict[str, Any]) -> float | None:
-    """Seconds per plain sample per pixel of the last plain route's render on ``scene`` with
-    integrator ``props`` that replayed its passes (:func:`render_route`), ``None`` before."""
-    return _learned(scene, props).get("plain_seconds_per_spp")
+def learned_plain_seconds_per_spp(scene: Any, props: dict[str, Any], route: str) -> float | None:
+    """Seconds per plain sample per pixel of the last plain samples ``route`` (``"plain"``: its
+    render; ``"gradient"``: the plain samples pooled into its primal) rendered on ``scene`` with
+    integrator ``props`` where they replayed their passes (:func:`render_route`), ``None``
+    before."""
+    return _learned(scene, props).get(f"plain_seconds_per_spp {route}")
+
+
+def learned_merge_seconds(scene: Any, props: dict[str, Any], route: str) -> float:
+    """Seconds ``route`` took on ``scene`` with ``props`` after its last samples to put its
+    renders together (pooling and merging, :func:`render_route`), 0 before."""
+    return _learned(scene, props).get(f"merge_seconds {route}", 0.0)
 
 
 def samples_before(deadline: float, finish: float, seconds_per_spp: float) -> int:
@@ -472,14 +480,14 @@ def render_route(
 
     With a ``deadline`` (a :func:`time.perf_counter` instant: the end of a budget in seconds),
     either route's last plain samples fill the time left before it (:func:`samples_before`),
-    less the seconds of the route's reconstruction the last time it ran on the scene
+    less what followed the route's last samples the last time it ran on the scene: putting its
+    renders together (:func:`learned_merge_seconds`) and its reconstruction
     (:func:`learned_reconstruct_seconds`; where none was measured, the counts above): the
-    pilot, its statistics, the samples and the reconstruction all within the budget. The
-    gradient route's plain samples are timed at the pilot's measured seconds per plain sample
-    (the same sampling); the plain route's at those of the scene's last plain route render
-    that replayed its passes (:func:`learned_plain_seconds_per_spp`: its sampling, at a count
-    near this one), else the pilot's. ``props`` as for :func:`gdpt.render` (they override the
-    route's sampling).
+    pilot, its statistics, the samples and the reconstruction all within the budget. The plain
+    samples are timed at the route's own last ones that replayed their passes on the scene
+    (:func:`learned_plain_seconds_per_spp`: the same sampling at a count near this one), else
+    at the pilot's measured seconds per plain sample. ``props`` as for :func:`gdpt.render`
+    (they override the route's sampling).
     """
     if pilot is None:
         return rendering.render(scene, seed=seed, **{**route_sampling(choice, spp), **props})
@@ -488,19 +496,25 @@ def render_route(
     fuse = methods.METHODS["fuse"]
     routed = integrator_props(props)
     finish = None if deadline is None else learned_reconstruct_seconds(scene, routed, choice.method)
+    if finish is not None:  # all that follows the last samples
+        finish += learned_merge_seconds(scene, routed, choice.route)
     if choice.route == "plain":
         rest = max(1, round(left))
         if finish is not None:
-            per_spp = learned_plain_seconds_per_spp(scene, routed) or info["seconds_per_spp"]
+            per_spp = (
+                learned_plain_seconds_per_spp(scene, routed, "plain") or info["seconds_per_spp"]
+            )
             rest = samples_before(deadline, finish, per_spp)
         sampling = {"spp": rest, **methods.METHODS[choice.method].sampling(rest), **props}
         main = rendering.render(scene, seed=seed, **sampling)
-        if not main.metadata["recorded_passes"]:  # a recording's time is not the samples'
-            _learn(scene, routed, "plain_seconds_per_spp", main.metadata["render_seconds"] / rest)
+        _learn_plain_samples(scene, routed, "plain", main, rest)
+        start = time.perf_counter()
         first = pilot.render.replace(dx=None, dy=None, var_dx=None, var_dy=None)
         keep = set(main.present())
         first = first.replace(**{n: None for n in first.present() if n not in keep})
-        return merge_renders([first.replace(gradient_mask=None), main])
+        merged = merge_renders([first.replace(gradient_mask=None), main])
+        _learn(scene, routed, "merge_seconds plain", time.perf_counter() - start)
+        return merged
     g = info["gradient_spp"]
     sampling = {**fuse.sampling(g), "primal_spp": 0, "features": False, **props}
     gradient = rendering.render(scene, spp=g, seed=seed, gradient_mask=~pilot.tiles, **sampling)
@@ -510,8 +524,24 @@ def render_route(
         learn_cost_ratio(scene, routed, ratio)
     rest = max(1, round(left - seconds / info["seconds_per_spp"]))
     if finish is not None:
-        rest = samples_before(deadline, finish, info["seconds_per_spp"])
+        per_spp = (
+            learned_plain_seconds_per_spp(scene, routed, "gradient") or info["seconds_per_spp"]
+        )
+        rest = samples_before(deadline, finish, per_spp)
     plain_sampling = {**fuse.sampling(rest), "gradients": False, "primal_spp": 0, **props}
     plain_seed = (int(seed) ^ rendering.PRIMAL_SEED_SALT) & 0xFFFFFFFF
     plain = rendering.render(scene, spp=rest, seed=plain_seed, **plain_sampling)
-    return merge_renders([pilot.render, pool_primal(gradient, plain)])
+    _learn_plain_samples(scene, routed, "gradient", plain, rest)
+    start = time.perf_counter()
+    merged = merge_renders([pilot.render, pool_primal(gradient, plain)])
+    _learn(scene, routed, "merge_seconds gradient", time.perf_counter() - start)
+    return merged
+
+
+def _learn_plain_samples(scene: Any, props: dict[str, Any], route: str, render: Any, spp: int):
+    """Remember ``route``'s seconds per plain sample from ``render`` of ``spp`` samples, where
+    it replayed its passes (a recording's time is not the samples')."""
+    if not render.metadata["recorded_passes"]:
+        _learn(
+            scene, props, f"plain_seconds_per_spp {route}", render.metadata["render_seconds"] / spp
+        )

@@ -384,9 +384,10 @@ def test_a_learned_ratio_moves_only_past_the_relearn_share():
 
 def test_a_deadline_sizes_the_gradient_routes_plain_samples_from_the_time_left(monkeypatch):
     """With a deadline (``render_and_denoise(seconds=...)``), the gradient route's pooled plain
-    samples fill what is left of the budget after the renders so far and before ``fuse``'s
-    last measured reconstruction, at the pilot's seconds per plain sample; without one (or
-    before a reconstruction was measured), the count left of ``spp``."""
+    samples fill what is left of the budget after the renders so far and before what followed
+    them last time (``fuse``'s reconstruction, the pooling), at the pilot's seconds per plain
+    sample, then at those of the route's last pooled samples that replayed their passes;
+    without a deadline (or before a reconstruction was measured), the count left of ``spp``."""
     counts: list[int] = []
 
     class Fake:
@@ -411,8 +412,17 @@ def test_a_deadline_sizes_the_gradient_routes_plain_samples_from_the_time_left(m
     assert counts[-1] == by_count  # no deadline: by the count
     route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.3)
     assert 95 <= counts[-1] <= 100  # 1.3 s less fuse's 0.3 s at 0.01 s per sample
+    assert route.learned_plain_seconds_per_spp(scene, {}, "gradient") is None  # recordings
+    Fake.metadata = {"render_seconds": 0.5, "recorded_passes": 0}  # replays: 0.5 s / 100 spp
+    monkeypatch.setattr(route, "pool_primal", lambda gradient, plain: time.sleep(0.2) or plain)
+    route.render_route(scene, choice, pilot, spp=100, seed=0)
+    assert route.learned_plain_seconds_per_spp(scene, {}, "gradient") == pytest.approx(0.5 / 30)
+    assert route.learned_merge_seconds(scene, {}, "gradient") >= 0.2
+    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.3)
+    assert 45 <= counts[-1] <= 48  # 1.3 s less fuse's 0.3 s and the pooling's 0.2 s at 1/60 s
     route.forget_cost_ratios(scene)
     assert route.learned_reconstruct_seconds(scene, {}, "fuse") is None
+    assert route.learned_merge_seconds(scene, {}, "gradient") == 0.0
 
 
 def test_a_deadline_sizes_the_plain_routes_samples_from_the_time_left(monkeypatch):
@@ -448,7 +458,7 @@ def test_a_deadline_sizes_the_plain_routes_samples_from_the_time_left(monkeypatc
     scene = object()
     route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 9)
     assert counts[-1] == 80  # no denoiser measured yet: spp less the pilot's 20
-    assert route.learned_plain_seconds_per_spp(scene, {}) is None  # it recorded its passes
+    assert route.learned_plain_seconds_per_spp(scene, {}, "plain") is None  # it recorded its passes
     route.learn_reconstruct_seconds(scene, {}, "fuse", 0.0)  # another route's reconstruction
     route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 9)
     assert counts[-1] == 80
@@ -459,8 +469,8 @@ def test_a_deadline_sizes_the_plain_routes_samples_from_the_time_left(monkeypatc
     assert 55 <= counts[-1] <= 60  # 1.2 s less the denoiser's 0.6 s at the pilot's 0.01 s
     recorded[0] = 0  # replays: 0.005 s per sample, learned
     route.render_route(scene, choice, pilot, spp=100, seed=0)
-    assert route.learned_plain_seconds_per_spp(scene, {}) == pytest.approx(0.005)
+    assert route.learned_plain_seconds_per_spp(scene, {}, "plain") == pytest.approx(0.005)
     route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 0.9)
     assert 55 <= counts[-1] <= 60  # 0.9 s less 0.6 s at 0.005 s (80 spp: 1.0 s, past it)
     route.forget_cost_ratios(scene)
-    assert route.learned_plain_seconds_per_spp(scene, {}) is None
+    assert route.learned_plain_seconds_per_spp(scene, {}, "plain") is None
