@@ -53,6 +53,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -148,43 +149,40 @@ def run_study(
     return {"seconds": time.perf_counter() - start, "loadavg_start": list(load_start)}
 
 
-def cell_ratios(results: dict) -> dict[tuple[str, str, int], dict[str, float]]:
-    """``(scene, budget, replicate) -> {method: relMSE / relMSE of pt+oidn-tuned}`` from the
-    cells (``cell_runs``) of a study."""
+def relmse(replicate: dict) -> float | None:
+    """A replicate's relMSE, ``None`` where it has none."""
+    return replicate.get("metrics", {}).get("relmse")
+
+
+def spp(replicate: dict) -> float | None:
+    """A replicate's sample count, ``None`` where it has none."""
+    return replicate.get("spp")
+
+
+def cell_ratios(
+    results: dict, value: Callable[[dict], float | None] = relmse
+) -> dict[tuple[str, str, int], dict[str, float]]:
+    """``(scene, budget, replicate) -> {method: value / value of pt+oidn-tuned}`` from the
+    cells (``cell_runs``) of a study; ``value``: a replicate's relMSE (default) or ``spp``."""
     out = {}
     for scene, entry in results["scenes"].items():
         for unit, run in entry.get("cell_runs", {}).items():
             budget, replicate = unit.split("/")
             reps = run["replicates"]
-            base = reps.get(BASELINE, {}).get("metrics", {}).get("relmse")
+            base = value(reps.get(BASELINE, {}))
             if not base:
                 continue
             out[(scene, budget, int(replicate))] = {
-                m: r["metrics"]["relmse"] / base
+                m: value(r) / base
                 for m, r in reps.items()
-                if m != BASELINE and r.get("metrics", {}).get("relmse") is not None
+                if m != BASELINE and value(r) is not None
             }
-    return out
-
-
-def cell_counts(results: dict) -> dict[tuple[str, str, int], dict[str, float]]:
-    """``(scene, budget, replicate) -> {method: spp / spp of pt+oidn-tuned}`` from the cells."""
-    out = {}
-    for scene, entry in results["scenes"].items():
-        for unit, run in entry.get("cell_runs", {}).items():
-            budget, replicate = unit.split("/")
-            reps = run["replicates"]
-            base = reps.get(BASELINE, {}).get("spp")
-            if base:
-                out[(scene, budget, int(replicate))] = {
-                    m: r["spp"] / base for m, r in reps.items() if m != BASELINE and r.get("spp")
-                }
     return out
 
 
 def count_table(idle: dict, loaded: dict) -> tuple[str, dict]:
     """Per cell and method the sample-count proportion to the baseline, idle and loaded."""
-    counts = {"idle": cell_counts(idle), "loaded": cell_counts(loaded)}
+    counts = {"idle": cell_ratios(idle, spp), "loaded": cell_ratios(loaded, spp)}
     cells = sorted(set(counts["idle"]) & set(counts["loaded"]))
     methods = sorted({m for r in counts["idle"].values() for m in r})
     lines = [f"Per cell: spp / spp of `{BASELINE}` in the same cell (the idle/busy bar).", ""]
@@ -221,15 +219,15 @@ def measure_anchors(args: argparse.Namespace, idle: dict) -> dict:
     found: dict = {}
     for spec in resolve_scenes(args.scenes):
         entry = idle["scenes"].get(spec.name, {})
-        spp: dict[str, list[int]] = {}
+        seen: dict[str, list[int]] = {}
         for unit, run in entry.get("cell_runs", {}).items():
             if unit.split("/")[0] in (budget, f"{float(budget):g}"):
                 for m, r in run["replicates"].items():
                     if m != "auto" and r.get("spp"):
-                        spp.setdefault(m, []).append(int(r["spp"]))
-        if BASELINE not in spp:
+                        seen.setdefault(m, []).append(int(r["spp"]))
+        if BASELINE not in seen:
             continue
-        counts = {m: int(median(v)) for m, v in spp.items()}
+        counts = {m: int(median(v)) for m, v in seen.items()}
         scene = load_eval_scene(spec, resolution=args.resolution)
         seconds: dict = {m: {"idle": [], "loaded": []} for m in counts}
         for m, n in counts.items():  # warm-ups: compilation and pass recording, untimed

@@ -119,23 +119,29 @@ def test_feature_shared_model_shifts_the_fixed_seconds():
     assert model.shifted(-10.0).fixed == 0.0
 
 
-def test_feature_budget_calibrates_each_render_once(monkeypatch):
-    """At a budget, two calibrations for three candidates (``pt+oidn`` shares
-    ``pt+oidn-tuned``'s render, ``P`` its cost per sample), and the report keeps ``P``."""
+@pytest.fixture
+def calibrated(monkeypatch) -> list[str]:
+    """The names of the methods :func:`gdpt.study.calibration.calibrate` probes, in order."""
     import gdpt.study.calibration
 
-    timed = []
+    names: list[str] = []
     calibrate = gdpt.study.calibration.calibrate
 
     def spy(method, *args, **kwargs):
-        timed.append(method.name)
+        names.append(method.name)
         return calibrate(method, *args, **kwargs)
 
     monkeypatch.setattr(gdpt.study.calibration, "calibrate", spy)
+    return names
+
+
+def test_feature_budget_calibrates_each_render_once(calibrated):
+    """At a budget, two calibrations for three candidates (``pt+oidn`` shares
+    ``pt+oidn-tuned``'s render, ``P`` its cost per sample), and the report keeps ``P``."""
     advice = gdpt.advise(
         "builtin:cbox-demo", budget=0.2, methods=METHODS, long_side=32, progress=False
     )
-    assert timed == ["pt+oidn-tuned", "pt"]
+    assert calibrated == ["pt+oidn-tuned", "pt"]
     assert advice.calibrations == {
         "pt+oidn-tuned": "calibrated",
         "pt": "calibrated",
@@ -259,32 +265,22 @@ def test_the_recommended_command_is_in_seconds_at_a_budget():
 
 
 def test_feature_a_second_advice_takes_its_counts_from_the_kept_models(
-    cost_clock, monkeypatch, capsys
+    cost_clock, calibrated, capsys
 ):
     """The candidates' cost models are the study's, kept per scene, resolution and
     configuration in the process: a second ``advise`` probes nothing and takes the same
     counts (the clocks are exact lines). Its progress is one bar in seconds per stage and its
     ``time:`` line says where the seconds went."""
-    import gdpt.study.calibration
-
     cost_clock("pt", 0.004, 0.004)
     cost_clock("pt+oidn-tuned", 0.04, 0.004)
-    timed = []
-    calibrate = gdpt.study.calibration.calibrate
-
-    def spy(method, *args, **kwargs):
-        timed.append(method.name)
-        return calibrate(method, *args, **kwargs)
-
-    monkeypatch.setattr(gdpt.study.calibration, "calibrate", spy)
     options = {"budget": 0.2, "methods": METHODS[:2], "plain_spp": 64, "long_side": 32}
     first = gdpt.advise("builtin:cbox-demo", progress=True, **options)
-    assert timed == ["pt+oidn-tuned", "pt"] and first.calibrations["pt"] == "calibrated"
+    assert calibrated == ["pt+oidn-tuned", "pt"] and first.calibrations["pt"] == "calibrated"
     err = capsys.readouterr().err
     assert "calibration (pt+oidn-tuned)" in err and "/0.2 s budget" in err
-    timed.clear()
+    calibrated.clear()
     second = gdpt.advise("builtin:cbox-demo", seed=1, progress=False, **options)
-    assert timed == [] and second.calibrations["pt+oidn-tuned"] == "model"
+    assert calibrated == [] and second.calibrations["pt+oidn-tuned"] == "model"
     assert [m.spp for m in second.methods] == [m.spp for m in first.methods] == [40, 49]
     time_line = next(line for line in second.lines if line.startswith("time: "))
     assert re.search(r"calibration [0-9.]+ s, 1 x 2 renders [0-9.]+ s, 1 plain", time_line)
