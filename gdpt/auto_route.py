@@ -3,11 +3,11 @@ decides gradients or not for the whole image; every sample it traced goes into t
 
 Two routes fill the same render time; ``spp`` (``N``) counts the plain route's samples:
 
-* ``gradient``: ``G = N / (c + f)`` gradient samples per pixel (``c``: a gradient sample's
+* ``gradient``: ``G = (1 - s) N / (c + f)`` gradient samples per pixel (``c``: a gradient sample's
   cost in plain ones, measured by the scene's last gradient route, :func:`learned_cost_ratio`,
   else :data:`DEFAULT_COST_RATIO`; ``f``: :data:`~gdpt.adapters.FUSE_PRIMAL_SPP_FACTOR` plain
-  samples pooled per gradient sample; the pooled count is then set by measured time),
-  reconstructed by ``fuse``;
+  samples pooled per gradient sample; ``s``: :data:`FILL_SHARE` of ``N`` left to the last
+  pooled plain samples, whose count is set by measured time), reconstructed by ``fuse``;
 * ``plain``: plain path samples (features on), reconstructed by the primal-only denoiser ``D``
   (:func:`gdpt.adapters.plain_denoiser`).
 
@@ -94,6 +94,13 @@ COST_RATIO_RANGE = (1.0, 4.0)
 #: lit scene; docs/gradients.md).
 DEFAULT_COST_RATIO = 1.8
 
+#: Share of the plain route's count ``N`` that ``G`` leaves to the gradient route's last plain
+#: samples (:func:`pilot_gradient_spp`). With a deadline they fill the time left before it, so a
+#: pilot or gradient pass that runs up to this share of the budget long is taken back from them
+#: (this VM's run-to-run noise at a fixed count is 5-10%; with no share left the fill was one
+#: sample and ``auto`` ended up to 14% past a 4 s budget: docs/lab/2026-12-06-measurements.md).
+FILL_SHARE = 0.15
+
 #: Relative change of a scene's measured cost ratio that replaces the remembered one
 #: (:func:`learned_cost_ratio`): below it ``G`` stays put between renders of the scene, so a
 #: render replays the frozen passes of an earlier one of the same ``N``.
@@ -158,6 +165,12 @@ def gradient_spp_for(cost: float, cost_ratio: float) -> int:
     return max(1, round(cost / (cost_ratio + FUSE_PRIMAL_SPP_FACTOR)))
 
 
+def pilot_gradient_spp(spp: int, cost_ratio: float) -> int:
+    """``G`` of a pilot (and its route) at ``spp`` plain samples per pixel: the gradient
+    samples that cost ``1 -`` :data:`FILL_SHARE` of them (:func:`gradient_spp_for`)."""
+    return gradient_spp_for((1.0 - FILL_SHARE) * spp, cost_ratio)
+
+
 def pooled_spp(gradient_spp: int) -> int:
     """Pooled plain samples of the pilot at ``gradient_spp``: ``(f - 1) G - 1`` rounded, at
     least 1 (the rest of the image adds ``G`` plain samples and one pooled one)."""
@@ -166,9 +179,9 @@ def pooled_spp(gradient_spp: int) -> int:
 
 def pilot_threshold() -> int:
     """Fewest plain samples per pixel for which the pilot's ``G`` reaches :data:`PILOT_SPP` at
-    the default cost ratio: 7."""
+    the default cost ratio: 8."""
     spp = 1
-    while gradient_spp_for(spp, DEFAULT_COST_RATIO) < PILOT_SPP:
+    while pilot_gradient_spp(spp, DEFAULT_COST_RATIO) < PILOT_SPP:
         spp += 1
     return spp
 
@@ -273,7 +286,7 @@ def run_pilot(
     windows = statistics_windows(height, width, corners, tile)
     window_pixels = sum(h * w for (_, _, h, w), _ in windows)
     sizing = learned_cost_ratio(scene, props) or DEFAULT_COST_RATIO
-    g = gradient_spp_for(spp, sizing)
+    g = pilot_gradient_spp(spp, sizing)
     mask = np.zeros((height, width), dtype=bool)
     for y, x in corners:
         mask[y : y + tile, x : x + tile] = True
@@ -482,8 +495,9 @@ def render_route(
     either route's last plain samples fill the time left before it (:func:`samples_before`),
     less what followed the route's last samples the last time it ran on the scene: putting its
     renders together (:func:`learned_merge_seconds`) and its reconstruction
-    (:func:`learned_reconstruct_seconds`; where none was measured, the counts above): the
-    pilot, its statistics, the samples and the reconstruction all within the budget. The plain
+    (:func:`learned_reconstruct_seconds`; where none was measured yet, none: a route's first
+    render on a scene ends past the deadline by its reconstruction): the pilot, its
+    statistics, the samples and the reconstruction all within the budget. The plain
     samples are timed at the route's own last ones that replayed their passes on the scene
     (:func:`learned_plain_seconds_per_spp`: the same sampling at a count near this one), else
     at the pilot's measured seconds per plain sample. ``props`` as for :func:`gdpt.render`
@@ -495,12 +509,13 @@ def render_route(
     left = spp - info["cost_spp"]
     fuse = methods.METHODS["fuse"]
     routed = integrator_props(props)
-    finish = None if deadline is None else learned_reconstruct_seconds(scene, routed, choice.method)
-    if finish is not None:  # all that follows the last samples
+    finish = 0.0  # with a deadline, all that follows the last samples
+    if deadline is not None:
+        finish = learned_reconstruct_seconds(scene, routed, choice.method) or 0.0
         finish += learned_merge_seconds(scene, routed, choice.route)
     if choice.route == "plain":
         rest = max(1, round(left))
-        if finish is not None:
+        if deadline is not None:
             per_spp = (
                 learned_plain_seconds_per_spp(scene, routed, "plain") or info["seconds_per_spp"]
             )
@@ -523,7 +538,7 @@ def render_route(
         ratio = measured_cost_ratio(seconds, g, 1.0 - info["share"], info["seconds_per_spp"])
         learn_cost_ratio(scene, routed, ratio)
     rest = max(1, round(left - seconds / info["seconds_per_spp"]))
-    if finish is not None:
+    if deadline is not None:
         per_spp = (
             learned_plain_seconds_per_spp(scene, routed, "gradient") or info["seconds_per_spp"]
         )

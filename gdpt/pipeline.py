@@ -324,7 +324,7 @@ def _render_for(
             spp = min(threshold - 1, model.spp_for(seconds))
         warm = [  # counts near spp that replay (on the same side of auto's pilot threshold)
             n
-            for n in range(max(1, math.floor(spp * (1 - REUSE))), math.ceil(spp * (1 + REUSE)) + 1)
+            for n in range(max(1, math.ceil(spp * (1 - REUSE))), math.floor(spp * (1 + REUSE)) + 1)
             if (threshold is None or (n < threshold) == (spp < threshold))
             and MODELS.is_warm(scene, key, warm_key(n))
         ]

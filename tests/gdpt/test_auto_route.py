@@ -17,6 +17,7 @@ import torch
 import gdpt
 from gdpt import auto_route as route
 from gdpt import methods
+from gdpt.adapters import FUSE_PRIMAL_SPP_FACTOR
 from gdpt.buffers import GradientBuffers, merge_renders, pool_primal
 from gdpt.rendering import PRIMAL_SEED_SALT
 from gdpt.scenes import builtin_scene
@@ -79,8 +80,11 @@ def test_the_pilot_renders_its_tiles_at_the_main_renders_gradient_count(scene, m
     _forced_terms(monkeypatch, -1.0)
     spp = 300
     choice, pilot = route.run_pilot(scene, spp=spp, seed=3, tile=TILE)
-    g = route.gradient_spp_for(spp, route.DEFAULT_COST_RATIO)
+    g = route.pilot_gradient_spp(spp, route.DEFAULT_COST_RATIO)
     assert choice.route == "gradient" and choice.pilot["gradient_spp"] == g
+    # G and its pooled samples leave the fill share of spp to the route's last plain samples
+    cost = (route.DEFAULT_COST_RATIO + FUSE_PRIMAL_SPP_FACTOR) * g
+    assert (1 - route.FILL_SHARE) * spp - 5 <= cost <= (1 - route.FILL_SHARE) * spp
     first = log.calls[0]
     assert first["spp"] == g and first["primal_spp"] == route.pooled_spp(g)
     assert first["variance"] and first["halves"] and first["gradients"]
@@ -367,7 +371,7 @@ def test_a_gradient_route_sizes_the_scenes_next_pilot(scene, monkeypatch):
     assert learned is not None and route.COST_RATIO_RANGE[0] <= learned <= route.COST_RATIO_RANGE[1]
     second, _ = route.run_pilot(scene, spp=300, seed=5, tile=TILE)
     assert second.cost_ratio == learned
-    assert second.pilot["gradient_spp"] == route.gradient_spp_for(300, learned)
+    assert second.pilot["gradient_spp"] == route.pilot_gradient_spp(300, learned)
     other, _ = route.run_pilot(scene, spp=300, seed=5, tile=TILE, max_depth=5)
     assert other.cost_ratio == route.DEFAULT_COST_RATIO
 
@@ -385,9 +389,9 @@ def test_a_learned_ratio_moves_only_past_the_relearn_share():
 def test_a_deadline_sizes_the_gradient_routes_plain_samples_from_the_time_left(monkeypatch):
     """With a deadline (``render_and_denoise(seconds=...)``), the gradient route's pooled plain
     samples fill what is left of the budget after the renders so far and before what followed
-    them last time (``fuse``'s reconstruction, the pooling), at the pilot's seconds per plain
-    sample, then at those of the route's last pooled samples that replayed their passes;
-    without a deadline (or before a reconstruction was measured), the count left of ``spp``."""
+    them last time (``fuse``'s reconstruction, the pooling; nothing before a reconstruction
+    was measured), at the pilot's seconds per plain sample, then at those of the route's last
+    pooled samples that replayed their passes; without a deadline, the count left of ``spp``."""
     counts: list[int] = []
 
     class Fake:
@@ -405,8 +409,8 @@ def test_a_deadline_sizes_the_gradient_routes_plain_samples_from_the_time_left(m
     pilot = route.Pilot(Fake(), torch.zeros(4, 4, dtype=torch.bool))
     scene = object()
     by_count = round(100 - 20 - 0.5 / 0.01)  # spp less the pilot and the gradient pass: 30
-    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 9)
-    assert counts[-1] == by_count  # no reconstruction measured yet: by the count
+    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.3)
+    assert 125 <= counts[-1] <= 130  # no reconstruction measured yet: 1.3 s at 0.01 s
     route.learn_reconstruct_seconds(scene, {}, "fuse", 0.3)
     route.render_route(scene, choice, pilot, spp=100, seed=0)
     assert counts[-1] == by_count  # no deadline: by the count
@@ -429,8 +433,9 @@ def test_a_deadline_sizes_the_plain_routes_samples_from_the_time_left(monkeypatc
     """With a deadline, the plain route's samples fill what is left of the budget after the
     pilot and before its denoiser's last measured seconds (a slow denoiser: fewer samples than
     the count left of ``spp``, which would end past the deadline), at the seconds per sample of
-    its last render that replayed its passes (not one that recorded them), else the pilot's;
-    without a deadline, or before the denoiser was measured, the count left of ``spp``."""
+    its last render that replayed its passes (not one that recorded them), else the pilot's
+    (before the denoiser was measured, up to the deadline); without a deadline, the count left
+    of ``spp``."""
     counts: list[int] = []
     recorded = [1]
 
@@ -456,12 +461,12 @@ def test_a_deadline_sizes_the_plain_routes_samples_from_the_time_left(monkeypatc
     choice = route.RouteChoice("plain", denoiser, "test", pilot=info)
     pilot = route.Pilot(Fake(), torch.zeros(4, 4, dtype=torch.bool))
     scene = object()
-    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 9)
-    assert counts[-1] == 80  # no denoiser measured yet: spp less the pilot's 20
+    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.2)
+    assert 115 <= counts[-1] <= 120  # no denoiser measured yet: 1.2 s at the pilot's 0.01 s
     assert route.learned_plain_seconds_per_spp(scene, {}, "plain") is None  # it recorded its passes
-    route.learn_reconstruct_seconds(scene, {}, "fuse", 0.0)  # another route's reconstruction
-    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 9)
-    assert counts[-1] == 80
+    route.learn_reconstruct_seconds(scene, {}, "fuse", 0.6)  # another route's reconstruction
+    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.2)
+    assert 115 <= counts[-1] <= 120
     route.learn_reconstruct_seconds(scene, {}, denoiser, 0.6)
     route.render_route(scene, choice, pilot, spp=100, seed=0)
     assert counts[-1] == 80  # no deadline: by the count
