@@ -60,6 +60,7 @@ import torch
 from gdpt import methods, rendering
 from gdpt.adapters import FUSE_PRIMAL_SPP_FACTOR, held_out_fusion_terms_of, plain_denoiser
 from gdpt.buffers import GradientBuffers, merge_renders, pool_primal
+from gdpt.cost_model import TimeModel
 from gdpt.reconstruct.held_out import BLOCK, choose
 from gdpt.scenes.loading import load_scene
 
@@ -107,10 +108,14 @@ FILL_SHARE = 0.15
 RELEARN = 0.2
 
 #: ``(id(scene), properties) -> (scene, {"cost_ratio": ..., "reconstruct_seconds METHOD": ...,
-#: "plain_seconds_per_spp ROUTE": ..., "merge_seconds ROUTE": ...})``, what the scene's routes
+#: "plain_samples ROUTE": TimeModel, "merge_seconds ROUTE": ...})``, what the scene's routes
 #: measured, least recently used first (the scene is kept so that its id stays unique).
-_LEARNED: OrderedDict[tuple, tuple[Any, dict[str, float]]] = OrderedDict()
+_LEARNED: OrderedDict[tuple, tuple[Any, dict[str, Any]]] = OrderedDict()
 _LEARNED_SIZE = 8
+
+#: Timings of a route's last plain samples that its model of them is fitted to
+#: (:func:`learned_plain_samples`), the most recent kept.
+PLAIN_TIMINGS = 8
 
 
 @dataclass
@@ -366,7 +371,7 @@ def _learned_key(scene: Any, props: dict[str, Any]) -> tuple:
     return (id(scene), tuple(sorted(props.items())))
 
 
-def _learned(scene: Any, props: dict[str, Any]) -> dict[str, float]:
+def _learned(scene: Any, props: dict[str, Any]) -> dict[str, Any]:
     key = _learned_key(scene, props)
     if key not in _LEARNED:
         return {}
@@ -374,7 +379,7 @@ def _learned(scene: Any, props: dict[str, Any]) -> dict[str, float]:
     return _LEARNED[key][1]
 
 
-def _learn(scene: Any, props: dict[str, Any], name: str, value: float) -> None:
+def _learn(scene: Any, props: dict[str, Any], name: str, value: Any) -> None:
     key = _learned_key(scene, props)
     _LEARNED.setdefault(key, (scene, {}))[1][name] = value
     _LEARNED.move_to_end(key)
@@ -389,7 +394,7 @@ def learned_cost_ratio(scene: Any, props: dict[str, Any]) -> float | None:
 
 
 def forget_cost_ratios(scene: Any) -> None:
-    """Drop the cost ratios, reconstruction seconds and plain seconds per sample learned on
+    """Drop the cost ratios, reconstruction seconds and plain samples' timings learned on
     ``scene`` (and the reference to it)."""
     for key in [k for k, (kept, _) in _LEARNED.items() if kept is scene]:
         del _LEARNED[key]
@@ -419,12 +424,14 @@ def learn_reconstruct_seconds(
     _learn(scene, props, f"reconstruct_seconds {method}", float(seconds))
 
 
-def learned_plain_seconds_per_spp(scene: Any, props: dict[str, Any], route: str) -> float | None:
-    """Seconds per plain sample per pixel of the last plain samples ``route`` (``"plain"``: its
-    render; ``"gradient"``: the plain samples pooled into its primal) rendered on ``scene`` with
-    integrator ``props`` where they replayed their passes (:func:`render_route`), ``None``
-    before."""
-    return _learned(scene, props).get(f"plain_seconds_per_spp {route}")
+def learned_plain_samples(scene: Any, props: dict[str, Any], route: str) -> TimeModel | None:
+    """The seconds of ``route``'s last plain samples (``"plain"``: its render; ``"gradient"``:
+    the plain samples pooled into its primal) on ``scene`` with integrator ``props``: a line
+    through the timings of the last :data:`PLAIN_TIMINGS` such renders that replayed their
+    passes (:func:`render_route`; a render's own overhead is its intercept, which a ratio of
+    one small render's seconds to its count would charge to every sample: 0.020 s per sample
+    from a cost model's probe on sponza against 0.012-0.015 at 30-40 spp), ``None`` before."""
+    return _learned(scene, props).get(f"plain_samples {route}")
 
 
 def learned_merge_seconds(scene: Any, props: dict[str, Any], route: str) -> float:
@@ -433,12 +440,11 @@ def learned_merge_seconds(scene: Any, props: dict[str, Any], route: str) -> floa
     return _learned(scene, props).get(f"merge_seconds {route}", 0.0)
 
 
-def samples_before(deadline: float, finish: float, seconds_per_spp: float) -> int:
-    """Samples per pixel at ``seconds_per_spp`` that fill the time from now to ``deadline`` (a
-    :func:`time.perf_counter` instant) less ``finish`` seconds (the reconstruction after
-    them), at least 1."""
-    left = deadline - time.perf_counter() - finish
-    return max(1, round(left / max(seconds_per_spp, 1e-9)))
+def samples_before(deadline: float, finish: float, samples: TimeModel) -> int:
+    """Samples per pixel whose seconds under ``samples`` (their time model) fill the time from
+    now to ``deadline`` (a :func:`time.perf_counter` instant) less ``finish`` seconds (the
+    reconstruction after them), at least 1."""
+    return samples.spp_for(deadline - time.perf_counter() - finish)
 
 
 def _tile_terms(
@@ -498,10 +504,10 @@ def render_route(
     (:func:`learned_reconstruct_seconds`; where none was measured yet, none: a route's first
     render on a scene ends past the deadline by its reconstruction): the pilot, its
     statistics, the samples and the reconstruction all within the budget. The plain
-    samples are timed at the route's own last ones that replayed their passes on the scene
-    (:func:`learned_plain_seconds_per_spp`: the same sampling at a count near this one), else
-    at the pilot's measured seconds per plain sample. ``props`` as for :func:`gdpt.render`
-    (they override the route's sampling).
+    samples are timed by the route's own last ones that replayed their passes on the scene
+    (:func:`learned_plain_samples`: the same sampling), else at the pilot's measured seconds
+    per plain sample. ``props`` as for :func:`gdpt.render` (they override the route's
+    sampling).
     """
     if pilot is None:
         return rendering.render(scene, seed=seed, **{**route_sampling(choice, spp), **props})
@@ -516,10 +522,8 @@ def render_route(
     if choice.route == "plain":
         rest = max(1, round(left))
         if deadline is not None:
-            per_spp = (
-                learned_plain_seconds_per_spp(scene, routed, "plain") or info["seconds_per_spp"]
-            )
-            rest = samples_before(deadline, finish, per_spp)
+            samples = learned_plain_samples(scene, routed, "plain") or _per_spp(info)
+            rest = samples_before(deadline, finish, samples)
         sampling = {"spp": rest, **methods.METHODS[choice.method].sampling(rest), **props}
         main = rendering.render(scene, seed=seed, **sampling)
         _learn_plain_samples(scene, routed, "plain", main, rest)
@@ -539,10 +543,8 @@ def render_route(
         learn_cost_ratio(scene, routed, ratio)
     rest = max(1, round(left - seconds / info["seconds_per_spp"]))
     if deadline is not None:
-        per_spp = (
-            learned_plain_seconds_per_spp(scene, routed, "gradient") or info["seconds_per_spp"]
-        )
-        rest = samples_before(deadline, finish, per_spp)
+        samples = learned_plain_samples(scene, routed, "gradient") or _per_spp(info)
+        rest = samples_before(deadline, finish, samples)
     plain_sampling = {**fuse.sampling(rest), "gradients": False, "primal_spp": 0, **props}
     plain_seed = (int(seed) ^ rendering.PRIMAL_SEED_SALT) & 0xFFFFFFFF
     plain = rendering.render(scene, spp=rest, seed=plain_seed, **plain_sampling)
@@ -553,10 +555,17 @@ def render_route(
     return merged
 
 
+def _per_spp(pilot: dict[str, Any]) -> TimeModel:
+    """Plain samples timed at the ``pilot``'s measured seconds per plain sample."""
+    return TimeModel(fixed=0.0, per_spp=pilot["seconds_per_spp"])
+
+
 def _learn_plain_samples(scene: Any, props: dict[str, Any], route: str, render: Any, spp: int):
-    """Remember ``route``'s seconds per plain sample from ``render`` of ``spp`` samples, where
-    it replayed its passes (a recording's time is not the samples')."""
-    if not render.metadata["recorded_passes"]:
-        _learn(
-            scene, props, f"plain_seconds_per_spp {route}", render.metadata["render_seconds"] / spp
-        )
+    """Add ``render`` of ``spp`` samples to ``route``'s timings of its plain samples and refit
+    their line (:func:`learned_plain_samples`), where it replayed its passes (a recording's
+    time is not the samples')."""
+    if render.metadata["recorded_passes"]:
+        return
+    known = learned_plain_samples(scene, props, route)
+    timings = [*(known.measurements if known else []), (spp, render.metadata["render_seconds"])]
+    _learn(scene, props, f"plain_samples {route}", TimeModel.fit(timings[-PLAIN_TIMINGS:]))

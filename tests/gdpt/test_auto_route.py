@@ -416,11 +416,11 @@ def test_a_deadline_sizes_the_gradient_routes_plain_samples_from_the_time_left(m
     assert counts[-1] == by_count  # no deadline: by the count
     route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.3)
     assert 95 <= counts[-1] <= 100  # 1.3 s less fuse's 0.3 s at 0.01 s per sample
-    assert route.learned_plain_seconds_per_spp(scene, {}, "gradient") is None  # recordings
+    assert route.learned_plain_samples(scene, {}, "gradient") is None  # recordings
     Fake.metadata = {"render_seconds": 0.5, "recorded_passes": 0}  # replays: 0.5 s / 100 spp
     monkeypatch.setattr(route, "pool_primal", lambda gradient, plain: time.sleep(0.2) or plain)
     route.render_route(scene, choice, pilot, spp=100, seed=0)
-    assert route.learned_plain_seconds_per_spp(scene, {}, "gradient") == pytest.approx(0.5 / 30)
+    assert route.learned_plain_samples(scene, {}, "gradient").per_spp == pytest.approx(0.5 / 30)
     assert route.learned_merge_seconds(scene, {}, "gradient") >= 0.2
     route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.3)
     assert 45 <= counts[-1] <= 48  # 1.3 s less fuse's 0.3 s and the pooling's 0.2 s at 1/60 s
@@ -433,15 +433,15 @@ def test_a_deadline_sizes_the_plain_routes_samples_from_the_time_left(monkeypatc
     """With a deadline, the plain route's samples fill what is left of the budget after the
     pilot and before its denoiser's last measured seconds (a slow denoiser: fewer samples than
     the count left of ``spp``, which would end past the deadline), at the seconds per sample of
-    its last render that replayed its passes (not one that recorded them), else the pilot's
-    (before the denoiser was measured, up to the deadline); without a deadline, the count left
-    of ``spp``."""
+    the line through its last renders that replayed their passes (not those that recorded them:
+    a render's own overhead is not charged to every sample), else at the pilot's (before the
+    denoiser was measured, up to the deadline); without a deadline, the count left of ``spp``."""
     counts: list[int] = []
     recorded = [1]
 
     class Fake:
         def __init__(self, spp=0):
-            self.metadata = {"render_seconds": 0.005 * spp + 0.5 * recorded[0]}
+            self.metadata = {"render_seconds": 0.005 * spp + (0.5 if recorded[0] else 0.1)}
             self.metadata["recorded_passes"] = recorded[0]
 
         def replace(self, **kwargs):
@@ -463,7 +463,7 @@ def test_a_deadline_sizes_the_plain_routes_samples_from_the_time_left(monkeypatc
     scene = object()
     route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.2)
     assert 115 <= counts[-1] <= 120  # no denoiser measured yet: 1.2 s at the pilot's 0.01 s
-    assert route.learned_plain_seconds_per_spp(scene, {}, "plain") is None  # it recorded its passes
+    assert route.learned_plain_samples(scene, {}, "plain") is None  # it recorded its passes
     route.learn_reconstruct_seconds(scene, {}, "fuse", 0.6)  # another route's reconstruction
     route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.2)
     assert 115 <= counts[-1] <= 120
@@ -472,10 +472,13 @@ def test_a_deadline_sizes_the_plain_routes_samples_from_the_time_left(monkeypatc
     assert counts[-1] == 80  # no deadline: by the count
     route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.2)
     assert 55 <= counts[-1] <= 60  # 1.2 s less the denoiser's 0.6 s at the pilot's 0.01 s
-    recorded[0] = 0  # replays: 0.005 s per sample, learned
-    route.render_route(scene, choice, pilot, spp=100, seed=0)
-    assert route.learned_plain_seconds_per_spp(scene, {}, "plain") == pytest.approx(0.005)
+    recorded[0] = 0  # replays: 0.1 s and 0.005 s per sample
+    route.render_route(scene, choice, pilot, spp=100, seed=0)  # 80 spp in 0.5 s
+    assert route.learned_plain_samples(scene, {}, "plain").per_spp == pytest.approx(0.5 / 80)
     route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 0.9)
-    assert 55 <= counts[-1] <= 60  # 0.9 s less 0.6 s at 0.005 s (80 spp: 1.0 s, past it)
+    assert 45 <= counts[-1] <= 48  # 0.9 s less 0.6 s at 0.5 s / 80 spp
+    route.render_route(scene, choice, pilot, spp=120, seed=0)  # 100 spp in 0.6 s: the line
+    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 0.9)
+    assert 38 <= counts[-1] <= 40  # 0.3 s less the 0.1 s of a render at 0.005 s (by 0.6 s/100: 50)
     route.forget_cost_ratios(scene)
-    assert route.learned_plain_seconds_per_spp(scene, {}, "plain") is None
+    assert route.learned_plain_samples(scene, {}, "plain") is None
