@@ -225,7 +225,7 @@ def run_at_budget(
         scene: the scene.
         model: its calibrated cost model.
         budget: seconds.
-        seed: seed of the first attempt (attempt ``k`` uses ``seed + k``).
+        seed: seed of every attempt (the chosen one is the cell's replicate of that seed).
         tolerance: accepted relative deviation.
         max_rounds: renders at most.
         protocol: which seconds fill the budget (:func:`charged_seconds`); ``model`` must
@@ -239,23 +239,23 @@ def run_at_budget(
         ``over_budget_at_1spp``, ``protocol``.
     """
     attempts: list[dict[str, Any]] = []
-    best: tuple[float, MethodResult, int, int] | None = None
+    best: tuple[float, MethodResult, int] | None = None
     spp = model.spp_for(budget)
-    for k in range(max_rounds):
-        result = timed_run(method, scene, spp, seed + k)
+    for _ in range(max_rounds):
+        result = timed_run(method, scene, spp, seed)
         charged = charged_seconds(result, protocol)
         attempts.append(
             {
                 "spp": spp,
                 "seconds": result.seconds,
                 "charged_seconds": charged,
-                "seed": seed + k,
+                "seed": seed,
                 "compile_seconds": result.compile_seconds,
             }
         )
         error = abs(charged - budget) / budget
         if best is None or error < best[0]:
-            best = (error, result, spp, seed + k)
+            best = (error, result, spp)
         if error <= tolerance:
             break
         model.update(spp, charged)
@@ -264,10 +264,10 @@ def run_at_budget(
             break
         spp = new_spp
     assert best is not None
-    error, result, spp, seed_used = best
+    error, result, spp = best
     record = {
         "spp": spp,
-        "seed": seed_used,
+        "seed": seed,
         "seconds": result.seconds,
         "render_seconds": result.render_seconds,
         "reconstruct_seconds": result.reconstruct_seconds,
