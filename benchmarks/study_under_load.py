@@ -28,8 +28,10 @@ versions and machine):
   idle) / (t_m loaded / t_m idle)`` is the proportion change that equal time itself asks for
   when a method's cost grows more under load than the baseline's.
 
-The timing bar of the study (``gdpt.study.cells.MISS_TOLERANCE``) is the tolerance; this script
-only reads what the study recorded. Run it on an otherwise idle machine (the second run adds
+How close each timed run comes to its budget is the study's (its calibration re-renders beyond
+``EvaluateConfig.tolerance``, a replicate beyond ``gdpt.study.cells.MISS_TOLERANCE`` is redone
+then flagged; ``auto`` fills its seconds itself and its ``spp`` is the plain samples' worth it
+rendered); this script only reads what the study recorded. Run it on an otherwise idle machine (the second run adds
 its own load)::
 
     .venv/bin/python benchmarks/study_under_load.py --references /work/main/out/refs128 \\

@@ -507,7 +507,9 @@ def render_route(
     samples are timed by the route's own last ones that replayed their passes on the scene
     (:func:`learned_plain_samples`: the same sampling), else at the pilot's measured seconds
     per plain sample. ``props`` as for :func:`gdpt.render` (they override the route's
-    sampling).
+    sampling). With a pilot, the result's ``metadata["plain_fill"]`` holds the count of the last
+    plain samples (``spp``) and the count left of ``spp`` without a deadline (``count_spp``):
+    the render's plain samples' worth is ``spp`` plus their difference.
     """
     if pilot is None:
         return rendering.render(scene, seed=seed, **{**route_sampling(choice, spp), **props})
@@ -520,7 +522,7 @@ def render_route(
         finish = learned_reconstruct_seconds(scene, routed, choice.method) or 0.0
         finish += learned_merge_seconds(scene, routed, choice.route)
     if choice.route == "plain":
-        rest = max(1, round(left))
+        rest = by_count = max(1, round(left))
         if deadline is not None:
             samples = learned_plain_samples(scene, routed, "plain") or _per_spp(info)
             rest = samples_before(deadline, finish, samples)
@@ -533,6 +535,7 @@ def render_route(
         first = first.replace(**{n: None for n in first.present() if n not in keep})
         merged = merge_renders([first.replace(gradient_mask=None), main])
         _learn(scene, routed, "merge_seconds plain", time.perf_counter() - start)
+        merged.metadata["plain_fill"] = {"spp": rest, "count_spp": by_count}
         return merged
     g = info["gradient_spp"]
     sampling = {**fuse.sampling(g), "primal_spp": 0, "features": False, **props}
@@ -541,7 +544,7 @@ def render_route(
     if not gradient.metadata["recorded_passes"]:  # a recording's time is not the samples'
         ratio = measured_cost_ratio(seconds, g, 1.0 - info["share"], info["seconds_per_spp"])
         learn_cost_ratio(scene, routed, ratio)
-    rest = max(1, round(left - seconds / info["seconds_per_spp"]))
+    rest = by_count = max(1, round(left - seconds / info["seconds_per_spp"]))
     if deadline is not None:
         samples = learned_plain_samples(scene, routed, "gradient") or _per_spp(info)
         rest = samples_before(deadline, finish, samples)
@@ -552,6 +555,7 @@ def render_route(
     start = time.perf_counter()
     merged = merge_renders([pilot.render, pool_primal(gradient, plain)])
     _learn(scene, routed, "merge_seconds gradient", time.perf_counter() - start)
+    merged.metadata["plain_fill"] = {"spp": rest, "count_spp": by_count}
     return merged
 
 

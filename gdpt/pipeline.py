@@ -42,8 +42,10 @@ class RenderResult:
         image: ``(H, W, 3)`` float32 reconstruction on the buffers' device.
         buffers: the render.
         spp: the samples per pixel rendered (``auto``: plain samples' worth, the pilot's
-            included; a method with gradients: gradient samples); with ``seconds``, the count
-            the cost model chose.
+            included: with ``seconds``, the cost model's count plus the samples its route's
+            fill rendered beyond the count, :func:`gdpt.auto_route.render_route`; a method
+            with gradients: gradient samples); with ``seconds``, the count the cost model
+            chose.
         budget: the ``seconds`` asked for, ``None`` with ``spp``.
         timings: wall-clock seconds, each without the kernel compilation seen during it:
             ``pilot`` (``method="auto"`` only), ``render`` (sampling; on a configuration's first
@@ -215,6 +217,8 @@ def _render_at(
     timings["render"] = max(0.0, time.perf_counter() - start - c)
     if choice is not None:
         buffers.metadata["route"] = choice.to_json()
+        if fill := buffers.metadata.get("plain_fill"):  # a deadline's fill: more or fewer
+            spp = max(1, spp + fill["spp"] - fill["count_spp"])
     bar.stage(f"reconstruct ({method})")
     start = time.perf_counter()
     image = reconstruct_image(buffers, method=method, alpha=alpha)

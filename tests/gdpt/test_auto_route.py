@@ -470,8 +470,11 @@ def test_a_deadline_sizes_the_plain_routes_samples_from_the_time_left(monkeypatc
     route.learn_reconstruct_seconds(scene, {}, denoiser, 0.6)
     route.render_route(scene, choice, pilot, spp=100, seed=0)
     assert counts[-1] == 80  # no deadline: by the count
-    route.render_route(scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.2)
+    merged = route.render_route(
+        scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.2
+    )
     assert 55 <= counts[-1] <= 60  # 1.2 s less the denoiser's 0.6 s at the pilot's 0.01 s
+    assert merged.metadata["plain_fill"] == {"spp": counts[-1], "count_spp": 80}
     recorded[0] = 0  # replays: 0.1 s and 0.005 s per sample
     route.render_route(scene, choice, pilot, spp=100, seed=0)  # 80 spp in 0.5 s
     assert route.learned_plain_samples(scene, {}, "plain").per_spp == pytest.approx(0.5 / 80)

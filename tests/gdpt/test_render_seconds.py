@@ -213,9 +213,10 @@ def test_auto_timed_render_gets_its_deadline_and_its_route_learns_its_reconstruc
     scene, monkeypatch
 ):
     """The timed render of ``seconds=`` hands ``auto``'s route the end of the budget (from the
-    start of its pilot), and each route's reconstruction time (``fuse``, the plain route's
-    denoiser) is learned under its method for the next deadline (the untimed renders of the
-    setup have none)."""
+    start of its pilot), its count is the cost model's plus what the route's fill rendered
+    beyond it, and each route's reconstruction time (``fuse``, the plain route's denoiser) is
+    learned under its method for the next deadline (the untimed renders of the setup have
+    none)."""
     import time
     import types
 
@@ -227,7 +228,8 @@ def test_auto_timed_render_gets_its_deadline_and_its_route_learns_its_reconstruc
 
     def render_route(scene, choice, pilot, *, spp, seed, deadline=None, **props):
         deadlines.append(deadline)
-        return types.SimpleNamespace(metadata={})
+        fill = {"spp": 30, "count_spp": 20 if deadline else 30}  # 10 more before the deadline
+        return types.SimpleNamespace(metadata={"plain_fill": fill})
 
     def reconstruct(buffers, method, alpha):
         time.sleep(0.05)
@@ -239,11 +241,12 @@ def test_auto_timed_render_gets_its_deadline_and_its_route_learns_its_reconstruc
     monkeypatch.setattr(pipeline, "reconstruct_image", reconstruct)
     quiet = SecondsBar(None, disable=True)
     start = time.perf_counter()
-    pipeline._render_at(scene, 8, "auto", 0, 0.2, quiet, {"max_depth": 4}, 2.0)
+    result = pipeline._render_at(scene, 8, "auto", 0, 0.2, quiet, {"max_depth": 4}, 2.0)
     assert start + 2.0 <= deadlines[-1] <= time.perf_counter() + 2.0
+    assert result.spp == 8 + 10
     assert learned_reconstruct_seconds(scene, {"max_depth": 4}, "fuse") >= 0.05
-    pipeline._render_at(scene, 8, "auto", 0, 0.2, quiet, {"max_depth": 4})
-    assert deadlines[-1] is None
+    result = pipeline._render_at(scene, 8, "auto", 0, 0.2, quiet, {"max_depth": 4})
+    assert deadlines[-1] is None and result.spp == 8
     denoiser = plain_denoiser()
     assert learned_reconstruct_seconds(scene, {"max_depth": 4}, denoiser) is None
     route = RouteChoice("plain", denoiser, "test")
