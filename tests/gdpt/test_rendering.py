@@ -13,9 +13,18 @@ from gdpt.rendering import make_integrator, render, shared_integrator
 
 @pytest.fixture
 def scene(variant):
+    """A fresh 16 px scene, after the integrators other tests left were dropped: a scene freed
+    while a test runs (the least recently used of :func:`shared_integrator`'s eight) leaves
+    Dr.Jit's registry of BSDFs and emitters, whose contents the frozen passes' recordings
+    depend on, so a replay would record again."""
+    import gc
+
+    from gdpt import rendering
     from gdpt.scenes import builtin_scene
     from gdpt.scenes.loading import load_scene
 
+    rendering._SHARED.clear()
+    gc.collect()
     return load_scene(builtin_scene("cbox-demo", resolution=(16, 16)))
 
 
