@@ -21,8 +21,9 @@ versions and machine):
 * per cell the sample-count proportion of each method to ``pt+oidn-tuned`` (``spp`` over the
   baseline's ``spp``), idle and loaded, and loaded / idle (the idle/busy bar: within 10%);
 * the machine's own answer, measured in the same run after the studies (``--anchor-reps``, 0:
-  skipped): each method that renders the count it is given (not ``auto``) run at the idle
-  study's median count of the first budget, per scene, timed as the study times it
+  skipped): each method run at the idle study's median count of the first budget, per scene
+  (``auto``: the plain samples' worth its idle replicates rendered, given as a count, its pilot
+  and route included, the seeds the same idle and loaded), timed as the study times it
   (``EvalMethod.run``: sampling + reconstruction, kernel compilation excluded, two untimed
   warm-ups first), idle and beside the same busy loop, alternating; ``(t_base loaded / t_base
   idle) / (t_m loaded / t_m idle)`` is the proportion change that equal time itself asks for
@@ -31,8 +32,8 @@ versions and machine):
 How close each timed run comes to its budget is the study's (its calibration re-renders beyond
 ``EvaluateConfig.tolerance``, a replicate beyond ``gdpt.study.cells.MISS_TOLERANCE`` is redone
 then flagged; ``auto`` fills its seconds itself and its ``spp`` is the plain samples' worth it
-rendered); this script only reads what the study recorded. Run it on an otherwise idle machine (the second run adds
-its own load)::
+rendered); this script only reads what the study recorded. Run it on an otherwise idle
+machine (the second run adds its own load)::
 
     .venv/bin/python benchmarks/study_under_load.py --references /work/main/out/refs128 \\
         --out out/study-under-load
@@ -212,8 +213,8 @@ def median(values: list[float]) -> float:
 
 
 def measure_anchors(args: argparse.Namespace, idle: dict) -> dict:
-    """Fixed-count seconds of each method (not ``auto``) idle and loaded, alternating; see the
-    module docstring. ``{scene: {method: {"spp", "idle", "loaded"}}}`` (median seconds)."""
+    """Fixed-count seconds of each method idle and loaded, alternating; see the module
+    docstring. ``{scene: {method: {"spp", "idle", "loaded"}}}`` (median seconds)."""
     from gdpt.study.methods import EVAL_METHODS
     from gdpt.study.scenes import load_eval_scene, resolve_scenes
 
@@ -225,7 +226,7 @@ def measure_anchors(args: argparse.Namespace, idle: dict) -> dict:
         for unit, run in entry.get("cell_runs", {}).items():
             if unit.split("/")[0] in (budget, f"{float(budget):g}"):
                 for m, r in run["replicates"].items():
-                    if m != "auto" and r.get("spp"):
+                    if r.get("spp"):
                         seen.setdefault(m, []).append(int(r["spp"]))
         if BASELINE not in seen:
             continue
