@@ -15,7 +15,7 @@ _DATASET_EXCLUDED = ("scene_config",)
 
 
 def _add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
-    from gdpt.training.preprocess import TARGET_KINDS, DatasetConfig
+    from gdpt.training.preprocess import PRIMAL_KINDS, TARGET_KINDS, DatasetConfig
 
     parser.add_argument("--out", type=Path, required=True, help="dataset directory")
     add_config_arguments(
@@ -23,7 +23,7 @@ def _add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
         DatasetConfig,
         exclude=_DATASET_EXCLUDED,
         required=("scenes", "views"),
-        choices={"target": TARGET_KINDS},
+        choices={"target": TARGET_KINDS, "primal": PRIMAL_KINDS},
     )
     parser.add_argument(
         "--workers",
