@@ -69,7 +69,7 @@ def _dataset_interrupted(args: argparse.Namespace) -> str:
 # -------------------------------------------------------------------------------------- train
 def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
     from gdpt.reconstruct.families import FAMILIES
-    from gdpt.training.config import TrainConfig
+    from gdpt.training.config import FINETUNE_INPUTS, TrainConfig
 
     losses = list(dict.fromkeys(name for f in FAMILIES.values() for name in f.losses))
     add_config_arguments(
@@ -77,7 +77,7 @@ def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
         TrainConfig,
         names={"model": "--config"},
         required=("model", "data", "out"),
-        choices={"loss": losses},
+        choices={"loss": losses, "input": FINETUNE_INPUTS},
     )
     parser.add_argument("--resume", action="store_true", help="continue the run in --out")
 
