@@ -15,7 +15,7 @@ _DATASET_EXCLUDED = ("scene_config",)
 
 
 def _add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
-    from gdpt.training.preprocess import TARGET_KINDS, DatasetConfig
+    from gdpt.training.preprocess import PRIMAL_KINDS, TARGET_KINDS, DatasetConfig
 
     parser.add_argument("--out", type=Path, required=True, help="dataset directory")
     add_config_arguments(
@@ -23,7 +23,7 @@ def _add_dataset_arguments(parser: argparse.ArgumentParser) -> None:
         DatasetConfig,
         exclude=_DATASET_EXCLUDED,
         required=("scenes", "views"),
-        choices={"target": TARGET_KINDS},
+        choices={"target": TARGET_KINDS, "primal": PRIMAL_KINDS},
     )
     parser.add_argument(
         "--workers",
@@ -69,7 +69,7 @@ def _dataset_interrupted(args: argparse.Namespace) -> str:
 # -------------------------------------------------------------------------------------- train
 def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
     from gdpt.reconstruct.families import FAMILIES
-    from gdpt.training.config import TrainConfig
+    from gdpt.training.config import FINETUNE_INPUTS, TrainConfig
 
     losses = list(dict.fromkeys(name for f in FAMILIES.values() for name in f.losses))
     add_config_arguments(
@@ -77,7 +77,7 @@ def _add_train_arguments(parser: argparse.ArgumentParser) -> None:
         TrainConfig,
         names={"model": "--config"},
         required=("model", "data", "out"),
-        choices={"loss": losses},
+        choices={"loss": losses, "input": FINETUNE_INPUTS},
     )
     parser.add_argument("--resume", action="store_true", help="continue the run in --out")
 

@@ -26,6 +26,10 @@ RESUMABLE_FIELDS = (
 )
 _SCHEDULE_FIELDS = ("warmup_steps", "decay_start", "half_life")
 
+#: Dataset inputs a fine-tuned OIDN design without gradients may train on
+#: (:attr:`TrainConfig.input`).
+FINETUNE_INPUTS = ("pt", "gdpt", "pool")
+
 
 class ConfigMismatchError(ValueError):
     """A run directory is resumed with settings that change the training."""
@@ -78,8 +82,13 @@ class TrainConfig:
         ckpt_every: checkpoint every this many steps (and at the end).
         keep_checkpoints: checkpoints kept in ``checkpoints/`` (older ones are deleted).
         device: torch device (``None``: ``cuda:LOCAL_RANK`` if available, else ``cpu``).
-        base_model: the frozen base network of a combiner design (a fine-tuned OIDN
-            checkpoint, ``.safetensors``); unused by the other models.
+        base_model: a fine-tuned OIDN checkpoint (``.safetensors``): the frozen base network
+            of a combiner design, or the start of a fine-tuned OIDN design (the same design;
+            ``None``: Intel's weights); unused by the other models.
+        input: the dataset input of a fine-tuned OIDN design without gradients (``None``:
+            the design's, the path-traced ``pt``): ``gdpt`` trains on the primal and features
+            of the G-PT input ``in<k>`` (rendered with ``gdpt dataset --primal``), ``pool`` on
+            that primal pooled with ``pt<k>``.
         extra_lr_scale: learning-rate multiplier for the weights that read a fine-tuned OIDN
             design's extra input channels (zero at step 0; at OIDN's small fine-tuning rate they
             stay two orders of magnitude below the colour weights); 1 elsewhere.
@@ -111,6 +120,7 @@ class TrainConfig:
     keep_checkpoints: int = 3
     device: str | None = None
     base_model: str | None = None
+    input: str | None = None
     extra_lr_scale: float = 1.0
 
     def __post_init__(self) -> None:
@@ -123,6 +133,8 @@ class TrainConfig:
             raise ValueError("need val_every >= 0 and 0 <= vary_padding <= pad")
         if not self.extra_lr_scale > 0:
             raise ValueError(f"extra_lr_scale must be > 0, got {self.extra_lr_scale}")
+        if self.input not in (None, *FINETUNE_INPUTS):
+            raise ValueError(f"input must be one of {FINETUNE_INPUTS}, got {self.input!r}")
         if self.crop is not None and self.crop < 2:
             raise ValueError(f"crop must be >= 2, got {self.crop}")
 

@@ -9,7 +9,12 @@ brightness multipliers), per-step seeding and held-out split (:mod:`gdpt.trainin
 with the dense U-Net's plan; what differs:
 
 * the network starts as OIDN (Intel's ``rt_hdr_alb_nrm`` weights, the extra inputs with zero
-  weights), so step 0 reproduces OIDN exactly;
+  weights), so step 0 reproduces OIDN exactly; or, with ``config.base_model``, as that
+  fine-tuned checkpoint of the same design (its checkpoints still store the difference to
+  OIDN's weights);
+* a design without gradients reads the path-traced input ``pt<k>``, or with ``config.input``
+  the primal and features of the G-PT input ``in<k>`` (``gdpt``; e.g. a ``gdpt dataset
+  --primal mis``) or that primal pooled with ``pt<k>`` (``pool``);
 * ``extra_lr_scale`` lets the extra inputs' weights move faster than the rest (the fine-tuning
   rate is small to keep OIDN's skill, and zero-started weights would stay near zero under it);
 * inputs are OIDN's encoding (:func:`~gdpt.reconstruct.oidn_finetune.assemble`); sub-crops
@@ -49,6 +54,7 @@ from gdpt.reconstruct.oidn_finetune import (
     base_model,
     encode_delta,
     finetune_loss,
+    load_model,
     predict,
 )
 from gdpt.reconstruct.oidn_unet import OIDNUNet
@@ -212,6 +218,20 @@ def validate_finetune(
     return {k: v / len(elements) for k, v in totals.items()} | {"count": len(elements)}
 
 
+def start_model(config: TrainConfig) -> OIDNUNet:
+    """The network of checkpoint ``config.base_model`` (CPU), the start of a fine-tune.
+
+    Raises:
+        ValueError: the checkpoint is of another design than ``config.model``.
+    """
+    net, _, card = load_model(config.base_model)
+    if card["design"] != config.model:
+        raise ValueError(
+            f"base_model {config.base_model} is a {card['design']!r} network, not {config.model!r}"
+        )
+    return net
+
+
 def extra_update_scale(net: OIDNUNet, config: TrainConfig) -> list[UpdateScale]:
     """The plan's ``update_scale`` for ``config.extra_lr_scale``: the extra input channels'
     weights move ``extra_lr_scale`` times as fast as the rest (empty at 1)."""
@@ -233,7 +253,12 @@ def finetune_plan(config: TrainConfig, ctx: RunContext) -> TrainingPlan:
     """
     design = DESIGNS[config.model]
     weights = FINETUNE_LOSSES[config.loss]
-    train_set, val_set = split_datasets(config, design.input_kind)
+    if config.input is not None and design.gradients:
+        raise ValueError(
+            f"input={config.input!r}: {config.model} reads gradients, its input is fixed"
+        )
+    kind = config.input or design.input_kind
+    train_set, val_set = split_datasets(config, kind)
     side = config.crop or min(train_set.resolution)
     if side > min(train_set.resolution) or side % 16:
         raise ValueError(
@@ -241,7 +266,8 @@ def finetune_plan(config: TrainConfig, ctx: RunContext) -> TrainingPlan:
             "of 16 (OIDN's alignment)"
         )
     base = base_model(design)
-    net = base_model(design).to(ctx.device).train()
+    net = base_model(design) if config.base_model is None else start_model(config)
+    net = net.to(ctx.device).train()
     val_elements = (
         load_finetune_validation(val_set, design, config.val_crops, ctx.device)
         if ctx.rank == 0 and config.val_every
@@ -258,9 +284,11 @@ def finetune_plan(config: TrainConfig, ctx: RunContext) -> TrainingPlan:
             "crop": side,
             "lr": config.lr,
             "extra_lr_scale": config.extra_lr_scale,
+            "input": kind,
+            "start": config.base_model or "OIDN",
         }
     }
-    if design.pooled:
+    if design.pooled or kind == "pool":
         card["sampling"] = {"primal_spp_factor": primal_spp_factor(config.data)}
 
     def loss(forward, step: int) -> torch.Tensor:

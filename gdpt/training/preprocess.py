@@ -80,6 +80,9 @@ if TYPE_CHECKING:
 #: Target kinds (:attr:`DatasetConfig.target`).
 TARGET_KINDS = ("l1", "pt")
 
+#: Primal estimates of the G-PT inputs (:attr:`DatasetConfig.primal`).
+PRIMAL_KINDS = ("base", "mis")
+
 #: Salt separating the render-seed stream of a crop from the scene-seed stream.
 _CROP_SALT = 0xC409
 
@@ -106,6 +109,10 @@ class DatasetConfig:
         target: ``"l1"`` (G-PT + L1 Poisson, the paper's) or ``"pt"`` (path tracing).
         variance: store the variance of each input's per-pixel mean (``var_primal``, and
             ``var_dx``, ``var_dy`` of the G-PT inputs); KPCN reads it.
+        primal: the ``gdpt`` integrator's ``primal`` property for the G-PT inputs ``in<k>``:
+            ``"base"`` (the base path's estimate) or ``"mis"`` (every base and offset path, MIS
+            weighted; :mod:`gdpt.integrators.common`); the path-traced inputs and the target do
+            not depend on it.
         seed: dataset seed; everything rendered is a function of ``(seed, scene, view)``.
         scene_config: knobs of the scene generator (``None``: its defaults).
     """
@@ -122,6 +129,7 @@ class DatasetConfig:
     alpha: float = 0.2
     target: str = "l1"
     variance: bool = True
+    primal: str = "base"
     seed: int = 0
     scene_config: RandomSceneConfig | None = None
 
@@ -137,6 +145,8 @@ class DatasetConfig:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
         if self.target not in TARGET_KINDS:
             raise ValueError(f"target must be one of {TARGET_KINDS}, got {self.target!r}")
+        if self.primal not in PRIMAL_KINDS:
+            raise ValueError(f"primal must be one of {PRIMAL_KINDS}, got {self.primal!r}")
 
     def content(self) -> dict[str, Any]:
         """The settings that define the pixels (everything but ``scenes`` and ``views``).
@@ -150,6 +160,8 @@ class DatasetConfig:
             del data["target"]
         if not data["variance"]:  # as datasets written before it existed
             del data["variance"]
+        if data["primal"] == "base":  # as datasets written before it existed
+            del data["primal"]
         if self.scene_config is None:
             from gdpt.scenes import RandomSceneConfig
 
@@ -279,7 +291,7 @@ def render_crop(
         sizes[name] = path.stat().st_size
         seconds[name] = round(float(buffers.metadata["render_seconds"]), 4)
 
-    def draw(spp: int, seed: int, gradients: bool, variance: bool) -> GradientBuffers:
+    def draw(spp: int, seed: int, gradients: bool, variance: bool, **props: Any) -> GradientBuffers:
         return render(
             scene,
             spp=spp,
@@ -289,11 +301,12 @@ def render_crop(
             gradients=gradients,
             features=True,
             variance=variance,
+            **props,
         )
 
     variance = bool(content.get("variance", False))
     for k, (spp, seed) in enumerate(zip(plan.spp, plan.input_seeds, strict=True)):
-        store(f"in{k}", draw(spp, seed, True, variance))
+        store(f"in{k}", draw(spp, seed, True, variance, primal=content.get("primal", "base")))
     for k, (spp, seed) in enumerate(zip(plan.pt_spp, plan.pt_seeds, strict=True)):
         store(f"pt{k}", draw(spp, seed, False, variance))
     path_traced = content.get("target", "l1") == "pt"

@@ -224,3 +224,33 @@ def test_pool_kind_pools_the_path_traced_input(pt_dataset):
             assert torch.equal(pooled["inputs"][name], p["inputs"][name])
         assert torch.equal(pooled["inputs"]["dx"], g["inputs"]["dx"])
         assert torch.equal(pooled["target"], g["target"])
+
+
+def test_mis_primal_renders_only_the_gdpt_inputs_with_it(
+    tiny_dataset, tiny_dataset_config, tmp_path
+):
+    """``primal="mis"`` reaches the integrator of the G-PT inputs (their primal differs from the
+    base dataset's at the same seeds) and nothing else (path-traced inputs and target equal)."""
+    root = tmp_path / "mis"
+    build_dataset(tiny_dataset_config(views=1, primal="mis"), root, progress=False)
+    assert json.loads((root / "dataset.json").read_text())["config"]["primal"] == "mis"
+    assert "primal" not in json.loads((tiny_dataset / "dataset.json").read_text())["config"]
+    crop = root / "crops" / "s00000-v000"
+    base = tiny_dataset / "crops" / "s00000-v000"
+    for name in ("pt0", "pt4", "target"):
+        torch.testing.assert_close(
+            load_buffers(crop / f"{name}.exr").primal, load_buffers(base / f"{name}.exr").primal
+        )
+    for k in range(5):
+        mis, plain = load_buffers(crop / f"in{k}.exr"), load_buffers(base / f"in{k}.exr")
+        assert (mis.primal - plain.primal).abs().max() > 1e-3, f"in{k}: the base primal"
+    with pytest.raises(ValueError, match="primal"):
+        build_dataset(tiny_dataset_config(views=1), root, progress=False)  # never mixed
+
+
+def test_unknown_primal_is_refused_before_rendering(tmp_path, capsys):
+    out = tmp_path / "never"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["dataset", "--out", str(out), "--scenes", "1", "--views", "1", "--primal", "all"])
+    assert exit_info.value.code == 2 and not out.exists()
+    assert "invalid choice: 'all'" in capsys.readouterr().err

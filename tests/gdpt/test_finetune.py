@@ -3,6 +3,7 @@ writes its run directory, resumes exactly."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Callable
 from functools import partial
@@ -122,3 +123,40 @@ def test_extra_lr_scale_multiplies_the_first_update_of_the_extra_inputs(data, ti
 def test_extra_lr_scale_must_be_positive(data, tiny, tmp_path):
     with pytest.raises(ValueError, match="extra_lr_scale"):
         tiny(data, tmp_path, extra_lr_scale=0.0)
+
+
+def test_nograd_design_trains_on_the_gdpt_input_when_asked(data, tiny, tmp_path):
+    """``input="gdpt"``: the same batches read the G-PT input's primal, not ``pt<k>``'s."""
+    losses = {}
+    for kind in (None, "gdpt"):
+        run = tmp_path / f"run-{kind}"
+        config = tiny(data, run, model="oidn-nograd", steps=1, val_every=0, input=kind)
+        train(config, progress=False)
+        losses[kind] = read_jsonl(run / "log.jsonl")[0]["loss"]
+        assert load_model(run / "model.json")[2]["training"]["input"] == (kind or "pt")
+    assert losses[None] != losses["gdpt"]
+    with pytest.raises(ValueError, match="reads gradients"):
+        train(tiny(data, tmp_path / "grad", input="gdpt"), progress=False)
+
+
+def test_base_model_is_the_start_of_a_finetune(data, tiny, tmp_path):
+    """A fine-tune from ``base_model`` starts at its weights (a 1e-12 step stays there), and
+    the checkpoint must be of the same design."""
+    first = tmp_path / "first"
+    train(tiny(data, first, model="oidn-nograd", steps=1, val_every=0), progress=False)
+    start = first / "model.safetensors"
+    again = tmp_path / "again"
+    config = tiny(data, again, model="oidn-nograd", steps=1, val_every=0, lr=1e-12)
+    train(dataclasses.replace(config, base_model=str(start)), progress=False)
+    trained, _, card = load_model(again / "model.json")
+    assert card["training"]["start"] == str(start)
+    intel = dict(base_model(DESIGNS["oidn-nograd"]).named_parameters())
+    moved = 0.0
+    for name, weight in load_model(start)[0].named_parameters():
+        torch.testing.assert_close(
+            dict(trained.named_parameters())[name], weight, atol=1e-9, rtol=0
+        )
+        moved = max(moved, float((weight - intel[name]).detach().abs().max()))
+    assert moved > 1e-6  # the start is not Intel's weights
+    with pytest.raises(ValueError, match="not 'oidn-grad'"):
+        train(tiny(data, tmp_path / "other", steps=1, base_model=str(start)), progress=False)
