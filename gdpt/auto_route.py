@@ -135,9 +135,10 @@ class RouteChoice:
             pixels), ``window_pixels`` (the statistics' windows), ``statistic`` (the tiles'
             held-out sum in standard errors, < 0: ``fuse`` looks better), ``difference`` (its
             relMSE difference per tile pixel), ``nonfinite`` (terms left out),
-            ``statistics_seconds``, ``seconds_per_spp`` (a plain sample's), ``cost_spp`` (the
-            pilot's cost in plain samples, statistics included), ``measured_cost_ratio`` (from
-            its two passes, clamped to :data:`COST_RATIO_RANGE`).
+            ``statistics_seconds``, ``seconds_per_spp`` (a plain sample's),
+            ``primal_replayed`` (its pooled plain pass replayed its frozen passes),
+            ``cost_spp`` (the pilot's cost in plain samples, statistics included),
+            ``measured_cost_ratio`` (from its two passes, clamped to :data:`COST_RATIO_RANGE`).
     """
 
     route: str
@@ -313,6 +314,7 @@ def run_pilot(
         "share": share_px,
         "window_pixels": window_pixels,
         "seconds_per_spp": seconds_per_spp,
+        "primal_replayed": not render.metadata["primal_only"]["recorded_passes"],
         "cost_spp": render.metadata["render_seconds"] / seconds_per_spp,
         "measured_cost_ratio": cost_ratio,
     }
@@ -546,8 +548,7 @@ def render_route(
         learn_cost_ratio(scene, routed, ratio)
     rest = by_count = max(1, round(left - seconds / info["seconds_per_spp"]))
     if deadline is not None:
-        samples = learned_plain_samples(scene, routed, "gradient") or _per_spp(info)
-        rest = samples_before(deadline, finish, samples)
+        rest = samples_before(deadline, finish, _gradient_route_fill(scene, routed, info))
     plain_sampling = {**fuse.sampling(rest), "gradients": False, "primal_spp": 0, **props}
     plain_seed = (int(seed) ^ rendering.PRIMAL_SEED_SALT) & 0xFFFFFFFF
     plain = rendering.render(scene, spp=rest, seed=plain_seed, **plain_sampling)
@@ -557,6 +558,19 @@ def render_route(
     _learn(scene, routed, "merge_seconds gradient", time.perf_counter() - start)
     merged.metadata["plain_fill"] = {"spp": rest, "count_spp": by_count}
     return merged
+
+
+def _gradient_route_fill(scene: Any, props: dict[str, Any], pilot: dict[str, Any]) -> TimeModel:
+    """The seconds of the gradient route's last plain samples: the line through its last
+    replayed fills on ``scene`` (:func:`learned_plain_samples`) and the ``pilot``'s pooled
+    plain pass where it replayed (the same sampling at ``1.5 G`` samples, timed in this render:
+    it holds the line's slope where the fills so far were small, such as those of a cost
+    model's probes), else at the pilot's seconds per plain sample."""
+    known = learned_plain_samples(scene, props, "gradient")
+    timings = list(known.measurements) if known else []
+    if pilot.get("primal_replayed"):
+        timings.append((pilot["primal_spp"], pilot["seconds_per_spp"] * pilot["primal_spp"]))
+    return TimeModel.fit(timings[-PLAIN_TIMINGS:]) if timings else _per_spp(pilot)
 
 
 def _per_spp(pilot: dict[str, Any]) -> TimeModel:

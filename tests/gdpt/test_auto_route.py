@@ -429,6 +429,42 @@ def test_a_deadline_sizes_the_gradient_routes_plain_samples_from_the_time_left(m
     assert route.learned_merge_seconds(scene, {}, "gradient") == 0.0
 
 
+def test_the_gradient_routes_fill_is_held_by_the_pilots_plain_pass(monkeypatch):
+    """The gradient route times its last plain samples by a line through its replayed fills
+    and the pilot's pooled plain pass (same sampling, a large count, timed in this render)
+    where that pass replayed: small fills (a cost model's probes: 0.02 s per sample) alone
+    would leave half the time unused."""
+    counts: list[int] = []
+
+    class Fake:
+        metadata = {"render_seconds": 0.5, "recorded_passes": 1}
+
+    def fake_render(scene, *, spp, seed, **kwargs):
+        counts.append(spp)
+        return Fake()
+
+    monkeypatch.setattr(route.rendering, "render", fake_render)
+    monkeypatch.setattr(route, "merge_renders", lambda parts: parts[-1])
+    monkeypatch.setattr(route, "pool_primal", lambda gradient, plain: plain)
+    scene = object()
+    route._learn(scene, {}, "plain_samples gradient", route.TimeModel.fit([(2, 0.05), (4, 0.09)]))
+    route.learn_reconstruct_seconds(scene, {}, "fuse", 0.3)
+    info = {"cost_spp": 20.0, "gradient_spp": 8, "share": 0.2, "seconds_per_spp": 0.01}
+    pilot = route.Pilot(Fake(), torch.zeros(4, 4, dtype=torch.bool))
+    for replayed, low, high in ((False, 46, 49), (True, 92, 100)):
+        choice = route.RouteChoice(
+            "gradient",
+            "fuse",
+            "test",
+            pilot={**info, "primal_spp": 100, "primal_replayed": replayed},
+        )
+        route.render_route(
+            scene, choice, pilot, spp=100, seed=0, deadline=time.perf_counter() + 1.3
+        )
+        assert low <= counts[-1] <= high, (replayed, counts[-1])  # 1.0 s: 0.02 s or 0.01 s each
+    route.forget_cost_ratios(scene)
+
+
 def test_a_deadline_sizes_the_plain_routes_samples_from_the_time_left(monkeypatch):
     """With a deadline, the plain route's samples fill what is left of the budget after the
     pilot and before its denoiser's last measured seconds (a slow denoiser: fewer samples than
