@@ -386,12 +386,10 @@ def test_a_learned_ratio_moves_only_past_the_relearn_share():
     assert route.learned_cost_ratio(object(), props) is None
 
 
-def test_a_deadline_sizes_the_gradient_routes_plain_samples_from_the_time_left(monkeypatch):
-    """With a deadline (``render_and_denoise(seconds=...)``), the gradient route's pooled plain
-    samples fill what is left of the budget after the renders so far and before what followed
-    them last time (``fuse``'s reconstruction, the pooling; nothing before a reconstruction
-    was measured), at the pilot's seconds per plain sample, then at those of the route's last
-    pooled samples that replayed their passes; without a deadline, the count left of ``spp``."""
+def _fake_gradient_route(monkeypatch) -> tuple[list[int], type]:
+    """Renders of the gradient route replaced by a ``Fake`` class (its ``metadata``: 0.5 s, a
+    recording, changeable) whose counts are logged in the returned list; merging and pooling
+    return the last render."""
     counts: list[int] = []
 
     class Fake:
@@ -404,6 +402,16 @@ def test_a_deadline_sizes_the_gradient_routes_plain_samples_from_the_time_left(m
     monkeypatch.setattr(route.rendering, "render", fake_render)
     monkeypatch.setattr(route, "merge_renders", lambda parts: parts[-1])
     monkeypatch.setattr(route, "pool_primal", lambda gradient, plain: plain)
+    return counts, Fake
+
+
+def test_a_deadline_sizes_the_gradient_routes_plain_samples_from_the_time_left(monkeypatch):
+    """With a deadline (``render_and_denoise(seconds=...)``), the gradient route's pooled plain
+    samples fill what is left of the budget after the renders so far and before what followed
+    them last time (``fuse``'s reconstruction, the pooling; nothing before a reconstruction
+    was measured), at the pilot's seconds per plain sample, then at those of the route's last
+    pooled samples that replayed their passes; without a deadline, the count left of ``spp``."""
+    counts, Fake = _fake_gradient_route(monkeypatch)
     info = {"cost_spp": 20.0, "gradient_spp": 8, "share": 0.2, "seconds_per_spp": 0.01}
     choice = route.RouteChoice("gradient", "fuse", "test", pilot=info)
     pilot = route.Pilot(Fake(), torch.zeros(4, 4, dtype=torch.bool))
@@ -434,18 +442,7 @@ def test_the_gradient_routes_fill_is_held_by_the_pilots_plain_pass(monkeypatch):
     and the pilot's pooled plain pass (same sampling, a large count, timed in this render)
     where that pass replayed: small fills (a cost model's probes: 0.02 s per sample) alone
     would leave half the time unused."""
-    counts: list[int] = []
-
-    class Fake:
-        metadata = {"render_seconds": 0.5, "recorded_passes": 1}
-
-    def fake_render(scene, *, spp, seed, **kwargs):
-        counts.append(spp)
-        return Fake()
-
-    monkeypatch.setattr(route.rendering, "render", fake_render)
-    monkeypatch.setattr(route, "merge_renders", lambda parts: parts[-1])
-    monkeypatch.setattr(route, "pool_primal", lambda gradient, plain: plain)
+    counts, Fake = _fake_gradient_route(monkeypatch)
     scene = object()
     route._learn(scene, {}, "plain_samples gradient", route.TimeModel.fit([(2, 0.05), (4, 0.09)]))
     route.learn_reconstruct_seconds(scene, {}, "fuse", 0.3)
