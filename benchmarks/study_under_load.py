@@ -38,7 +38,11 @@ machine (the second run adds its own load)::
     .venv/bin/python benchmarks/study_under_load.py --references /work/main/out/refs128 \\
         --out out/study-under-load
 
-``--workers N`` passes ``--workers N`` to both studies (Ray; default: sequential).
+``--control`` adds a third run, idle again (``OUT/idle-2``), after the loaded one, and puts its
+count proportions beside the loaded run's (``idle 2/idle``): how far two idle runs of the same
+study disagree per cell, the noise floor the idle/busy bar is read against.
+
+``--workers N`` passes ``--workers N`` to the studies (Ray; default: sequential).
 ``--compare-workers N`` adds a third run, idle, with ``--workers N`` (``OUT/workers-N``), and
 compares it with the idle sequential run: the key structure of ``results.json`` (every key
 path, the values aside) and the report files, and per method the cells' ratios, workers over
@@ -88,6 +92,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         type=int,
         metavar="N",
         help="also run the study idle with --workers N and compare it with the sequential run",
+    )
+    parser.add_argument(
+        "--control",
+        action="store_true",
+        help="also run the study idle a second time (OUT/idle-2): the count bar's noise floor",
     )
     parser.add_argument("--force", action="store_true", help="run again even if complete")
     parser.add_argument(
@@ -183,26 +192,42 @@ def cell_ratios(
     return out
 
 
-def count_table(idle: dict, loaded: dict) -> tuple[str, dict]:
-    """Per cell and method the sample-count proportion to the baseline, idle and loaded."""
-    counts = {"idle": cell_ratios(idle, spp), "loaded": cell_ratios(loaded, spp)}
-    cells = sorted(set(counts["idle"]) & set(counts["loaded"]))
+def count_table(idle: dict, loaded: dict, control: dict | None = None) -> tuple[str, dict]:
+    """Per cell and method the sample-count proportion to the baseline, idle and loaded (and,
+    with ``control``, a second idle run: the bar's noise floor, the same comparison without
+    the load)."""
+    runs = {"idle": idle, "loaded": loaded, **({"control": control} if control else {})}
+    counts = {name: cell_ratios(results, spp) for name, results in runs.items()}
+    cells = sorted(set.intersection(*(set(c) for c in counts.values())))
     methods = sorted({m for r in counts["idle"].values() for m in r})
-    lines = [f"Per cell: spp / spp of `{BASELINE}` in the same cell (the idle/busy bar).", ""]
-    lines += ["| scene | budget s | seed | method | idle | loaded | loaded/idle | within 10% |"]
-    lines += ["|---|---:|---:|---|---:|---:|---:|---|"]
+    lines = [f"Per cell: spp / spp of `{BASELINE}` in the same cell (the idle/busy bar)", ""]
+    head = "| scene | budget s | seed | method | idle | loaded | loaded/idle | within 10% |"
+    rule = "|---|---:|---:|---|---:|---:|---:|---|"
+    if control:
+        lines[0] += "; the control: a second idle run against the first"
+        head += " idle 2 | idle 2/idle | within 10% |"
+        rule += "---:|---:|---|"
+    lines[0] += "."
+    lines += [head, rule]
     numbers: dict = {}
+    within = lambda change: 1 / (1 + AGREEMENT) <= change <= 1 + AGREEMENT  # noqa: E731
     for cell in cells:
         for m in methods:
             a, b = counts["idle"][cell].get(m), counts["loaded"][cell].get(m)
             if not (a and b):
                 continue
-            ok = 1 / (1 + AGREEMENT) <= b / a <= 1 + AGREEMENT
-            numbers.setdefault(m, []).append({"cell": list(cell), "change": b / a, "ok": ok})
-            lines.append(
-                f"| {cell[0]} | {cell[1]} | {cell[2]} | {m} | {a:.3f} | {b:.3f} | {b / a:.3f} "
-                f"| {'yes' if ok else 'NO'} |"
-            )
+            entry = {"cell": list(cell), "change": b / a, "ok": within(b / a)}
+            row = f"| {cell[0]} | {cell[1]} | {cell[2]} | {m} | {a:.3f} | {b:.3f} | {b / a:.3f} "
+            row += f"| {'yes' if entry['ok'] else 'NO'} |"
+            if control and (c := counts["control"][cell].get(m)):
+                entry.update(control=c / a, control_ok=within(c / a))
+                row += f" {c:.3f} | {c / a:.3f} | {'yes' if entry['control_ok'] else 'NO'} |"
+            numbers.setdefault(m, []).append(entry)
+            lines.append(row)
+    entries = [e for v in numbers.values() for e in v]
+    lines += ["", f"Within 10%: loaded/idle {sum(e['ok'] for e in entries)} of {len(entries)}"]
+    if control:
+        lines[-1] += f"; idle 2/idle {sum(e.get('control_ok', 0) for e in entries)}"
     return "\n".join(lines) + "\n", numbers
 
 
@@ -418,7 +443,8 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     timing = {}
     if not args.summary_only:
-        for name, loaded in (("idle", False), ("loaded", True)):
+        runs = [("idle", False), ("loaded", True), *([("idle-2", False)] if args.control else [])]
+        for name, loaded in runs:
             print(f"== {name}: {' '.join(study_command(args, args.out / name))}", flush=True)
             timing[name] = run_study(args, args.out / name, loaded)
         if args.compare_workers:
@@ -430,7 +456,9 @@ def main(argv: list[str] | None = None) -> int:
             timing[name] = run_study(args, out, False, args.compare_workers)
     runs = {n: json.loads((args.out / n / "results.json").read_text()) for n in ("idle", "loaded")}
     text, numbers = summarise(runs["idle"], runs["loaded"])
-    table, numbers["counts"] = count_table(runs["idle"], runs["loaded"])
+    control = args.out / "idle-2" / "results.json"
+    control_run = json.loads(control.read_text()) if args.control and control.is_file() else None
+    table, numbers["counts"] = count_table(runs["idle"], runs["loaded"], control_run)
     text += "\n" + table
     anchors_path = args.out / "anchors.json"
     if args.anchor_reps and not args.summary_only:
