@@ -383,7 +383,16 @@ def key_paths(value: Any, prefix: str = "") -> set[str]:
 
 #: Key paths whose presence depends on the run, not on the engine: timing records only a redo
 #: or a flag writes, the engine's own description.
-RUN_DEPENDENT = ("redone", "missed_budget", "engine", "added", "worker.")
+RUN_DEPENDENT = (
+    "redone",
+    "missed_budget",
+    "engine",
+    "added",
+    "worker.",
+    "threads.address",  # Ray's: the cluster's address, CPUs and timed cell slots
+    "threads.cluster_cpus",
+    "threads.timed_cell_slots",
+)
 
 
 def compare_workers(sequential: dict, parallel: dict, out: Path, workers: Path) -> tuple[str, dict]:

@@ -87,6 +87,8 @@ class MethodAdvice:
         spp: its samples per pixel (calibrated to the budget, or the given ``spp``).
         seconds: its measured seconds per replicate (kernel compilation excluded, as in the
             study; the first render at a sample count also records its frozen passes).
+        recorded: per replicate, whether its render recorded frozen passes (its seconds then
+            hold their tracing).
         estimate: its relMSE ratio to the first method (``None`` for the first, or where it
             cannot be estimated: :attr:`note`).
         plain_share: share of the ratio's variance that ``P``'s noise makes up (``nan``:
@@ -97,6 +99,7 @@ class MethodAdvice:
     name: str
     spp: int
     seconds: list[float] = field(default_factory=list)
+    recorded: list[bool] = field(default_factory=list)
     estimate: RatioEstimate | None = None
     plain_share: float = math.nan
     note: str | None = None
@@ -285,6 +288,7 @@ def _render_and_score(
             if model is not None and not result.recorded:  # (a recording is not the samples')
                 model.update(record.spp, result.seconds)  # every timed run refines its model
             record.seconds.append(result.seconds)
+            record.recorded.append(result.recorded)
             images[m].append(result.image)
             advice.images.setdefault(method.name, []).append(result.image)
             bad = int((~torch.isfinite(result.image)).any(-1).sum())
@@ -339,8 +343,12 @@ def _recommend(methods: list[MethodAdvice]) -> tuple[str | None, list[str]]:
 
 
 def _method_line(method: MethodAdvice, base: str, width: int) -> str:
-    seconds = sum(method.seconds) / max(len(method.seconds), 1)
+    replayed = [s for s, r in zip(method.seconds, method.recorded, strict=True) if not r]
+    timed = replayed or method.seconds  # a recording's seconds are not the samples'
+    seconds = sum(timed) / max(len(timed), 1)
     head = f"  {method.name:<{width}}  spp {method.spp:>6}  {seconds:6.2f} s"
+    if timed and not replayed:
+        head += " (with pass recording)"
     if method.name == base:
         return f"{head}  1.00 (the baseline)"
     if method.estimate is None:

@@ -296,3 +296,36 @@ def test_feature_plain_count_keeps_three_pass_sizes():
         kept = few_pass_sizes(spp)
         assert bin(kept).count("1") <= 3 and 0.75 * spp < kept <= spp
     assert few_pass_sizes(109) == 104 and few_pass_sizes(7) == 7
+
+
+def test_feature_a_recording_is_said_and_replays_are_shown(monkeypatch):
+    """A candidate's line shows the seconds of its renders that replayed their frozen passes;
+    where every render recorded them, its seconds hold their tracing and the line says so."""
+    import dataclasses
+
+    from gdpt.study.methods import EVAL_METHODS
+
+    def clock(name: str, recorded: list[bool], seconds: list[float]) -> None:
+        method, calls = EVAL_METHODS[name], iter(zip(recorded, seconds, strict=True))
+
+        def run(scene, *, spp: int, seed: int):
+            result = method.run(scene, spp=spp, seed=seed)
+            was_recorded, took = next(calls)
+            return dataclasses.replace(result, recorded=was_recorded, seconds=took)
+
+        monkeypatch.setitem(EVAL_METHODS, name, dataclasses.replace(method, run=run))
+
+    clock("pt+oidn-tuned", [True, False], [5.0, 1.0])
+    clock("pt", [True, True], [9.0, 7.0])
+    advice = gdpt.advise(
+        "builtin:cbox-demo",
+        spp=4,
+        methods=METHODS[:2],
+        replicates=2,
+        plain_spp=64,
+        long_side=32,
+        progress=False,
+    )
+    lines = {line.split()[0]: line for line in advice.lines if line.startswith("  ")}
+    assert "1.00 s  1.00 (the baseline)" in lines["pt+oidn-tuned"]  # its replay only
+    assert "8.00 s (with pass recording)" in lines["pt"]
