@@ -4,7 +4,8 @@
   one or more ``gdpt train`` run directories (PNG).
 * :func:`compare_models`: every held-out crop and input level of a dataset reconstructed by each
   network (16-channel networks read the G-PT input ``in<k>``, 10-channel ones the path-traced
-  input ``pt<k>`` rendered with 2.5x the samples), by L1 screened Poisson on ``in<k>`` and, when
+  input ``pt<k>`` rendered with 2.5x the samples unless their card says they were trained on
+  another: :func:`input_kind`), by L1 screened Poisson on ``in<k>`` and, when
   ``mitsuba-oidn`` is installed, by OIDN on ``pt<k>``; mean relMSE and LDR-FLIP per input level,
   with the measured render times of both inputs from the dataset manifest (so the equal-time
   claim of the 2.5x rule can be checked) and the measured reconstruction times.
@@ -111,10 +112,14 @@ def _timed(fn: Any, *args: Any) -> tuple[torch.Tensor, float]:
 
 
 def input_kind(reconstructor: Any) -> str:
-    """The dataset input kind a reconstructor reads: ``"pool"`` when its card pools plain path
-    samples into the primal (``sampling.primal_spp_factor``), else ``"gdpt"`` with gradients,
-    else ``"pt-variance"`` with the primal's variance (KPCN), else ``"pt"``."""
+    """The dataset input kind a reconstructor reads: the one its card says it was trained on
+    (``training.input``: a no-gradient network fine-tuned on the G-PT primal reads ``"gdpt"``),
+    else ``"pool"`` when its card pools plain path samples into the primal
+    (``sampling.primal_spp_factor``), else ``"gdpt"`` with gradients, else ``"pt-variance"``
+    with the primal's variance (KPCN), else ``"pt"``."""
     card = getattr(reconstructor, "card", {}) or {}
+    if trained := card.get("training", {}).get("input"):
+        return trained
     if card.get("sampling", {}).get("primal_spp_factor"):
         return "pool"
     if "dx" in reconstructor.features:

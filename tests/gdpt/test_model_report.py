@@ -148,6 +148,8 @@ def test_input_kind_follows_the_card_and_the_features():
     assert kind(SimpleNamespace(features=grad, card=pooled)) == "pool"
     assert kind(SimpleNamespace(features=grad, card={})) == "gdpt"
     assert kind(SimpleNamespace(features=grad[:3])) == "pt"
+    on_gdpt = {"training": {"input": "gdpt"}}  # fine-tuned on the G-PT primal, no gradients
+    assert kind(SimpleNamespace(features=grad[:3], card=on_gdpt)) == "gdpt"
 
 
 def test_a_model_of_an_unknown_family_is_refused_by_name(runs, tmp_path, capsys):
