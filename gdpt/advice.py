@@ -87,8 +87,7 @@ class MethodAdvice:
         spp: its samples per pixel (calibrated to the budget, or the given ``spp``).
         seconds: its measured seconds per replicate (kernel compilation excluded, as in the
             study; the first render at a sample count also records its frozen passes).
-        recorded: per replicate, whether its render recorded frozen passes (its seconds then
-            hold their tracing).
+        recorded: per replicate, whether its render recorded frozen passes (their tracing).
         estimate: its relMSE ratio to the first method (``None`` for the first, or where it
             cannot be estimated: :attr:`note`).
         plain_share: share of the ratio's variance that ``P``'s noise makes up (``nan``:
@@ -225,14 +224,11 @@ def _render_command(
             words += ["--time", f"{budget:g}"]
     else:
         return None
-    if "--time" not in words:
-        words += ["--spp", str(spp)]
-    if options["long_side"] is not None:
-        words += ["--long-side", str(options["long_side"])]
-    if options["box_filter"]:
-        words.append("--box-filter")
-    if options["max_depth"] is not None:
-        words += ["--max-depth", str(options["max_depth"])]
+    words += [] if "--time" in words else ["--spp", str(spp)]
+    for option in ("long_side", "max_depth"):
+        if options[option] is not None:
+            words += [f"--{option.replace('_', '-')}", str(options[option])]
+    words += ["--box-filter"] if options["box_filter"] else []
     return shlex.join([*words, "-o", f"out/{out_name}-{method or name}.exr"])
 
 
@@ -344,11 +340,9 @@ def _recommend(methods: list[MethodAdvice]) -> tuple[str | None, list[str]]:
 
 def _method_line(method: MethodAdvice, base: str, width: int) -> str:
     replayed = [s for s, r in zip(method.seconds, method.recorded, strict=True) if not r]
-    timed = replayed or method.seconds  # a recording's seconds are not the samples'
-    seconds = sum(timed) / max(len(timed), 1)
-    head = f"  {method.name:<{width}}  spp {method.spp:>6}  {seconds:6.2f} s"
-    if timed and not replayed:
-        head += " (with pass recording)"
+    seconds = statistics.fmean(replayed or method.seconds or [0.0])  # a recording's: tracing
+    said = " (with pass recording)" if method.seconds and not replayed else ""
+    head = f"  {method.name:<{width}}  spp {method.spp:>6}  {seconds:6.2f} s{said}"
     if method.name == base:
         return f"{head}  1.00 (the baseline)"
     if method.estimate is None:
