@@ -340,7 +340,7 @@ def _recommend(methods: list[MethodAdvice]) -> tuple[str | None, list[str]]:
 
 def _method_line(method: MethodAdvice, base: str, width: int) -> str:
     replayed = [s for s, r in zip(method.seconds, method.recorded, strict=True) if not r]
-    seconds = statistics.fmean(replayed or method.seconds or [0.0])  # a recording's: tracing
+    seconds = statistics.fmean(replayed or method.seconds or [0.0])  # recordings: + tracing
     said = " (with pass recording)" if method.seconds and not replayed else ""
     head = f"  {method.name:<{width}}  spp {method.spp:>6}  {seconds:6.2f} s{said}"
     if method.name == base:
