@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import html
 import os
+import statistics
 from pathlib import Path
 from typing import Any
 
@@ -217,6 +218,35 @@ def _cells_line(results: dict[str, Any]) -> str | None:
     )
 
 
+#: A study whose render-bound timed runs got less than this share of their Dr.Jit threads' CPU
+#: time (median over the replicates; another process took the rest) is reported busy: idle, the
+#: 2-core VM's runs got 96-99%, beside one busy loop 60-66%.
+BUSY_SHARE = 0.85
+
+
+def _busy_line(results: dict[str, Any]) -> str | None:
+    """A warning where the timed runs shared the machine (:data:`BUSY_SHARE`; over the
+    replicates whose render took at least half their seconds, since a reconstruction runs on
+    one torch thread), else ``None``."""
+    shares = [
+        rep["cpu_per_wall"] / threads
+        for _, entry in _scenes(results)
+        for run in entry.get("cell_runs", {}).values()
+        if (threads := run.get("worker", {}).get("threads", {}).get("drjit"))
+        for rep in run.get("replicates", {}).values()
+        if rep.get("cpu_per_wall") and rep.get("render_seconds", 0) >= 0.5 * rep["seconds"]
+    ]
+    if not shares or (share := statistics.median(shares)) >= BUSY_SHARE:
+        return None
+    return (
+        f"Busy machine: the timed renders got a median {share:.0%} of their threads' CPU time "
+        "(other work took the rest). Each cell's sample counts follow its timings, and beside "
+        "other work those vary from cell to cell: a cell's count proportions between methods "
+        "can move by 10-20% either way (docs/evaluation.md, beside a busy loop). Compare "
+        "methods on an otherwise idle machine."
+    )
+
+
 def _run_summary(results: dict[str, Any]) -> list[str]:
     cfg, machine, versions = results["config"], results["machine"], results["versions"]
     runs = results.get("runs", [])
@@ -239,6 +269,8 @@ def _run_summary(results: dict[str, Any]) -> list[str]:
             f"{cost['timed_seconds']:.0f} s of timed renders ({cost['ratio']:.1f}x; the rest: "
             "loading, references, compilation, calibration, warm-ups)."
         )
+    if busy := _busy_line(results):
+        lines.append(busy)
     if command:
         lines.insert(0, f"Command: `{command}`")
     return lines

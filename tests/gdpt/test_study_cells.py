@@ -480,3 +480,22 @@ def test_ray_workers_give_the_sequential_results_and_rerun_a_killed_cell(
     ]
     assert references[0] == references[1]
     assert "compare timings only within a cell" in (tmp_path / "ray" / "results.md").read_text()
+
+
+def test_a_study_whose_renders_shared_the_machine_is_reported_busy():
+    """The run summary warns where the render-bound timed runs got a median under
+    ``BUSY_SHARE`` of their Dr.Jit threads' CPU time; reconstruction-bound runs (one torch
+    thread) do not count, and an idle study gets no warning."""
+    from gdpt.study.report import BUSY_SHARE, _busy_line
+
+    def study(cpu_per_wall: float, render_share: float = 0.95) -> dict:
+        replicate = {"cpu_per_wall": cpu_per_wall, "seconds": 2.0}
+        replicate["render_seconds"] = render_share * 2.0
+        run = {"worker": {"threads": {"drjit": 2}}, "replicates": {"pt": replicate}}
+        return {"scenes": {"a": {"cell_runs": {"2/0": run, "2/1": run}}}}
+
+    assert _busy_line(study(1.97)) is None
+    assert "median 60%" in _busy_line(study(1.2))
+    assert _busy_line(study(2 * BUSY_SHARE)) is None
+    assert _busy_line(study(1.0, render_share=0.3)) is None  # its reconstruction's one thread
+    assert _busy_line({"scenes": {}}) is None
