@@ -50,17 +50,17 @@ from __future__ import annotations
 
 import math
 import os
-import shlex
 import statistics
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from gdpt.advice_report import MethodAdvice, method_line, recommend, render_command
+
 if TYPE_CHECKING:
     import torch
 
     from gdpt.cost_model import TimeModel
-    from gdpt.reconstruct.reference_free import RatioEstimate
     from gdpt.seconds_bar import StageBars
     from gdpt.study.methods import EvalMethod
     from gdpt.study.scenes import EvalScene
@@ -76,32 +76,6 @@ DEFAULT_BUDGET = 4.0
 #: ``P`` is nearly black when fewer than this share of its pixels are brighter than
 #: ``sqrt(eps)`` (where the relMSE weight is half its largest value).
 BRIGHT_SHARE = 0.01
-
-
-@dataclass
-class MethodAdvice:
-    """One candidate of :func:`advise`.
-
-    Attributes:
-        name: study method name (:data:`gdpt.study.methods.EVAL_METHODS`).
-        spp: its samples per pixel (calibrated to the budget, or the given ``spp``).
-        seconds: its measured seconds per replicate (kernel compilation excluded, as in the
-            study; the first render at a sample count also records its frozen passes).
-        recorded: per replicate, whether its render recorded frozen passes (their tracing).
-        estimate: its relMSE ratio to the first method (``None`` for the first, or where it
-            cannot be estimated: :attr:`note`).
-        plain_share: share of the ratio's variance that ``P``'s noise makes up (``nan``:
-            not measured).
-        note: why it has no estimate, else ``None``.
-    """
-
-    name: str
-    spp: int
-    seconds: list[float] = field(default_factory=list)
-    recorded: list[bool] = field(default_factory=list)
-    estimate: RatioEstimate | None = None
-    plain_share: float = math.nan
-    note: str | None = None
 
 
 @dataclass
@@ -208,30 +182,6 @@ def _load(scene: Any, long_side: int | None, box_filter: bool, max_depth: int | 
     return EvalScene(name, loaded.scene, depth, loaded.resolution, [*loaded.notes, note])
 
 
-def _render_command(
-    name: str, spp: int, scene: Any, options: dict[str, Any], out_name: str, budget: float | None
-) -> str | None:
-    """The ``gdpt`` command that renders study method ``name`` at ``spp``, or in ``budget``
-    seconds (``--time``) where one was given and the command takes it (``None``: none)."""
-    from gdpt.methods import METHODS
-
-    sampler, _, method = name.partition("+")
-    if name == "pt":
-        words = ["gdpt", "render", str(scene), "--no-gradients"]
-    elif name == "auto" or (sampler in ("pt", "gdpt") and method in METHODS):
-        words = ["gdpt", "render-and-denoise", str(scene), "--method", method or name]
-        if budget is not None:
-            words += ["--time", f"{budget:g}"]
-    else:
-        return None
-    words += [] if "--time" in words else ["--spp", str(spp)]
-    for option in ("long_side", "max_depth"):
-        if options[option] is not None:
-            words += [f"--{option.replace('_', '-')}", str(options[option])]
-    words += ["--box-filter"] if options["box_filter"] else []
-    return shlex.join([*words, "-o", f"out/{out_name}-{method or name}.exr"])
-
-
 def _render_and_score(
     advice: Advice, scene: EvalScene, candidates: list, seed: int, stages: StageBars
 ) -> None:
@@ -301,8 +251,8 @@ def _render_and_score(
     for m, (estimate, share) in zip(scored[1:], estimates, strict=True):
         advice.methods[m].estimate, advice.methods[m].plain_share = estimate, share
     width = max(len(m.name) for m in advice.methods)
-    advice.lines += [_method_line(m, advice.methods[0].name, width) for m in advice.methods]
-    advice.recommended, lines = _recommend(advice.methods)
+    advice.lines += [method_line(m, advice.methods[0].name, width) for m in advice.methods]
+    advice.recommended, lines = recommend(advice.methods)
     advice.lines += lines
     unsure = [m for m in advice.methods[1:] if m.estimate is not None and not m.estimate.separated]
     if unsure:
@@ -312,60 +262,6 @@ def _render_and_score(
             if plain_heavy
             else "to tighten: more replicates (the methods' own noise is most of the variance)"
         )
-
-
-def _recommend(methods: list[MethodAdvice]) -> tuple[str | None, list[str]]:
-    """The recommended method and the lines that say why (the last starts ``recommended:``)."""
-    base = methods[0].name
-    scored = [m for m in methods[1:] if m.estimate is not None]
-    better = [m for m in scored if m.estimate.separated and m.estimate.high < 1.0]
-    if better:
-        best = min(better, key=lambda m: m.estimate.ratio)
-        e = best.estimate
-        return best.name, [
-            f"recommended: {best.name} ({e.ratio:.2f}x {base}'s relMSE, 95% interval "
-            f"{e.low:.2f}-{e.high:.2f})"
-        ]
-    lines = []
-    unsure = [m.name for m in scored if not m.estimate.separated]
-    told = [m.name for m in scored if m.estimate.bounded and not m.estimate.concentrated]
-    if unsure:
-        why = "the interval includes 1" + ("" if set(unsure) <= set(told) else ", or cannot tell")
-        lines.append(f"no measurable difference between {base} and {', '.join(unsure)} ({why})")
-    if not scored:
-        return None, [f"recommended: none (no method could be compared with {base})"]
-    why = "no other method is measurably better" if unsure else "every other method is worse"
-    return base, [*lines, f"recommended: {base} ({why})"]
-
-
-def _method_line(method: MethodAdvice, base: str, width: int) -> str:
-    replayed = [s for s, r in zip(method.seconds, method.recorded, strict=True) if not r]
-    seconds = statistics.fmean(replayed or method.seconds or [0.0])  # recordings: + tracing
-    said = " (with pass recording)" if method.seconds and not replayed else ""
-    head = f"  {method.name:<{width}}  spp {method.spp:>6}  {seconds:6.2f} s{said}"
-    if method.name == base:
-        return f"{head}  1.00 (the baseline)"
-    if method.estimate is None:
-        return f"{head}  cannot tell: {method.note}"
-    e = method.estimate
-    if not e.bounded:
-        return f"{head}  cannot tell: {base}'s estimated error is not separated from 0"
-    if e.concentrated:
-        return (
-            f"{head}  cannot tell: {e.ratio:.2f}, but a handful of pixels carry the difference "
-            f"(P is lit in {e.lit} of {e.blocks} blocks of 8 px)"
-        )
-    verdict = (
-        ("lower: separated from 1" if e.high < 1 else "higher: separated from 1")
-        if e.separated
-        else "includes 1: no measurable difference"
-    )
-    share = (
-        f", P's noise {e_share:.0%} of its variance"
-        if math.isfinite(e_share := method.plain_share)
-        else ""
-    )
-    return f"{head}  {e.ratio:.2f} [{e.low:.2f}, {e.high:.2f}] {verdict} (z {e.z:+.1f}{share})"
 
 
 def _reconstruction_seconds(
@@ -583,7 +479,7 @@ def advise(
     options = {"long_side": long_side, "box_filter": box_filter, "max_depth": max_depth}
     if advice.recommended is not None:
         chosen = next(m for m in advice.methods if m.name == advice.recommended)
-        advice.command = _render_command(
+        advice.command = render_command(
             chosen.name, chosen.spp, scene, options, loaded.name, budget
         )
     spent = advice.stage_seconds

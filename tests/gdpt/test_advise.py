@@ -254,14 +254,14 @@ def test_feature_interval_covers_the_true_ratio_on_a_rendered_scene():
 
 
 def test_the_recommended_command_is_in_seconds_at_a_budget():
-    from gdpt.advice import _render_command
+    from gdpt.advice_report import render_command
 
     options = {"long_side": 128, "box_filter": False, "max_depth": None}
-    timed = _render_command("gdpt+fuse", 40, "builtin:cbox-demo", options, "cbox", 4.0)
+    timed = render_command("gdpt+fuse", 40, "builtin:cbox-demo", options, "cbox", 4.0)
     assert "--method fuse --time 4 --long-side 128" in timed and "--spp" not in timed
-    counted = _render_command("gdpt+fuse", 40, "builtin:cbox-demo", options, "cbox", None)
+    counted = render_command("gdpt+fuse", 40, "builtin:cbox-demo", options, "cbox", None)
     assert "--method fuse --spp 40" in counted and "--time" not in counted
-    assert "--spp 40" in _render_command("pt", 40, "x.xml", options, "x", 4.0)  # gdpt render
+    assert "--spp 40" in render_command("pt", 40, "x.xml", options, "x", 4.0)  # gdpt render
 
 
 def test_feature_a_second_advice_takes_its_counts_from_the_kept_models(

@@ -23,7 +23,8 @@ from gdpt.reconstruct.reference_free import (
     relmse_weights,
 )
 
-from gdpt.advice import MethodAdvice, _method_line, _recommend
+from gdpt.advice import MethodAdvice
+from gdpt.advice_report import method_line, recommend
 from gdpt.study.estimate import estimate_ratios, plain_record
 
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -219,6 +220,6 @@ def test_exception_black_but_for_a_few_pixels_cannot_tell():
     assert estimate.lit < MIN_LIT_BLOCKS and not estimate.separated
     methods = [MethodAdvice("pt+oidn-tuned", 4), MethodAdvice("gdpt+fuse", 4, estimate=estimate)]
     methods[1].plain_share = share
-    assert "cannot tell" in _method_line(methods[1], "pt+oidn-tuned", 16)
-    recommended, lines = _recommend(methods)
+    assert "cannot tell" in method_line(methods[1], "pt+oidn-tuned", 16)
+    recommended, lines = recommend(methods)
     assert recommended == "pt+oidn-tuned" and "cannot tell" in lines[0], lines
