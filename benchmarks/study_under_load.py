@@ -43,7 +43,7 @@ count proportions beside the loaded run's (``idle 2/idle``): how far two idle ru
 study disagree per cell, the noise floor the idle/busy bar is read against.
 
 ``--workers N`` passes ``--workers N`` to the studies (Ray; default: sequential).
-``--compare-workers N`` adds a third run, idle, with ``--workers N`` (``OUT/workers-N``), and
+``--compare-workers N`` adds a run, idle, with ``--workers N`` (``OUT/workers-N``), and
 compares it with the idle sequential run: the key structure of ``results.json`` (every key
 path, the values aside) and the report files, and per method the cells' ratios, workers over
 sequential: their geometric mean and its 95% t interval over the cells (the two runs' seeds are
